@@ -1,0 +1,318 @@
+"""Per-Gaussian textures in power-of-two buckets, their mip pyramids, and one flat texel atlas.
+
+Storage
+  A texture of n x n texels (any n >= 1) lives in bucket ``b = ceil(log2 n)``, whose slots are
+  ``P x P`` with ``P = 2**b``; only the top-left ``n x n`` block is used (the rest stays zero and
+  receives no gradient). Index ``[a, c]`` of a texture runs along the splat's first tangent axis (u)
+  for ``a`` and the second (v) for ``c``. A texture spans the splat-plane square ``[-3, 3]^2`` in
+  units of the scales, align-corners: texel 0 sits at -3 and texel n-1 at +3; lookups are bilinear
+  and clamp at the edges. A 1 x 1 texture is a constant.
+
+Mip pyramid (paper Eqs. 11-13)
+  ``L = ceil(log2 n)`` levels above level 0; level 0 is the texture itself (n x n) and level k >= 1
+  has ``2**(L-k)`` texels a side. Level k is computed from level k-1 by an antialiased bilinear
+  (tent-filter) downsampling over the align-corners texel positions: output texel j takes the
+  weights ``max(0, 1 - |x_i - y_j| / h)`` of the input texels i, normalised to sum to one, where h is
+  the output texel spacing (a 1-texel level is the mean of its parent). Constants are preserved
+  exactly, and for power-of-two n each level is a low-pass of the previous one.
+
+Atlas
+  Rendering gathers every texel, of every bucket and level, from one flat ``(M, channels)`` array,
+  addressed per Gaussian and level by a base offset, a row stride and a size (see :func:`build_atlas`).
+  Only the levels a configuration uses are built.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def bucket_of(n: int) -> int:
+    """Bucket index ``ceil(log2 n)`` of an n x n texture (n >= 1)."""
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"texture size must be >= 1, got {n}")
+    return (n - 1).bit_length()
+
+
+def mip_level_sizes(n: int) -> list[int]:
+    """Side lengths of the pyramid of an n x n texture: ``[n, 2**(L-1), ..., 1]``, L = ceil(log2 n)."""
+    L = bucket_of(n)
+    return [int(n)] + [2 ** (L - k) for k in range(1, L + 1)]
+
+
+@functools.lru_cache(maxsize=None)
+def downsample_matrix(size_in: int, size_out: int) -> np.ndarray:
+    """(size_out, size_in) float64 tent-filter resampling matrix between align-corners grids.
+
+    Rows sum to one. ``size_out == 1`` gives the mean. Used separably: ``D @ X @ D.T``.
+    """
+    if size_out == 1:
+        return np.full((1, size_in), 1.0 / size_in)
+    if size_in == 1:
+        return np.ones((size_out, 1))
+    x = np.linspace(-3.0, 3.0, size_in)
+    y = np.linspace(-3.0, 3.0, size_out)
+    h = 6.0 / (size_out - 1)
+    w = np.maximum(0.0, 1.0 - np.abs(x[None, :] - y[:, None]) / max(h, 6.0 / (size_in - 1)))
+    return w / w.sum(axis=1, keepdims=True)
+
+
+@functools.lru_cache(maxsize=None)
+def _first_level_table(P: int) -> np.ndarray:
+    """(P//2, P//2, P) float32: for n = P//2 + 1 + i, the level-0 (n) to level-1 (P//2) matrix.
+
+    Columns beyond n are zero, so the padding of a bucket slot never leaks into the pyramid.
+    """
+    half = P // 2
+    table = np.zeros((half, half, P), np.float32)
+    for i in range(half):
+        n = half + 1 + i
+        table[i, :, :n] = downsample_matrix(n, half)
+    return table
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TextureBank:
+    """Textures of one channel group (RGB offsets or alpha) for a scene of capacity C.
+
+    Attributes:
+      buckets: tuple of B arrays; ``buckets[b]`` is (capacity_b, 2**b, 2**b, channels) float32.
+        Bucket capacities are static (shapes); a zero-capacity bucket costs nothing.
+      bucket: (C,) float32 holding exact integers: the Gaussian's bucket, -1 for no texture.
+      slot: (C,) float32 holding exact integers: the slot inside that bucket.
+      size: (C,) float32 holding exact integers: the true side n (0 for no texture).
+      channels: 3 for RGB, 1 for alpha (static).
+
+    Indices are stored as float32 so that ``jax.grad`` over a whole Scene works without
+    ``allow_int``; they receive zero gradient and are exact up to 2**24.
+    """
+
+    buckets: tuple
+    bucket: jax.Array
+    slot: jax.Array
+    size: jax.Array
+    channels: int = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def num_buckets(self) -> int:
+        return len(self.buckets)
+
+    @property
+    def capacities(self) -> tuple[int, ...]:
+        return tuple(int(b.shape[0]) for b in self.buckets)
+
+    @classmethod
+    def from_list(cls, textures: Sequence, capacity: int, channels: int, default: float,
+                  min_buckets: int = 0) -> "TextureBank":
+        """Packs per-Gaussian textures into buckets.
+
+        Args:
+          textures: length-N sequence (N <= capacity); entry i is None (no texture) or an array of
+            shape (n, n, channels) (or (n, n) when channels == 1).
+          capacity: the scene's Gaussian capacity C.
+          channels: 3 or 1.
+          default: the value a texture-less Gaussian samples (0 for RGB offsets, 1 for alpha); only
+            used for validation messages.
+          min_buckets: build at least this many buckets (zero-capacity ones included).
+        """
+        del default
+        sizes = np.zeros(capacity, np.int64)
+        arrays = []
+        for i, t in enumerate(textures):
+            if t is None:
+                arrays.append(None)
+                continue
+            t = np.asarray(t, np.float32)
+            if channels == 1 and t.ndim == 2:
+                t = t[..., None]
+            if t.ndim != 3 or t.shape[0] != t.shape[1] or t.shape[2] != channels or t.shape[0] < 1:
+                want = "(n, n)" if channels == 1 else f"(n, n, {channels})"
+                raise ValueError(f"texture of Gaussian {i} has shape {t.shape}; expected {want} with n >= 1.")
+            if not np.all(np.isfinite(t)):
+                raise ValueError(f"texture of Gaussian {i} has non-finite texels.")
+            sizes[i] = t.shape[0]
+            arrays.append(t)
+        nb = max([bucket_of(s) + 1 for s in sizes if s > 0] + [min_buckets])
+        counts = [0] * nb
+        bucket = -np.ones(capacity, np.int64)
+        slot = np.zeros(capacity, np.int64)
+        for i, s in enumerate(sizes):
+            if s > 0:
+                b = bucket_of(s)
+                bucket[i], slot[i] = b, counts[b]
+                counts[b] += 1
+        caps = [0 if c == 0 else 1 << (c - 1).bit_length() for c in counts]
+        data = [np.zeros((caps[b], 1 << b, 1 << b, channels), np.float32) for b in range(nb)]
+        for i, t in enumerate(arrays):
+            if t is not None:
+                n = t.shape[0]
+                data[bucket[i]][slot[i], :n, :n] = t
+        return cls(buckets=tuple(jnp.asarray(d) for d in data),
+                   bucket=jnp.asarray(bucket, jnp.float32), slot=jnp.asarray(slot, jnp.float32),
+                   size=jnp.asarray(sizes, jnp.float32), channels=channels)
+
+    def texture(self, i: int) -> np.ndarray | None:
+        """Host-side copy of Gaussian i's level-0 texture, (n, n, channels), or None."""
+        b = int(self.bucket[i])
+        if b < 0:
+            return None
+        n = int(self.size[i])
+        return np.asarray(self.buckets[b][int(self.slot[i]), :n, :n])
+
+    def texel_count(self, active=None) -> int:
+        """Number of stored texels (sum of n*n over textured, optionally active, Gaussians)."""
+        n = np.asarray(self.size, np.int64)
+        if active is not None:
+            n = n * (np.asarray(active) > 0)
+        return int(np.sum(n * n))
+
+
+@dataclasses.dataclass(frozen=True)
+class Atlas:
+    """The texels of one bank, all buckets and used levels flattened (built inside jit).
+
+    Attributes:
+      texels: (M, channels) float; row 0 is a dummy for texture-less Gaussians.
+      base: (C, levels) int32 flat offset of each Gaussian's texel (0, 0) per level.
+      stride: (C, levels) int32 row stride per level.
+      side: (C, levels) int32 side length per level (level 0 is the true n).
+      max_level: (C,) int32 coarsest level L = ceil(log2 n) (0 when levels == 1).
+      size: (C,) float32 true n (0: no texture).
+      has: (C,) bool, textured.
+    """
+
+    texels: jax.Array
+    base: jax.Array
+    stride: jax.Array
+    side: jax.Array
+    max_level: jax.Array
+    size: jax.Array
+    has: jax.Array
+
+
+def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:
+    """Levels 0..b of a bucket's textures: (cap, P, P, ch) -> list of (cap, s_k, s_k, ch)."""
+    levels = [level0]
+    if b == 0:
+        return levels
+    P = 1 << b
+    table = jnp.asarray(_first_level_table(P))
+    idx = jnp.clip(n - (P // 2 + 1), 0, P // 2 - 1)
+    D = table[idx]  # (cap, P/2, P)
+    levels.append(jnp.einsum("kip,kpqc,kjq->kijc", D, level0, D))
+    for k in range(2, b + 1):
+        s_in, s_out = P >> (k - 1), P >> k
+        Dk = jnp.asarray(downsample_matrix(s_in, s_out), level0.dtype)
+        levels.append(jnp.einsum("ip,kpqc,jq->kijc", Dk, levels[-1], Dk))
+    return levels
+
+
+def build_atlas(bank: TextureBank, num_levels: int) -> Atlas:
+    """Flattens a bank (and, for ``num_levels > 1``, its mip pyramids) into one texel array.
+
+    Args:
+      bank: the textures.
+      num_levels: 1 for level 0 only (mip off), else at least ``num_buckets`` (all levels).
+    Returns:
+      An :class:`Atlas` whose tables have ``num_levels`` columns.
+    """
+    ch = bank.channels
+    bucket = jax.lax.stop_gradient(bank.bucket).astype(jnp.int32)
+    slot = jax.lax.stop_gradient(bank.slot).astype(jnp.int32)
+    size_f = jax.lax.stop_gradient(bank.size)
+    size = size_f.astype(jnp.int32)
+    has = bucket >= 0
+    chunks = [jnp.zeros((1, ch), bank.buckets[0].dtype if bank.buckets else jnp.float32)]
+    offset = 1
+    C = bucket.shape[0]
+    base = jnp.zeros((C, num_levels), jnp.int32)
+    stride = jnp.ones((C, num_levels), jnp.int32)
+    side = jnp.ones((C, num_levels), jnp.int32)
+    for b, data in enumerate(bank.buckets):
+        cap, P = data.shape[0], data.shape[1]
+        if cap == 0:
+            continue
+        mine = bucket == b
+        slot_b = jnp.clip(slot, 0, cap - 1)
+        if num_levels > 1:
+            # n of each slot, for the level-0 -> level-1 filter: scatter sizes into slots.
+            n_slot = jnp.zeros((cap,), jnp.int32).at[jnp.where(mine, slot, cap)].set(size, mode="drop")
+            levels = _pyramid(data, n_slot, b)
+        else:
+            levels = [data]
+        for k, lev in enumerate(levels[:num_levels]):
+            s = lev.shape[1]
+            chunks.append(lev.reshape(cap * s * s, ch))
+            base = base.at[:, k].set(jnp.where(mine, offset + slot_b * s * s, base[:, k]))
+            stride = stride.at[:, k].set(jnp.where(mine, s, stride[:, k]))
+            side_k = size if k == 0 else jnp.full_like(size, s)
+            side = side.at[:, k].set(jnp.where(mine, side_k, side[:, k]))
+            offset += cap * s * s
+    max_level = jnp.where(has, bucket, 0) if num_levels > 1 else jnp.zeros_like(bucket)
+    max_level = jnp.minimum(max_level, num_levels - 1)
+    return Atlas(texels=jnp.concatenate(chunks, axis=0), base=base, stride=stride, side=side,
+                 max_level=max_level, size=size_f, has=has)
+
+
+def sample(texels, base, stride, side, u, v):
+    """Bilinear, edge-clamped lookups of one level (align-corners over [-3, 3]^2).
+
+    Args:
+      texels: (M, ch) atlas texels.
+      base, stride, side: int32 arrays broadcastable with u (per lookup).
+      u, v: float splat-plane coordinates in units of the scales.
+    Returns:
+      (..., ch) sampled values.
+    """
+    sidef = side.astype(u.dtype)
+    last = jnp.maximum(sidef - 1.0, 0.0)
+    ta = jnp.clip((u + 3.0) * (1.0 / 6.0) * last, 0.0, last)
+    tb = jnp.clip((v + 3.0) * (1.0 / 6.0) * last, 0.0, last)
+    a0 = jnp.minimum(jnp.floor(ta), jnp.maximum(last - 1.0, 0.0))
+    b0 = jnp.minimum(jnp.floor(tb), jnp.maximum(last - 1.0, 0.0))
+    fa = (ta - a0)[..., None]
+    fb = (tb - b0)[..., None]
+    a0i, b0i = a0.astype(jnp.int32), b0.astype(jnp.int32)
+    a1i = jnp.minimum(a0i + 1, side - 1)
+    b1i = jnp.minimum(b0i + 1, side - 1)
+
+    def get(ai, bi):
+        return texels.at[base + ai * stride + bi].get(mode="promise_in_bounds")
+
+    return ((1 - fa) * ((1 - fb) * get(a0i, b0i) + fb * get(a0i, b1i))
+            + fa * ((1 - fb) * get(a1i, b0i) + fb * get(a1i, b1i)))
+
+
+def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):
+    """Per-lookup mip level from the splat-plane footprint (paper Eq. 11).
+
+    Args:
+      footprint: max(D12, D13), the distance in splat-plane units (units of the scales) between the
+        pixel's ray-splat intersection and those of its +x and +y neighbours.
+      n: true texture side (float), broadcastable.
+      max_level: int L = ceil(log2 n), broadcastable.
+      lambda_mip: the paper's lambda (0.4 by default).
+      trilinear: if False, ``l = clip(floor(log2(lambda * n * D)), 0, L)`` (int32); if True the
+        fractional level ``clip(log2(lambda * n * D), 0, L)`` (float).
+    """
+    from .math import safe_log2
+
+    lf = safe_log2(lambda_mip * n * footprint)
+    Lf = max_level.astype(lf.dtype)
+    if trilinear:
+        return jnp.clip(lf, 0.0, Lf)
+    return jnp.clip(jnp.floor(lf), 0.0, Lf).astype(jnp.int32)
+
+
+def num_levels_for(bank: TextureBank, use_mip: bool) -> int:
+    """How many atlas levels a bank needs: all of them with mip, only level 0 without."""
+    return max(bank.num_buckets, 1) if use_mip else 1
