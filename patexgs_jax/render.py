@@ -194,7 +194,7 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
         mu = mu + off
 
     # Colour from SH, one view direction per splat.
-    cam_center = -Rc.T @ tc
+    cam_center = -jnp.linalg.solve(Rc, tc)  # exact even if a float32 pose is not quite orthonormal
     dirs = safe_normalize(scene.means - cam_center)
     degree = scene.sh_degree
     basis = sh_basis(dirs, degree, active_sh_degree)

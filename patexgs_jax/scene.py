@@ -157,6 +157,10 @@ class Scene:
     def replace(self, **kw) -> "Scene":
         return dataclasses.replace(self, **kw)
 
+    def astype(self, dtype) -> "Scene":
+        """The same scene with every leaf cast to ``dtype`` (e.g. float64 for reference renders)."""
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), self)
+
 
 def random_scene(seed: int, n: int, sh_degree: int = 0, extent: float = 1.0, scale_range=(0.02, 0.2),
                  center=(0.0, 0.0, 0.0), rgb_sizes: Sequence[int] | None = None,

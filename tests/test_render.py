@@ -1,0 +1,350 @@
+"""The tile renderer against the brute-force float64 reference, its gradients, and its properties.
+
+Compiles are the expensive part on CPU: every test here renders scenes of one capacity (C=48),
+one image size (44x36, a partial tile on each edge) and one Capacity, so compiled renderers are
+shared across tests (one per configuration and dtype).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render, render_jit
+import importlib
+
+render_mod = importlib.import_module("patexgs_jax.render")
+
+from render_reference import reference_render, scene_to_reference, sh_color
+
+C = 48
+W, H = 44, 36
+CAP = Capacity(pairs=4096, per_tile=64)
+# Texture sides per Gaussian, fixed so every textured scene has the same bucket layout (shapes).
+RGB_SIZES = [0, 1, 2, 3, 4, 5, 7, 8, 9, 16] * 4 + [0] * 8
+ALPHA_SIZES = [5, 0, 1, 3, 4, 6, 8, 2, 9, 12] * 4 + [5] * 8
+
+
+def camera(eye=(0.3, -0.4, -2.6), target=(0.0, 0.0, 0.0), f=40.0, w=W, h=H) -> Camera:
+    return Camera.from_intrinsics([f, f * 1.05, w / 2 + 0.3, h / 2 - 0.2], look_at(eye, target), w, h)
+
+
+def scene(seed, textured=True, sh_degree=1) -> Scene:
+    return random_scene(seed, C, sh_degree=sh_degree, extent=0.8, scale_range=(0.08, 0.45),
+                        rgb_sizes=RGB_SIZES if textured else None,
+                        alpha_sizes=ALPHA_SIZES if textured else None)
+
+
+def tile_render(sc, cam, cfg, dtype=jnp.float32, capacity=CAP):
+    if dtype == jnp.float64:
+        with jax.enable_x64(True):
+            out = render_jit(sc.astype(jnp.float64), cam, config=cfg, capacity=capacity)
+            assert not bool(out.overflow)
+            return jax.tree_util.tree_map(np.asarray, out)
+    out = render_jit(sc, cam, config=cfg, capacity=capacity)
+    assert not bool(out.overflow)
+    return jax.tree_util.tree_map(np.asarray, out)
+
+
+def ref_render(sc, cam, cfg):
+    return reference_render(scene_to_reference(sc), np.asarray(cam.K, np.float64),
+                            np.asarray(cam.world_to_camera, np.float64), cam.width, cam.height,
+                            mip=cfg.mip, lam=cfg.lambda_mip, rgb_mip=cfg.rgb_mip,
+                            alpha_mip=cfg.alpha_mip, background=cfg.background, near=cfg.near)
+
+
+CONFIGS = {
+    "2dgs": (False, 3, RenderConfig(mip="none", background=(0.1, 0.2, 0.3))),
+    "none": (True, 1, RenderConfig(mip="none")),
+    "nearest": (True, 1, RenderConfig(mip="nearest")),
+    "trilinear": (True, 2, RenderConfig(mip="trilinear", lambda_mip=1.5)),
+    "no-rgb-mip": (True, 0, RenderConfig(mip="nearest", rgb_mip=False, lambda_mip=2.0)),
+}
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_matches_reference(name):
+    textured, degree, cfg = CONFIGS[name]
+    sc = scene(3 + len(name), textured, degree)
+    cam = camera()
+    ref = ref_render(sc, cam, cfg)
+    # float64 tile renderer: the same maths, so it agrees to rounding everywhere.
+    out64 = tile_render(sc, cam, cfg, jnp.float64)
+    np.testing.assert_allclose(out64.rgb, ref["rgb"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.alpha, ref["alpha"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.depth, ref["depth"], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(out64.normal, ref["normal"], atol=1e-7, rtol=0)
+    best = ref["best"].ravel()
+    counts = np.bincount(best[best >= 0], minlength=C)
+    np.testing.assert_array_equal(out64.max_contrib_count, counts)
+    assert ref["alpha"].mean() > 0.2, "the test scene should cover much of the image"
+    # float32 production renderer: within 2e-4 except where a threshold (alpha >= 1/255, the
+    # 1e-4 transmittance stop, a mip level boundary) flips on rounding: at most 0.5% of pixels.
+    out32 = tile_render(sc, cam, cfg)
+    err = np.abs(out32.rgb - ref["rgb"]).max(axis=-1)
+    assert np.mean(err > 2e-4) <= 0.005, (err.max(), np.mean(err > 2e-4))
+    assert np.median(err) < 2e-5
+
+
+def test_inactive_slots_render_nothing():
+    sc = scene(1)
+    cam = camera()
+    cfg = CONFIGS["nearest"][2]
+    keep = np.arange(C) % 3 != 0
+    masked = sc.replace(active=jnp.asarray(keep, jnp.float32))
+    ref = ref_render(masked, cam, cfg)
+    out = tile_render(masked, cam, cfg, jnp.float64)
+    np.testing.assert_allclose(out.rgb, ref["rgb"], atol=1e-7)
+    assert np.all(out.max_contrib_count[~keep] == 0)
+    assert not np.any(out.visible[~keep])
+
+
+def test_output_invariants():
+    sc = scene(5)
+    out = tile_render(sc, camera(), CONFIGS["nearest"][2])
+    assert np.all((out.alpha >= 0) & (out.alpha <= 1))
+    # Colour lies in the convex hull of the splat colours and the black background: bounded by
+    # the extreme SH colours plus the extreme texture offsets.
+    g = scene_to_reference(sc)
+    cam = camera()
+    origin = np.asarray(cam.center)
+    cols = np.array([sh_color(g["sh"][i], (g["means"][i] - origin) / np.linalg.norm(g["means"][i] - origin))
+                     for i in range(C)])
+    offs = np.concatenate([t.reshape(-1, 3) for t in g["rgb"] if t is not None])
+    assert np.all(out.rgb >= min(0.0, cols.min() + offs.min()) - 1e-6)
+    assert np.all(out.rgb <= max(0.0, cols.max() + offs.max()) + 1e-6)
+    assert out.max_contrib_count.sum() <= W * H
+    assert np.all(out.radius_px[out.visible] > 0)
+
+
+def test_scaled_camera_is_pixel_consistent():
+    cam = camera(w=48, h=32)
+    small = cam.scaled(4)
+    assert (small.width, small.height) == (12, 8)
+    X = np.array([0.2, -0.1, 0.3, 1.0])
+    pc = np.asarray(cam.world_to_camera) @ X
+    big = (np.asarray(cam.K) @ pc[:3])[:2] / pc[2]
+    sm = (np.asarray(small.K) @ pc[:3])[:2] / pc[2]
+    np.testing.assert_allclose(sm, big / 4, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Compiles and capacity
+# ---------------------------------------------------------------------------------------------
+def test_one_compile_per_configuration():
+    cfg = RenderConfig(mip="nearest", lambda_mip=0.7)  # a config no other test uses
+    before = render_mod.TRACE_COUNTS[(cfg, CAP)]
+    for seed, eye in [(11, (0.3, -0.4, -3.2)), (12, (-0.5, 0.2, -3.0)), (13, (0.0, 0.1, -2.5))]:
+        render_jit(scene(seed), camera(eye=eye), config=cfg, capacity=CAP).rgb.block_until_ready()
+    assert render_mod.TRACE_COUNTS[(cfg, CAP)] - before == 1
+
+
+def test_overflow_is_counted_and_render_grows():
+    sc, cam, cfg = scene(7), camera(), CONFIGS["nearest"][2]
+    full = tile_render(sc, cam, cfg)
+    tiny = Capacity(pairs=64, per_tile=4)
+    out = render_jit(sc, cam, config=cfg, capacity=tiny)
+    assert bool(out.overflow)
+    assert float(out.pairs_needed) == float(full.pairs_needed)
+    assert int(out.max_tile_count) == int(full.max_tile_count)
+    assert int(full.max_tile_count) > 4 and float(full.pairs_needed) > 64
+    with pytest.warns(UserWarning, match="growing"):
+        grown = render(sc, cam, cfg, capacity=tiny)
+    assert not bool(grown.overflow)
+    np.testing.assert_allclose(np.asarray(grown.rgb), full.rgb, atol=1e-6)
+
+
+def test_render_public_api_and_grad():
+    sc, cam = scene(8), camera()
+    out = render(sc, cam)  # default config: mip nearest
+    assert out.rgb.shape == (H, W, 3) and out.depth.shape == (H, W) and out.normal.shape == (H, W, 3)
+
+    def loss(s):
+        return jnp.mean(render(s, cam, RenderConfig()).rgb)
+
+    g = jax.grad(loss)(sc)
+    assert isinstance(g, Scene)
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        leaf = getattr(g, name)
+        assert np.all(np.isfinite(leaf)), name
+        assert np.abs(leaf).sum() > 0, name
+    assert sum(float(jnp.abs(b).sum()) for b in g.rgb.buckets) > 0
+    assert sum(float(jnp.abs(b).sum()) for b in g.alpha.buckets) > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Gradients: float64 finite differences
+# ---------------------------------------------------------------------------------------------
+def _directional_fd_check(sc, cam, cfg, seed, h=1e-6, rtol=2e-4):
+    with jax.enable_x64(True):
+        sc64 = sc.astype(jnp.float64)
+        rng = np.random.default_rng(seed)
+        wts = jnp.asarray(rng.uniform(0.5, 1.5, (H, W, 3)))
+
+        def loss(s):
+            out = render_jit(s, cam, config=cfg, capacity=CAP)
+            return jnp.sum(out.rgb * wts) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth)
+
+        g = jax.grad(loss)(sc64)
+        leaves, treedef = jax.tree_util.tree_flatten(sc64)
+        gleaves = jax.tree_util.tree_leaves(g)
+        frozen = {id(x) for x in (sc64.active,) + tuple(
+            getattr(b, f) for b in (sc64.rgb, sc64.alpha) if b is not None for f in ("bucket", "slot", "size"))}
+        dirs = [jnp.zeros_like(x) if id(x) in frozen else jnp.asarray(rng.normal(size=x.shape))
+                for x in leaves]
+        analytic = sum(float(jnp.sum(a * d)) for a, d in zip(gleaves, dirs))
+        shift = lambda eps: jax.tree_util.tree_unflatten(treedef, [x + eps * d for x, d in zip(leaves, dirs)])  # noqa: E731
+        fd = (float(loss(shift(h))) - float(loss(shift(-h)))) / (2 * h)
+        assert np.isfinite(analytic)
+        assert abs(analytic - fd) <= rtol * abs(fd) + 1e-6, (analytic, fd)
+
+
+@pytest.mark.parametrize("name", ["2dgs", "trilinear"])
+def test_gradients_match_finite_differences(name):
+    textured, degree, cfg = CONFIGS[name]
+    sc = scene(21, textured, degree)
+    for seed in range(3):
+        _directional_fd_check(sc, camera(), cfg, seed)
+
+
+# ---------------------------------------------------------------------------------------------
+# Mipmap properties
+# ---------------------------------------------------------------------------------------------
+def _single_splat_scene(tex_rgb, tex_alpha=None, scale=1.0, n_pad=C):
+    """One splat facing the camera (normal along z) at the origin, padded to capacity C."""
+    q = [1.0, 0.0, 0.0, 0.0]
+    sh = np.zeros((1, 1, 3))
+    return Scene.from_arrays([[0.0, 0.0, 0.0]], [[scale, scale]], [q], [1.0], sh,
+                             rgb_textures=[tex_rgb], alpha_textures=[tex_alpha], capacity=n_pad)
+
+
+def test_constant_texture_is_mip_invariant():
+    rgb = np.full((9, 9, 3), 0.25)
+    alpha = np.full((6, 6), 0.8)
+    sc = _single_splat_scene(rgb, alpha)
+    cam = camera(eye=(0.0, 0.0, -12.0), f=30.0)  # strong minification: high levels are chosen
+    base = tile_render(sc, cam, RenderConfig(mip="none"), capacity=Capacity(1024, 16))
+    for cfg in (RenderConfig(mip="nearest"), RenderConfig(mip="trilinear")):
+        out = tile_render(sc, cam, cfg, capacity=Capacity(1024, 16))
+        np.testing.assert_allclose(out.rgb, base.rgb, atol=2e-6)
+        np.testing.assert_allclose(out.alpha, base.alpha, atol=2e-6)
+
+
+def test_magnification_picks_level_zero():
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(-0.5, 0.5, (8, 8, 3))
+    alpha = rng.uniform(0.2, 1.0, (8, 8))
+    sc = _single_splat_scene(rgb, alpha, scale=0.5)
+    cam = camera(eye=(0.0, 0.0, -2.0), f=80.0)  # ~20 px per unit of scale: D ~ 0.05, 0.4*8*D < 1
+    base = tile_render(sc, cam, RenderConfig(mip="none"), capacity=Capacity(1024, 16))
+    out = tile_render(sc, cam, RenderConfig(mip="nearest"), capacity=Capacity(1024, 16))
+    # Same texels, same level: equal up to float32 rounding of a different fusion of the lookups.
+    np.testing.assert_allclose(out.rgb, base.rgb, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(out.alpha, base.alpha, atol=1e-6, rtol=0)
+    assert base.alpha.max() > 0.5
+
+
+@pytest.mark.parametrize("channel", ["rgb", "alpha"])
+def test_minification_is_closer_to_supersampled_truth(channel):
+    n = 32
+    checker = ((np.add.outer(np.arange(n), np.arange(n)) % 2) * 2 - 1).astype(np.float64)
+    if channel == "rgb":
+        sc = _single_splat_scene(0.4 * checker[..., None].repeat(3, -1), None, scale=1.0)
+    else:
+        sc = _single_splat_scene(None, 0.5 + 0.5 * checker, scale=1.0)
+    sc = sc.replace(sh=sc.sh.at[0, 0].set(0.5 / 0.28209479177387814 * 0.3))
+    # Small view: the 6x6 texture square spans about 16 px, so 32 texels alias badly.
+    cam_small = camera(eye=(0.0, 0.0, -10.0), target=(0.0, 0.0, 0.0), f=27.0, w=W, h=H)
+    factor = 8
+    K_big = np.asarray(cam_small.K, np.float64) * np.array([[factor], [factor], [1]])
+    cam_big = Camera.from_intrinsics(K_big, np.asarray(cam_small.world_to_camera), W * factor, H * factor)
+    truth = render(sc, cam_big, RenderConfig(mip="none"))
+    truth = np.asarray(truth.rgb).reshape(H, factor, W, factor, 3).mean(axis=(1, 3))
+    errs = {}
+    for mip in ("none", "nearest", "trilinear"):
+        out = render(sc, cam_small, RenderConfig(mip=mip))
+        errs[mip] = float(np.sqrt(np.mean((np.asarray(out.rgb) - truth) ** 2)))
+    assert errs["nearest"] < 0.7 * errs["none"], errs
+    assert errs["trilinear"] < 0.7 * errs["none"], errs
+
+
+# ---------------------------------------------------------------------------------------------
+# Hard cases: every gradient finite
+# ---------------------------------------------------------------------------------------------
+def _hard_scene(case):
+    rng = np.random.default_rng(0)
+    n = 8
+    means = rng.uniform(-0.3, 0.3, (n, 3))
+    scales = np.full((n, 2), 0.3)
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)) + rng.normal(0, 0.1, (n, 4))
+    opac = np.full(n, 0.7)
+    if case == "edge_on":
+        # normal along x: the splat plane contains the viewing rays (camera looks along +z).
+        quats = np.tile([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0], (n, 1))
+        quats[1:] += rng.normal(0, 1e-7, (n - 1, 4))
+    elif case == "tiny_and_huge":
+        scales = np.exp(rng.uniform(np.log(1e-6), np.log(1e3), (n, 2)))
+    elif case == "needles":
+        scales = np.stack([np.full(n, 1e-4), np.full(n, 1e2)], axis=1)
+    elif case == "near_plane":
+        means[:, 2] = np.linspace(-3.2, -2.9, n)  # camera at z = -3: behind, on, just past near
+        scales[:] = 1.0
+    elif case == "saturated":
+        opac[:] = 1.0
+    alpha = [np.full((4, 4), 50.0) if case == "saturated" else rng.uniform(0, 2, (4, 4)) for _ in range(n)]
+    rgb = [rng.uniform(-1, 1, (3, 3, 3)) for _ in range(n)]
+    return Scene.from_arrays(means, scales, quats, opac, rng.normal(0, 1, (n, 4, 3)),
+                             rgb_textures=rgb, alpha_textures=alpha, capacity=n)
+
+
+@pytest.mark.parametrize("case", ["edge_on", "tiny_and_huge", "needles", "near_plane", "saturated"])
+@pytest.mark.parametrize("mip", ["nearest", "trilinear"])
+def test_hard_case_gradients_finite(case, mip):
+    sc = _hard_scene(case)
+    cam = camera(eye=(0.0, 0.0, -3.0), target=(0.0, 0.0, 1.0))
+    cfg = RenderConfig(mip=mip)
+    cap = Capacity(pairs=1024, per_tile=16)
+
+    def loss(s):
+        out = render_jit(s, cam, config=cfg, capacity=cap)
+        return jnp.sum(out.rgb) + jnp.sum(out.depth) + jnp.sum(out.normal) + jnp.sum(out.alpha)
+
+    val, g = jax.value_and_grad(loss)(sc)
+    assert np.isfinite(float(val))
+    for path, leaf in jax.tree_util.tree_leaves_with_path(g):
+        assert np.all(np.isfinite(np.asarray(leaf))), jax.tree_util.keystr(path)
+
+
+def test_thousands_of_splats_on_one_pixel():
+    n = 2000
+    means = np.zeros((n, 3))
+    means[:, 2] = np.linspace(0.0, 2.0, n)
+    sc = Scene.from_arrays(means, np.full((n, 2), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)),
+                           np.full(n, 0.05), np.zeros((n, 1, 3)) + 0.5)
+    cam = Camera.from_intrinsics([50.0, 50.0, 8.0, 8.0], look_at((0, 0, -2.0), (0, 0, 0)), 16, 16)
+    cap = Capacity(pairs=4096, per_tile=2048)
+
+    def loss(s):
+        return jnp.sum(render_jit(s, cam, config=RenderConfig(mip="none"), capacity=cap).rgb)
+
+    val, g = jax.value_and_grad(loss)(sc)
+    out = render_jit(sc, cam, config=RenderConfig(mip="none"), capacity=cap)
+    assert not bool(out.overflow)
+    assert float(out.alpha[8, 8]) > 0.99
+    assert np.isfinite(float(val))
+    for leaf in jax.tree_util.tree_leaves(g):
+        assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), eye_x=st.floats(-1.0, 1.0), eye_y=st.floats(-1.0, 1.0))
+def test_random_views_match_reference(seed, eye_x, eye_y):
+    cfg = CONFIGS["nearest"][2]
+    sc = scene(seed % 100000)
+    cam = camera(eye=(eye_x, eye_y, -3.0))
+    ref = ref_render(sc, cam, cfg)
+    out = tile_render(sc, cam, cfg, jnp.float64)
+    np.testing.assert_allclose(out.rgb, ref["rgb"], atol=1e-7)
