@@ -1,0 +1,181 @@
+"""Dataset loaders: COLMAP, LLFF and NeRF ``transforms.json`` scenes -> :class:`Dataset`.
+
+>>> ds = load("/data/360_v2/garden")            # factor 4 by default for Mip-NeRF 360 'garden'
+>>> ds.train_views[0].camera, ds.train_views[0].image.shape   # image loads lazily (LRU-cached)
+>>> ds.zoom_out_views((2, 4, 8))[4][0].image    # first test view box-downsampled by 4
+
+Import-order hazard (checked with pycolmap 4.2.1, pillow 13, CPython 3.11): pycolmap's extension
+module contains and exports its own zlib symbols. If the system ``libz.so.1`` is first loaded *after*
+pycolmap (by Pillow's ``_imaging`` or Python's ``zlib`` module), libz's internal calls bind to
+pycolmap's copies and the first deflate (saving a PNG, ``zlib.compress``) aborts with
+``free(): invalid pointer``. Loading zlib / PIL.Image before pycolmap avoids it, so this package
+imports them first (here and in every module that imports pycolmap). If pycolmap was already imported
+before zlib / PIL by the caller, nothing can be repaired any more and a RuntimeWarning says so (detected from the
+dynamic linker's load order).
+"""
+
+from __future__ import annotations
+
+import ctypes as _ctypes
+import os as _os
+import warnings as _warnings
+
+
+def _pycolmap_loaded_before_libz() -> bool:
+    """Whether pycolmap's extension was loaded before the system libz (the state that crashes).
+
+    Uses the dynamic linker's load order (``dl_iterate_phdr``, Linux/glibc); False where unavailable.
+    """
+    try:
+        class _Info(_ctypes.Structure):
+            _fields_ = [("addr", _ctypes.c_void_p), ("name", _ctypes.c_char_p), ("phdr", _ctypes.c_void_p),
+                        ("phnum", _ctypes.c_uint16)]
+
+        names = []
+        callback = _ctypes.CFUNCTYPE(_ctypes.c_int, _ctypes.POINTER(_Info), _ctypes.c_size_t, _ctypes.c_void_p)(
+            lambda info, size, data: names.append(_os.fsdecode(info.contents.name or b"")) or 0)
+        _ctypes.CDLL(None).dl_iterate_phdr(callback, None)
+    except Exception:
+        return False
+    core = next((i for i, n in enumerate(names) if "pycolmap" in n and "_core" in _os.path.basename(n)), None)
+    libz = next((i for i, n in enumerate(names) if _os.path.basename(n).startswith("libz.so")), None)
+    return core is not None and (libz is None or core < libz)
+
+
+import zlib  # noqa: E402,F401  -- before pycolmap, see the module docstring
+import PIL.Image  # noqa: E402,F401  -- before pycolmap, see the module docstring
+
+if _pycolmap_loaded_before_libz():
+    _warnings.warn(
+        "pycolmap was imported before zlib / PIL / jax: with pycolmap 4.2.1 the process may abort "
+        "('free(): invalid pointer') when saving a PNG or compressing with zlib. Import patexgs_jax "
+        "(or PIL.Image) before pycolmap.", RuntimeWarning, stacklevel=2)
+
+from pathlib import Path  # noqa: E402
+
+from .dataset import (  # noqa: E402
+    DEFAULT_IMAGE_CACHE_SIZE,
+    DEFAULT_NUM_RANDOM_POINTS,
+    Dataset,
+    DatasetError,
+    DatasetWarning,
+    ImageCache,
+    SceneNormalization,
+    View,
+    box_downsample,
+    compute_normalization,
+    read_image,
+    resolve_cache_dir,
+    split_indices,
+    zoom_out_views,
+)
+from .colmap import MIPNERF360_FACTORS, default_factor, find_sparse_dir, load_colmap, read_model  # noqa: E402
+from .llff import load_llff  # noqa: E402
+from .nerf import find_transforms, load_nerf  # noqa: E402
+
+__all__ = [
+    "load",
+    "detect_format",
+    "load_colmap",
+    "load_llff",
+    "load_nerf",
+    "Dataset",
+    "View",
+    "SceneNormalization",
+    "ImageCache",
+    "DatasetError",
+    "DatasetWarning",
+    "box_downsample",
+    "read_image",
+    "split_indices",
+    "compute_normalization",
+    "zoom_out_views",
+    "resolve_cache_dir",
+    "default_factor",
+    "find_sparse_dir",
+    "find_transforms",
+    "read_model",
+    "MIPNERF360_FACTORS",
+    "DEFAULT_IMAGE_CACHE_SIZE",
+    "DEFAULT_NUM_RANDOM_POINTS",
+]
+
+_LOADERS = {"colmap": load_colmap, "llff": load_llff, "nerf": load_nerf}
+
+
+def detect_format(path) -> str:
+    """The format of a scene: ``"colmap"``, ``"nerf"`` or ``"llff"``, checked in that order.
+
+    * ``"colmap"``: ``sparse/0/`` or ``sparse/`` with cameras, images, points3D (.bin or .txt). A scene
+      that also has ``poses_bounds.npy`` (Mip-NeRF 360, LLFF releases) is read as COLMAP, the more
+      complete source (use ``format="llff"`` to force LLFF).
+    * ``"nerf"``: ``transforms.json`` or ``transforms_train.json`` (or ``path`` is a .json file).
+    * ``"llff"``: ``poses_bounds.npy``.
+
+    Raises:
+      DatasetError saying what was looked for when the path is none of these.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise DatasetError(f"Dataset path {p} does not exist.")
+    if p.is_file():
+        if p.suffix == ".json":
+            return "nerf"
+        raise DatasetError(f"{p} is a file; pass a scene folder (or a transforms .json file).")
+    if find_sparse_dir(p) is not None:
+        return "colmap"
+    if find_transforms(p) is not None:
+        return "nerf"
+    if (p / "poses_bounds.npy").is_file():
+        return "llff"
+    hint = ""
+    if (p / "sparse").is_dir():
+        hint = (" (sparse/ exists but holds no complete model: it needs cameras, images and points3D, all .bin "
+                "or all .txt, in sparse/0/ or sparse/)")
+    raise DatasetError(
+        f"{p} is not a recognised dataset{hint}. Looked for: a COLMAP model (sparse/0/ or sparse/ with "
+        "cameras, images, points3D as .bin or .txt, images in images/), an LLFF poses_bounds.npy, or a NeRF "
+        "transforms.json / transforms_train.json.")
+
+
+def load(path, factor: int | None = None, test_every: int | None = 8, skip_missing: bool = False, *,
+         format: str | None = None, normalize: bool = False, cache_dir=None,
+         image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE, background=(1.0, 1.0, 1.0),
+         num_random_points: int = DEFAULT_NUM_RANDOM_POINTS, seed: int = 0, verbose: bool = True) -> Dataset:
+    """Loads a scene, detecting its format (see :func:`detect_format`).
+
+    Args:
+      path: scene folder (or a transforms .json file).
+      factor: integer image downsampling factor. None -> 4 for the Mip-NeRF 360 outdoor scenes
+        (bicycle, flowers, garden, stump, treehill), 2 for the indoor ones (room, counter, kitchen,
+        bonsai), else 1. Uses ``images_<factor>/`` when present (K scaled by the actual size ratio),
+        else box-downsamples to ``W // f x H // f`` with K / f.
+      test_every: every ``test_every``-th image (sorted by name, starting with the first) is a test
+        view, the 3DGS protocol; 0 or None: no test split. (NeRF split files take precedence.)
+      skip_missing: drop views with missing / unreadable images (printing how many) instead of raising.
+      format: force ``"colmap"``, ``"llff"`` or ``"nerf"``.
+      normalize: transform cameras and points by the 3DGS normalisation (centre -> 0, radius -> 1);
+        the mapping back is in ``dataset.normalization``. Default: untouched, only recorded.
+      cache_dir: root for derived data (undistorted images); default the ``PATEXGS_CACHE`` env var,
+        else ``<scene>/.patexgs_cache`` if the scene folder is writable, else
+        ``~/.cache/patexgs_jax/<scene>-<hash>``.
+      image_cache_size: number of decoded images kept in memory (LRU, default 64).
+      background: (3,) RGB in [0, 1] behind transparent pixels (default white).
+      num_random_points, seed: random initial points when the scene has no point cloud (default
+        100,000, seed 0).
+      verbose: print progress messages (undistortion, skipped images) to stderr.
+
+    Returns:
+      a :class:`Dataset`: ``train_views`` / ``test_views`` (:class:`View` with ``.camera``, lazily
+      loaded ``.image`` (H, W, 3) float32 in [0, 1], ``.name``), ``points`` (M, 3) float32, ``colors``
+      (M, 3) float32 in [0, 1] or None, ``normalization`` (:class:`SceneNormalization`).
+
+    Raises:
+      DatasetError (a ValueError) with the offending file and the fix.
+    """
+    fmt = detect_format(path) if format is None else format
+    if fmt not in _LOADERS:
+        raise DatasetError(f"Unknown format {fmt!r}; use one of {sorted(_LOADERS)}.")
+    kwargs = dict(normalize=normalize, cache_dir=cache_dir, image_cache_size=image_cache_size, background=background,
+                  num_random_points=num_random_points, seed=seed, verbose=verbose)
+    return _LOADERS[fmt](path, factor, test_every, skip_missing, **kwargs)
