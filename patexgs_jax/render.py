@@ -312,21 +312,18 @@ def _uv(s0, s1, s2):
 def _sample_bank(atlas: tex.Atlas, gid, u, v, footprint, config: RenderConfig, use_mip: bool,
                  default: float):
     """Texture values of the splats ``gid`` (S,) at (u, v) (pixels, S); (pixels, S, ch)."""
-    base, stride, side = atlas.base[gid], atlas.stride[gid], atlas.side[gid]   # (S, levels)
+    base, side_p, n = atlas.base[gid], atlas.bucket_side[gid], atlas.size[gid]
     has = atlas.has[gid]
     if not use_mip or config.mip == "none":
-        val = tex.sample(atlas.texels, base[:, 0], stride[:, 0], side[:, 0], u, v)
+        val = tex.sample(atlas.texels, base, side_p, n.astype(jnp.int32), u, v)
     else:
-        n, L = atlas.size[gid], atlas.max_level[gid]
+        L = atlas.max_level[gid]
         trilinear = config.mip == "trilinear"
         lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear)
+        ni = n.astype(jnp.int32)
 
         def at_level(l):
-            def pick(table):  # (S, levels) -> (pixels, S) at each lookup's level
-                table = jnp.broadcast_to(table, l.shape + table.shape[-1:])
-                return jnp.take_along_axis(table, l[..., None], axis=-1)[..., 0]
-
-            return tex.sample(atlas.texels, pick(base), pick(stride), pick(side), u, v)
+            return tex.sample(atlas.texels, *tex.level_address(base, side_p, ni, l), u, v)
 
         if trilinear:
             l0 = jnp.floor(lev)
@@ -450,10 +447,9 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     use_mip = config.mip != "none"
     rgb_atlas = alpha_atlas = None
     if scene.rgb is not None:
-        rgb_atlas = tex.build_atlas(scene.rgb, tex.num_levels_for(scene.rgb, use_mip and config.rgb_mip))
+        rgb_atlas = tex.build_atlas(scene.rgb, use_mip and config.rgb_mip)
     if scene.alpha is not None:
-        alpha_atlas = tex.build_atlas(scene.alpha,
-                                      tex.num_levels_for(scene.alpha, use_mip and config.alpha_mip))
+        alpha_atlas = tex.build_atlas(scene.alpha, use_mip and config.alpha_mip)
     rgb, t_final, depth, normal, best = _composite_tiles(
         proj["packed"], rgb_atlas, alpha_atlas, ids_sorted, tile_start, binned, config, capacity,
         tiles_x, num_tiles)

@@ -17,9 +17,10 @@ Mip pyramid (paper Eqs. 11-13)
   exactly, and for power-of-two n each level is a low-pass of the previous one.
 
 Atlas
-  Rendering gathers every texel, of every bucket and level, from one flat ``(M, channels)`` array,
-  addressed per Gaussian and level by a base offset, a row stride and a size (see :func:`build_atlas`).
-  Only the levels a configuration uses are built.
+  Rendering gathers every texel, of every bucket and level, from one flat ``(M, channels)`` array
+  in which each Gaussian's pyramid is one contiguous block; a level's offset, row stride and side
+  are computed from the block's base, the bucket side and the level (:func:`level_address`), so
+  a lookup needs no per-level tables. Pyramids are built only when a configuration uses them.
 """
 
 from __future__ import annotations
@@ -180,22 +181,24 @@ class TextureBank:
 class Atlas:
     """The texels of one bank, all buckets and used levels flattened (built inside jit).
 
+    Each Gaussian's pyramid is one contiguous block starting at ``base``: level 0 stored P x P
+    (row stride P, true side n), then level 1 ((P/2)^2 texels), level 2, ... down to 1 x 1.
+    Level l >= 1 starts at ``(4/3) (P^2 - (P >> l)^2)`` within the block (see :func:`level_address`).
+
     Attributes:
       texels: (M, channels) float; row 0 is a dummy for texture-less Gaussians.
-      base: (C, levels) int32 flat offset of each Gaussian's texel (0, 0) per level.
-      stride: (C, levels) int32 row stride per level.
-      side: (C, levels) int32 side length per level (level 0 is the true n).
-      max_level: (C,) int32 coarsest level L = ceil(log2 n) (0 when levels == 1).
+      base: (C,) int32 flat offset of each Gaussian's block.
+      bucket_side: (C,) int32 P, the bucket's slot side.
       size: (C,) float32 true n (0: no texture).
+      max_level: (C,) int32 coarsest level L = ceil(log2 n) (0 when only level 0 is built).
       has: (C,) bool, textured.
     """
 
     texels: jax.Array
     base: jax.Array
-    stride: jax.Array
-    side: jax.Array
-    max_level: jax.Array
+    bucket_side: jax.Array
     size: jax.Array
+    max_level: jax.Array
     has: jax.Array
 
 
@@ -205,7 +208,7 @@ def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:
     if b == 0:
         return levels
     P = 1 << b
-    table = jnp.asarray(_first_level_table(P))
+    table = jnp.asarray(_first_level_table(P), level0.dtype)
     idx = jnp.clip(n - (P // 2 + 1), 0, P // 2 - 1)
     D = table[idx]  # (cap, P/2, P)
     levels.append(jnp.einsum("kip,kpqc,kjq->kijc", D, level0, D))
@@ -216,51 +219,48 @@ def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:
     return levels
 
 
-def build_atlas(bank: TextureBank, num_levels: int) -> Atlas:
-    """Flattens a bank (and, for ``num_levels > 1``, its mip pyramids) into one texel array.
-
-    Args:
-      bank: the textures.
-      num_levels: 1 for level 0 only (mip off), else at least ``num_buckets`` (all levels).
-    Returns:
-      An :class:`Atlas` whose tables have ``num_levels`` columns.
-    """
+def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
+    """Flattens a bank (with its mip pyramids when ``use_mip``) into one texel array."""
     ch = bank.channels
     bucket = jax.lax.stop_gradient(bank.bucket).astype(jnp.int32)
     slot = jax.lax.stop_gradient(bank.slot).astype(jnp.int32)
     size_f = jax.lax.stop_gradient(bank.size)
     size = size_f.astype(jnp.int32)
     has = bucket >= 0
-    chunks = [jnp.zeros((1, ch), bank.buckets[0].dtype if bank.buckets else jnp.float32)]
+    dtype = bank.buckets[0].dtype if bank.buckets else jnp.float32
+    chunks = [jnp.zeros((1, ch), dtype)]
     offset = 1
-    C = bucket.shape[0]
-    base = jnp.zeros((C, num_levels), jnp.int32)
-    stride = jnp.ones((C, num_levels), jnp.int32)
-    side = jnp.ones((C, num_levels), jnp.int32)
+    base = jnp.zeros(bucket.shape, jnp.int32)
     for b, data in enumerate(bank.buckets):
         cap, P = data.shape[0], data.shape[1]
         if cap == 0:
             continue
         mine = bucket == b
-        slot_b = jnp.clip(slot, 0, cap - 1)
-        if num_levels > 1:
+        if use_mip:
             # n of each slot, for the level-0 -> level-1 filter: scatter sizes into slots.
             n_slot = jnp.zeros((cap,), jnp.int32).at[jnp.where(mine, slot, cap)].set(size, mode="drop")
             levels = _pyramid(data, n_slot, b)
         else:
             levels = [data]
-        for k, lev in enumerate(levels[:num_levels]):
-            s = lev.shape[1]
-            chunks.append(lev.reshape(cap * s * s, ch))
-            base = base.at[:, k].set(jnp.where(mine, offset + slot_b * s * s, base[:, k]))
-            stride = stride.at[:, k].set(jnp.where(mine, s, stride[:, k]))
-            side_k = size if k == 0 else jnp.full_like(size, s)
-            side = side.at[:, k].set(jnp.where(mine, side_k, side[:, k]))
-            offset += cap * s * s
-    max_level = jnp.where(has, bucket, 0) if num_levels > 1 else jnp.zeros_like(bucket)
-    max_level = jnp.minimum(max_level, num_levels - 1)
-    return Atlas(texels=jnp.concatenate(chunks, axis=0), base=base, stride=stride, side=side,
-                 max_level=max_level, size=size_f, has=has)
+        block = jnp.concatenate([lev.reshape(cap, -1, ch) for lev in levels], axis=1)
+        chunks.append(block.reshape(-1, ch))
+        base = jnp.where(mine, offset + jnp.clip(slot, 0, cap - 1) * block.shape[1], base)
+        offset += block.shape[0] * block.shape[1]
+    bucket_side = jnp.where(has, jnp.left_shift(1, jnp.maximum(bucket, 0)), 1)
+    max_level = jnp.where(has, bucket, 0) if use_mip else jnp.zeros_like(bucket)
+    return Atlas(texels=jnp.concatenate(chunks, axis=0), base=base, bucket_side=bucket_side,
+                 size=size_f, max_level=max_level, has=has)
+
+
+def level_address(base, bucket_side, size, level):
+    """(offset, row stride, side) of pyramid ``level`` of blocks at ``base``; int32, broadcasting.
+
+    Level 0: (base, P, n); level l >= 1: (base + (4/3)(P^2 - s^2), s, s) with s = P >> l.
+    """
+    s = jnp.right_shift(bucket_side, level)
+    zero = level == 0
+    off = jnp.where(zero, 0, (bucket_side * bucket_side - s * s) * 4 // 3)
+    return base + off, jnp.where(zero, bucket_side, s), jnp.where(zero, size, s)
 
 
 def sample(texels, base, stride, side, u, v):
@@ -311,8 +311,3 @@ def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):
     if trilinear:
         return jnp.clip(lf, 0.0, Lf)
     return jnp.clip(jnp.floor(lf), 0.0, Lf).astype(jnp.int32)
-
-
-def num_levels_for(bank: TextureBank, use_mip: bool) -> int:
-    """How many atlas levels a bank needs: all of them with mip, only level 0 without."""
-    return max(bank.num_buckets, 1) if use_mip else 1
