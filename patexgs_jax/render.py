@@ -59,6 +59,7 @@ ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 _UV_LIMIT = 1e4  # |u|, |v| beyond this count as "no intersection" (G3d underflows long before)
+_DIST_NEAR, _DIST_FAR = 0.2, 1000.0  # the NDC depth mapping of the 2DGS distortion loss
 
 #: How many times the jitted renderer has been traced, per configuration (tests assert on it).
 TRACE_COUNTS: collections.Counter = collections.Counter()
@@ -137,6 +138,8 @@ class RenderOutput:
       alpha: (H, W) accumulated opacity, 1 - final transmittance.
       depth: (H, W) alpha-normalised expected intersection depth (0 where alpha is 0).
       normal: (H, W, 3) alpha-weighted camera-frame normals (facing the camera).
+      distortion: (H, W) the 2DGS depth-distortion term sum_{i<j} w_i w_j (m_i - m_j)^2, m the
+        depth mapped to [0, 1) by m = f/(f-n) (1 - n/z) with n = 0.2, f = 1000 (as 2DGS).
       max_contrib_count: (C,) int32, pixels at which each splat has the largest weight
         alpha_i T_i (paper Eq. 6); no gradient.
       radius_px: (C,) float, screen-space half-extent of each splat's footprint (0: not visible).
@@ -150,6 +153,7 @@ class RenderOutput:
     alpha: jax.Array
     depth: jax.Array
     normal: jax.Array
+    distortion: jax.Array
     max_contrib_count: jax.Array
     radius_px: jax.Array
     visible: jax.Array
@@ -393,9 +397,15 @@ def _composite_tiles(packed, rgb_atlas, alpha_atlas, ids_sorted, tile_start, bin
         rgb = rgb + t_final[:, None] * bg
         depth = jnp.sum(w * z, axis=1)
         normal = w @ pk[:, _NRM]
+        # 2DGS depth distortion: sum_{i<j} w_i w_j (m_i - m_j)^2 = A D2 - D1^2 with m the
+        # NDC-mapped depth, A = sum w, D1 = sum w m, D2 = sum w m^2.
+        m = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * (1.0 - _DIST_NEAR / jnp.where(keep, z, 1.0))
+        wm = w * m
+        d1 = jnp.sum(wm, axis=1)
+        distortion = (1.0 - t_final) * jnp.sum(wm * m, axis=1) - d1 * d1
         best_slot = jnp.argmax(w, axis=1)
         best = jnp.where(jnp.max(w, axis=1) > 0, gid[best_slot], -1)
-        return rgb, t_final, depth, normal, best
+        return rgb, t_final, depth, normal, distortion, best
 
     # Per-batch work bounded to about 2^16 (pixel, slot) pairs per tile step times the batch.
     tb = max(1, min(config.tiles_per_batch, (1 << 20) // (npx * S)))
@@ -450,7 +460,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
         rgb_atlas = tex.build_atlas(scene.rgb, use_mip and config.rgb_mip)
     if scene.alpha is not None:
         alpha_atlas = tex.build_atlas(scene.alpha, use_mip and config.alpha_mip)
-    rgb, t_final, depth, normal, best = _composite_tiles(
+    rgb, t_final, depth, normal, distortion, best = _composite_tiles(
         proj["packed"], rgb_atlas, alpha_atlas, ids_sorted, tile_start, binned, config, capacity,
         tiles_x, num_tiles)
     rgb = _untile(rgb, tiles_x, tiles_y, ts, H, W)
@@ -458,11 +468,13 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     depth = _untile(depth, tiles_x, tiles_y, ts, H, W)
     depth = jnp.where(alpha > 1e-6, depth / jnp.maximum(alpha, 1e-6), 0.0)
     normal = _untile(normal, tiles_x, tiles_y, ts, H, W)
+    distortion = _untile(distortion, tiles_x, tiles_y, ts, H, W)
     best = _untile(best, tiles_x, tiles_y, ts, H, W).reshape(-1)
     C = scene.capacity
     counts = jnp.zeros((C,), jnp.int32).at[jnp.where(best >= 0, best, C)].add(1, mode="drop")
     overflow = (pairs_needed > capacity.pairs) | (max_tile > capacity.per_tile)
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, max_contrib_count=counts,
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, distortion=distortion,
+                        max_contrib_count=counts,
                         radius_px=jnp.where(ok, proj["radius"], 0.0), visible=ok,
                         pairs_needed=pairs_needed, max_tile_count=max_tile, overflow=overflow)
 

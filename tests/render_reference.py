@@ -143,6 +143,7 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
     dep = np.zeros(P)
     nrm = np.zeros((P, 3))
     best_w = np.zeros(P)
+    dA, dD1, dD2, dist = np.zeros(P), np.zeros(P), np.zeros(P), np.zeros(P)
     best = -np.ones(P, int)
     for i in order:
         if depths[i] <= near or g["opacities"][i] <= 0:
@@ -194,6 +195,9 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
         take &= ~stop
         w = np.where(take, a * T, 0.0)
         rgb += w[:, None] * col
+        mz = 1000.0 / (1000.0 - 0.2) * (1 - 0.2 / np.where(take, z, 1.0))
+        dist += w * (mz * mz * dA + dD2 - 2 * mz * dD1)  # sum over earlier j of w_i w_j (m_i - m_j)^2
+        dA, dD1, dD2 = dA + w, dD1 + w * mz, dD2 + w * mz * mz
         dep += w * z
         nrm += w[:, None] * nc[None]
         better = w > best_w
@@ -205,6 +209,7 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
     depth = np.where(alpha > 1e-6, dep / np.maximum(alpha, 1e-6), 0.0)
     return dict(rgb=rgb.reshape(height, width, 3), alpha=alpha.reshape(height, width),
                 depth=depth.reshape(height, width), normal=nrm.reshape(height, width, 3),
+                distortion=dist.reshape(height, width),
                 best=best.reshape(height, width))
 
 

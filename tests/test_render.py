@@ -77,6 +77,7 @@ def test_matches_reference(name):
     np.testing.assert_allclose(out64.alpha, ref["alpha"], atol=1e-7, rtol=0)
     np.testing.assert_allclose(out64.depth, ref["depth"], atol=1e-6, rtol=0)
     np.testing.assert_allclose(out64.normal, ref["normal"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.distortion, ref["distortion"], atol=1e-9, rtol=1e-6)
     best = ref["best"].ravel()
     counts = np.bincount(best[best >= 0], minlength=C)
     np.testing.assert_array_equal(out64.max_contrib_count, counts)
@@ -186,7 +187,8 @@ def _directional_fd_check(sc, cam, cfg, seed, h=1e-6, rtol=2e-4):
 
         def loss(s):
             out = render_jit(s, cam, config=cfg, capacity=CAP)
-            return jnp.sum(out.rgb * wts) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth)
+            return (jnp.sum(out.rgb * wts) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth)
+                    + jnp.sum(out.distortion))
 
         g = jax.grad(loss)(sc64)
         leaves, treedef = jax.tree_util.tree_flatten(sc64)
