@@ -1,0 +1,471 @@
+"""Atomic, self-describing checkpoints of arbitrary pytrees (scene, optimiser state, RNG, schedule).
+
+File format (version 1)
+  A ZIP archive (stored, no compression; every member CRC-checked on read) with
+  * ``spec.json``: ``{"format": "patexgs-checkpoint", "version": 1, "metadata": {...},
+    "tree": <node>}``, where a node is one of
+      ``{"t": "none"}``; ``{"t": "py", "v": value}`` (bool, int, float, str);
+      ``{"t": "array", "i": k, "kind": "jax"|"numpy"|"scalar", "dtype": name}`` (array member k);
+      ``{"t": "key", "i": k, "impl": name}`` (a typed JAX PRNG key; member k holds its key data);
+      ``{"t": "list"|"tuple", "v": [nodes]}``;
+      ``{"t": "dict", "k": [keys], "v": [nodes]}`` (keys are str or int, JSON-typed);
+      ``{"t": "namedtuple", "cls": "module:QualName", "v": [nodes]}``;
+      ``{"t": "dataclass", "cls": "module:QualName", "f": {field: node}}``;
+      ``{"t": "np_generator", "bit_generator": name, "state": node}`` (a numpy Generator).
+  * ``arrays/<k>.npy``: the array leaves in numpy's ``.npy`` format (no pickles). Dtypes numpy
+    cannot name (bfloat16 etc.) are stored as unsigned integers of the same width and viewed back.
+
+  So a checkpoint rebuilds itself without a template (Scenes of any capacity, texture banks with
+  any bucket shapes, optax states). Classes are re-imported by name only from the modules in
+  :data:`ALLOWED_MODULE_PREFIXES` (extend with :func:`allow_module`), never arbitrary code.
+
+Atomicity
+  :func:`save_checkpoint` writes ``.<name>.tmp-<random>`` in the target directory, fsyncs it,
+  ``os.replace``-s it onto the final name and fsyncs the directory; an interrupted save leaves the
+  previous checkpoint untouched and at most a hidden temp file, which :func:`latest_checkpoint`
+  never considers. With ``keep=k`` older ``*.ckpt`` files of the directory are deleted, newest k
+  kept, only after the new one is complete.
+
+Naming and order
+  :func:`checkpoint_path` gives ``<dir>/ckpt_<step:09d>.ckpt``; "newest" is the largest number in
+  the file name (files without one come first), ties broken by modification time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import io
+import json
+import os
+import re
+import shutil
+import tempfile
+import warnings
+import zipfile
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+FORMAT = "patexgs-checkpoint"
+VERSION = 1
+SUFFIX = ".ckpt"
+ALLOWED_MODULE_PREFIXES: list[str] = ["patexgs_jax", "optax", "experiments"]
+
+
+class CheckpointError(Exception):
+    """A checkpoint cannot be written or read."""
+
+
+class CorruptCheckpointError(CheckpointError, ValueError):
+    """A checkpoint file is truncated, corrupt or not a checkpoint."""
+
+
+def allow_module(prefix: str) -> None:
+    """Lets :func:`load_checkpoint` rebuild NamedTuples / dataclasses defined under ``prefix``."""
+    if prefix not in ALLOWED_MODULE_PREFIXES:
+        ALLOWED_MODULE_PREFIXES.append(prefix)
+
+
+def checkpoint_path(directory, step: int) -> Path:
+    """The conventional checkpoint file name for a training step."""
+    return Path(directory) / f"ckpt_{int(step):09d}{SUFFIX}"
+
+
+# ------------------------------------------------------------------------------------------------
+# Encoding.
+
+def _class_name(cls) -> str:
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def _is_namedtuple(x) -> bool:
+    return isinstance(x, tuple) and hasattr(type(x), "_fields")
+
+
+def _is_key_array(x) -> bool:
+    return isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def _storable(arr: np.ndarray) -> tuple[np.ndarray, str]:
+    """(array numpy can save without pickles, dtype name to restore)."""
+    name = str(arr.dtype)
+    if arr.dtype.kind in "biufc" and arr.dtype.isbuiltin:
+        return arr, name
+    if arr.dtype.kind == "O":
+        raise TypeError("object arrays cannot be checkpointed.")
+    if arr.dtype.kind in "SU":
+        return arr, name
+    # Extension dtypes (bfloat16, float8, ...): raw bits.
+    return arr.view(np.dtype(f"u{arr.dtype.itemsize}")), name
+
+
+class _Encoder:
+    def __init__(self):
+        self.arrays: list[np.ndarray] = []
+
+    def _add(self, arr: np.ndarray) -> int:
+        self.arrays.append(arr)
+        return len(self.arrays) - 1
+
+    def encode(self, x, path: str = "tree"):
+        if x is None:
+            return {"t": "none"}
+        if isinstance(x, (bool, int, float, str)) and not isinstance(x, np.generic):
+            return {"t": "py", "v": x}
+        if _is_key_array(x):
+            impl = str(jax.random.key_impl(x))
+            return {"t": "key", "i": self._add(np.asarray(jax.random.key_data(x))), "impl": impl}
+        if isinstance(x, (jax.Array, np.ndarray, np.generic)):
+            kind = "jax" if isinstance(x, jax.Array) else ("scalar" if isinstance(x, np.generic) else "numpy")
+            arr = np.asarray(x)
+            try:
+                stored, dtype = _storable(arr)
+            except TypeError as e:
+                raise TypeError(f"{path}: {e}") from None
+            return {"t": "array", "i": self._add(stored), "kind": kind, "dtype": dtype}
+        if isinstance(x, np.random.Generator):
+            bg = x.bit_generator
+            return {"t": "np_generator", "bit_generator": type(bg).__name__,
+                    "state": self.encode(bg.state, path + ".state")}
+        if _is_namedtuple(x):
+            return {"t": "namedtuple", "cls": _class_name(type(x)),
+                    "v": [self.encode(v, f"{path}.{f}") for f, v in zip(type(x)._fields, x)]}
+        if isinstance(x, (list, tuple)):
+            return {"t": "list" if isinstance(x, list) else "tuple",
+                    "v": [self.encode(v, f"{path}[{i}]") for i, v in enumerate(x)]}
+        if isinstance(x, dict):
+            keys = list(x.keys())
+            for k in keys:
+                if not isinstance(k, (str, int)) or isinstance(k, bool):
+                    raise TypeError(f"{path}: dict keys must be str or int, got {k!r}.")
+            return {"t": "dict", "k": keys, "v": [self.encode(x[k], f"{path}[{k!r}]") for k in keys]}
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            return {"t": "dataclass", "cls": _class_name(type(x)),
+                    "f": {f.name: self.encode(getattr(x, f.name), f"{path}.{f.name}")
+                          for f in dataclasses.fields(x)}}
+        raise TypeError(f"{path}: cannot checkpoint a {type(x).__module__}.{type(x).__qualname__}; "
+                        "use arrays, Python scalars, lists/tuples/dicts, NamedTuples or dataclasses.")
+
+
+def _resolve_class(name: str):
+    module, _, qual = name.partition(":")
+    if not any(module == p or module.startswith(p + ".") for p in ALLOWED_MODULE_PREFIXES):
+        raise CheckpointError(f"class {name} is not from an allowed module "
+                              f"({ALLOWED_MODULE_PREFIXES}); see checkpoint.allow_module.")
+    obj = importlib.import_module(module)
+    for part in qual.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+class _Decoder:
+    def __init__(self, arrays: dict):
+        self.arrays = arrays
+
+    def _array(self, i):
+        if i not in self.arrays:
+            raise CorruptCheckpointError(f"array member {i} is missing")
+        return self.arrays[i]
+
+    def decode(self, node):
+        t = node["t"]
+        if t == "none":
+            return None
+        if t == "py":
+            return node["v"]
+        if t == "array":
+            arr = self._array(node["i"])
+            dtype = np.dtype(jnp.dtype(node["dtype"]))
+            if arr.dtype != dtype:
+                arr = arr.view(dtype)
+            if node["kind"] == "jax":
+                return jax.device_put(arr)  # (jnp.asarray would compile a copy per new shape)
+            if node["kind"] == "scalar":
+                return arr[()]
+            return arr
+        if t == "key":
+            return jax.random.wrap_key_data(jax.device_put(self._array(node["i"])), impl=node["impl"])
+        if t == "list":
+            return [self.decode(v) for v in node["v"]]
+        if t == "tuple":
+            return tuple(self.decode(v) for v in node["v"])
+        if t == "dict":
+            return {k: self.decode(v) for k, v in zip(node["k"], node["v"])}
+        if t == "namedtuple":
+            return _resolve_class(node["cls"])(*[self.decode(v) for v in node["v"]])
+        if t == "dataclass":
+            cls = _resolve_class(node["cls"])
+            values = {k: self.decode(v) for k, v in node["f"].items()}
+            fields = {f.name: f for f in dataclasses.fields(cls)}
+            if set(values) != set(fields):
+                raise CheckpointError(f"{node['cls']}: stored fields {sorted(values)} do not match the "
+                                      f"class's fields {sorted(fields)}.")
+            obj = cls(**{k: v for k, v in values.items() if fields[k].init})
+            for k, v in values.items():
+                if not fields[k].init:
+                    object.__setattr__(obj, k, v)
+            return obj
+        if t == "np_generator":
+            bg = getattr(np.random, node["bit_generator"])()
+            bg.state = self.decode(node["state"])
+            return np.random.Generator(bg)
+        raise CorruptCheckpointError(f"unknown node type {t!r}")
+
+
+def _json_default(o):
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, np.floating):
+        return float(o)
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, (np.ndarray, jax.Array)):
+        return np.asarray(o).tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"metadata value of type {type(o).__name__} is not JSON-serialisable")
+
+
+# ------------------------------------------------------------------------------------------------
+def _fsync_dir(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return  # e.g. platforms without directory fds
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _sort_key(p: Path):
+    nums = re.findall(r"\d+", p.stem)
+    try:
+        mtime = p.stat().st_mtime_ns
+    except OSError:
+        mtime = 0
+    return (int(nums[-1]) if nums else -1, mtime, p.name)
+
+
+def list_checkpoints(directory) -> list[Path]:
+    """``*.ckpt`` files of a directory (temp files excluded), oldest first."""
+    d = Path(directory)
+    if not d.is_dir():
+        return []
+    files = [p for p in d.iterdir() if p.name.endswith(SUFFIX) and not p.name.startswith(".")
+             and p.is_file()]
+    return sorted(files, key=_sort_key)
+
+
+def save_checkpoint(path, tree, metadata: dict | None = None, *, keep: int | None = None) -> Path:
+    """Writes ``tree`` and JSON ``metadata`` to ``path`` atomically (see the module docstring).
+
+    Args:
+      path: destination file (conventionally :func:`checkpoint_path`; parents are created).
+      tree: any pytree of arrays / Python scalars / containers / NamedTuples / dataclasses.
+      metadata: JSON-serialisable dict (numpy scalars and arrays are converted).
+      keep: if given, afterwards delete older ``*.ckpt`` files in the directory, keeping the newest
+        ``keep`` (the new one always survives).
+    Returns:
+      The path written.
+    """
+    path = Path(path)
+    enc = _Encoder()
+    spec = {"format": FORMAT, "version": VERSION, "metadata": dict(metadata or {}),
+            "tree": enc.encode(tree)}
+    try:
+        spec_bytes = json.dumps(spec, default=_json_default).encode("utf-8")
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"save_checkpoint({path}): metadata is not JSON-serialisable: {e}") from None
+
+    directory = path.parent
+    directory.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=directory)
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+                zf.writestr("spec.json", spec_bytes)
+                for i, arr in enumerate(enc.arrays):
+                    with zf.open(f"arrays/{i}.npy", "w", force_zip64=arr.nbytes > (1 << 30)) as m:
+                        np.lib.format.write_array(m, np.asarray(arr, order="C"), allow_pickle=False)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        if isinstance(e, OSError):
+            raise CheckpointError(f"could not write checkpoint {path}: {e}") from e
+        raise
+    _fsync_dir(directory)
+
+    if keep is not None:
+        if keep < 1:
+            raise ValueError(f"keep must be >= 1, got {keep}.")
+        others = [p for p in list_checkpoints(directory) if p.resolve() != path.resolve()]
+        for old in others[: max(0, len(others) - (keep - 1))]:
+            try:
+                old.unlink()
+            except OSError as e:
+                warnings.warn(f"could not delete old checkpoint {old}: {e}", stacklevel=2)
+    return path
+
+
+def _read(path: Path, with_arrays: bool = True):
+    """(spec dict, {index: array}); raises CorruptCheckpointError naming the file."""
+    if not path.exists():
+        raise FileNotFoundError(f"checkpoint {path} does not exist.")
+    try:
+        with zipfile.ZipFile(path, "r") as zf:
+            names = set(zf.namelist())
+            if "spec.json" not in names:
+                raise CorruptCheckpointError("no spec.json member")
+            spec = json.loads(zf.read("spec.json").decode("utf-8"))
+            if not isinstance(spec, dict) or spec.get("format") != FORMAT:
+                raise CorruptCheckpointError("not a patexgs checkpoint")
+            if spec.get("version") != VERSION:
+                raise CorruptCheckpointError(f"unsupported format version {spec.get('version')!r} "
+                                             f"(this code reads version {VERSION})")
+            arrays = {}
+            if with_arrays:
+                for name in names:
+                    m = re.fullmatch(r"arrays/(\d+)\.npy", name)
+                    if m is None:
+                        continue
+                    data = zf.read(name)  # checks the CRC
+                    arrays[int(m.group(1))] = np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
+            else:
+                bad = zf.testzip()
+                if bad is not None:
+                    raise CorruptCheckpointError(f"member {bad} fails its CRC check")
+    except CorruptCheckpointError as e:
+        raise CorruptCheckpointError(f"checkpoint {path} is corrupt: {e}") from None
+    except (OSError, MemoryError) as e:
+        if isinstance(e, (PermissionError, IsADirectoryError)):
+            raise
+        raise CorruptCheckpointError(f"checkpoint {path} is truncated or corrupt: {e}") from e
+    except Exception as e:  # zipfile, json, npy parsing: anything means a damaged file
+        raise CorruptCheckpointError(f"checkpoint {path} is truncated or corrupt "
+                                     f"({type(e).__name__}: {e}).") from e
+    return spec, arrays
+
+
+def _leaf_desc(x) -> str:
+    if hasattr(x, "shape") and hasattr(x, "dtype"):
+        return f"an array of shape {tuple(x.shape)} and dtype {x.dtype}"
+    return f"{type(x).__name__} {x!r}"
+
+
+def load_checkpoint(path, template=None, *, check_shapes: bool = True):
+    """Reads a checkpoint written by :func:`save_checkpoint`.
+
+    Args:
+      path: the file.
+      template: optional pytree; the loaded tree must have its structure (same containers, classes
+        and static fields), and with ``check_shapes`` its array leaves' shapes and dtypes; leaves are
+        returned as the template's leaf types (jax or numpy arrays). Without a template the file
+        rebuilds itself (use this after capacity growth).
+    Returns:
+      (tree, metadata dict).
+    """
+    path = Path(path)
+    spec, arrays = _read(path)
+    try:
+        tree = _Decoder(arrays).decode(spec["tree"])
+    except CheckpointError as e:
+        raise type(e)(f"checkpoint {path}: {e}") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise CorruptCheckpointError(f"checkpoint {path} has an invalid tree description "
+                                     f"({type(e).__name__}: {e}).") from e
+    metadata = spec.get("metadata", {})
+    if template is None:
+        return tree, metadata
+
+    leaves_t, def_t = jax.tree_util.tree_flatten_with_path(template)
+    leaves_l, def_l = jax.tree_util.tree_flatten(tree)
+    if def_l != def_t:
+        raise CheckpointError(f"checkpoint {path}: its tree structure does not match the template.\n"
+                              f"  checkpoint: {def_l}\n  template:   {def_t}")
+    out = []
+    for (kp, t), v in zip(leaves_t, leaves_l):
+        name = jax.tree_util.keystr(kp)
+        if hasattr(t, "shape") and hasattr(t, "dtype"):
+            if not (hasattr(v, "shape") and hasattr(v, "dtype")):
+                raise CheckpointError(f"checkpoint {path}: leaf {name} is {_leaf_desc(v)}, "
+                                      f"template has {_leaf_desc(t)}.")
+            if check_shapes and (tuple(v.shape) != tuple(t.shape) or np.dtype(v.dtype) != np.dtype(t.dtype)):
+                raise CheckpointError(f"checkpoint {path}: leaf {name} is {_leaf_desc(v)}, template has "
+                                      f"{_leaf_desc(t)} (pass template=None to restore other shapes).")
+            if isinstance(t, jax.Array):
+                v = v if isinstance(v, jax.Array) else jax.device_put(np.asarray(v))
+            else:
+                v = np.asarray(v)
+        out.append(v)
+    return jax.tree_util.tree_unflatten(def_l, out), metadata
+
+
+def read_metadata(path) -> dict:
+    """The metadata of a checkpoint (reads only its spec; the CRCs are checked too)."""
+    spec, _ = _read(Path(path), with_arrays=False)
+    return spec.get("metadata", {})
+
+
+def verify_checkpoint(path) -> None:
+    """Raises CorruptCheckpointError unless ``path`` is a complete, readable checkpoint."""
+    _read(Path(path), with_arrays=False)
+
+
+def latest_checkpoint(directory) -> Path | None:
+    """The newest complete checkpoint in ``directory`` (None if there is none).
+
+    Corrupt or truncated files are skipped with a warning naming them; temp files are ignored.
+    """
+    for p in reversed(list_checkpoints(directory)):
+        try:
+            verify_checkpoint(p)
+        except (CorruptCheckpointError, OSError) as e:
+            warnings.warn(f"skipping unreadable checkpoint {p}: {e}", stacklevel=2)
+            continue
+        return p
+    return None
+
+
+def check_writable(directory, required_bytes: int = 0) -> Path:
+    """Fails early, with a clear message, if checkpoints cannot be written to ``directory``.
+
+    Creates the directory if needed, writes, fsyncs and deletes a probe file, and checks that at
+    least ``required_bytes`` are free (e.g. twice the expected checkpoint size: a new checkpoint is
+    written before the old one is deleted).
+    """
+    d = Path(directory)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise CheckpointError(f"cannot create checkpoint directory {d}: {e.strerror or e}") from e
+    if not d.is_dir():
+        raise CheckpointError(f"checkpoint path {d} exists and is not a directory.")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=d)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(b"\0" * 4096)
+                f.flush()
+                os.fsync(f.fileno())
+        finally:
+            os.unlink(probe)
+    except OSError as e:
+        raise CheckpointError(f"checkpoint directory {d} is not writable: {e.strerror or e} "
+                              f"(read-only file system, permissions or disk full?)") from e
+    free = shutil.disk_usage(d).free
+    if free < int(required_bytes):
+        raise CheckpointError(f"checkpoint directory {d} has {free / 2**20:.1f} MiB free, "
+                              f"{int(required_bytes) / 2**20:.1f} MiB are needed.")
+    return d

@@ -1,0 +1,177 @@
+"""PLY export / import: exact round trips, the 2DGS header layout, and damaged files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from patexgs_jax import random_scene
+from patexgs_jax.export import PlyFormatError, export_ply, load_ply, sidecar_path
+
+RGB = [2, 0, 3, 1, 0, 5, 4]
+ALPHA = [0, 4, 0, 1, 2, 0, 3]
+
+
+def make_scene(sh_degree, textured, capacity=9, seed=0):
+    s = random_scene(seed, 7, sh_degree=sh_degree, rgb_sizes=RGB if textured else None,
+                     alpha_sizes=ALPHA if textured else None, capacity=capacity)
+    act = np.asarray(s.active).copy()
+    act[2] = 0.0          # an inactive slot in the middle is skipped
+    return s.replace(active=act)
+
+
+def expected_properties(K):
+    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(3 * (K - 1))]
+            + ["opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+def header_of(path):
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    return data[:end].decode("ascii").splitlines(), data[end:]
+
+
+@pytest.mark.parametrize("sh_degree,textured", [(0, False), (3, False), (0, True), (3, True)])
+def test_round_trip(tmp_path, sh_degree, textured):
+    scene = make_scene(sh_degree, textured)
+    path = export_ply(scene, tmp_path / "scene.ply")
+    assert sidecar_path(path).name == "scene.textures.npz"
+    back = load_ply(path)
+    rows = np.flatnonzero(np.asarray(scene.active) > 0)
+    assert back.capacity == rows.size == back.num_active()
+    for f in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, f)), np.asarray(getattr(scene, f))[rows])
+    for name in ("rgb", "alpha"):
+        b0, b1 = getattr(scene, name), getattr(back, name)
+        assert (b0 is None) == (b1 is None)
+        if b0 is None:
+            continue
+        assert b1.num_buckets == b0.num_buckets and b1.channels == b0.channels
+        for j, i in enumerate(rows):
+            t0, t1 = b0.texture(int(i)), b1.texture(j)
+            assert (t0 is None and t1 is None) or np.array_equal(t0, t1)
+    big = load_ply(path, capacity=12)
+    assert big.capacity == 12 and big.num_active() == rows.size
+    assert float(big.opacity_logits[-1]) == -20.0
+    np.testing.assert_array_equal(np.asarray(big.quats[-1]), [1, 0, 0, 0])
+
+
+def test_header_layout_and_channel_major_rest(tmp_path):
+    scene = make_scene(3, False)
+    K = 16
+    sh = np.zeros((9, K, 3), np.float32)
+    sh[:] = np.arange(K)[None, :, None] * 10 + np.arange(3)[None, None, :]    # value 10 k + c
+    scene = scene.replace(sh=sh)
+    path = export_ply(scene, tmp_path / "s.ply")
+    lines, body = header_of(path)
+    assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
+    assert "element vertex 6" in lines and lines[-1] == "end_header"
+    props = [ln.split() for ln in lines if ln.startswith("property")]
+    assert all(p[1] == "float" for p in props)
+    names = [p[2] for p in props]
+    assert names == expected_properties(K) and len(names) == 61
+    v = np.frombuffer(body, "<f4").reshape(6, 61)
+    np.testing.assert_array_equal(v[:, 3:6], 0)                                # normals
+    np.testing.assert_array_equal(v[0, 6:9], [0, 1, 2])                        # f_dc = sh[:, 0, c]
+    rest = v[0, 9:54]
+    for c in range(3):
+        np.testing.assert_array_equal(rest[c * 15:(c + 1) * 15], np.arange(1, 16) * 10 + c)
+    rows = np.flatnonzero(np.asarray(scene.active) > 0)
+    np.testing.assert_array_equal(v[:, 54], np.asarray(scene.opacity_logits)[rows])
+    np.testing.assert_array_equal(v[:, 55:57], np.asarray(scene.log_scales)[rows])
+    np.testing.assert_array_equal(v[:, 57:61], np.asarray(scene.quats)[rows])
+
+
+def write_ply(path, names, rows, extra=b""):
+    head = ("ply\nformat binary_little_endian 1.0\n" f"element vertex {len(rows)}\n"
+            + "".join(f"property float {n}\n" for n in names) + "end_header\n").encode()
+    path.write_bytes(head + np.asarray(rows, "<f4").tobytes() + extra)
+
+
+def test_foreign_and_invalid_layouts(tmp_path):
+    names = expected_properties(1)
+    vals = np.zeros((2, len(names)), np.float32)
+    vals[:, names.index("rot_0")] = 1.0
+    p = tmp_path / "plain.ply"
+    write_ply(p, names, vals)
+    s = load_ply(p)                                   # a plain 2DGS file without sidecar
+    assert s.num_active() == 2 and s.rgb is None and s.sh.shape == (2, 1, 3)
+    write_ply(p, [n for n in names if n != "rot_3"], vals[:, :-1])
+    with pytest.raises(PlyFormatError, match="missing vertex properties.*rot_3"):
+        load_ply(p)
+    n3 = names[:-4] + ["scale_2"] + names[-4:]
+    write_ply(p, n3, np.zeros((2, len(n3))))
+    with pytest.raises(PlyFormatError, match="3DGS"):
+        load_ply(p)
+    write_ply(p, names + ["f_rest_0"], np.zeros((2, len(names) + 1)))
+    with pytest.raises(PlyFormatError, match="f_rest"):
+        load_ply(p)
+    write_ply(p, names, vals, extra=b"junk")
+    with pytest.raises(PlyFormatError, match="unexpected bytes"):
+        load_ply(p)
+    p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
+    with pytest.raises(PlyFormatError, match="binary_little_endian"):
+        load_ply(p)
+    p.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 999999999999\n"
+                  b"property float x\nend_header\n")
+    with pytest.raises(PlyFormatError, match="truncated"):
+        load_ply(p)
+
+
+def test_sidecar_errors(tmp_path):
+    scene = make_scene(1, True)
+    path = export_ply(scene, tmp_path / "t.ply")
+    sc = sidecar_path(path)
+    good = dict(np.load(sc))
+    for key, value, msg in [("version", np.asarray(2), "version 2"),
+                            ("format", np.asarray("other"), "not a patexgs"),
+                            ("num_gaussians", np.asarray(3), "does not belong"),
+                            ("rgb_texels", good["rgb_texels"][:-1], "rgb_texels has shape")]:
+        np.savez(sc, **{**good, key: value})
+        with pytest.raises(PlyFormatError, match=msg):
+            load_ply(path)
+    np.savez(sc, **{k: v for k, v in good.items() if k != "alpha_sizes"})
+    with pytest.raises(PlyFormatError, match="alpha_sizes"):
+        load_ply(path)
+    # A stale sidecar of another export is rejected (vertex-data checksum).
+    export_ply(make_scene(1, True, seed=1), tmp_path / "other.ply")
+    sc.write_bytes(sidecar_path(tmp_path / "other.ply").read_bytes())
+    with pytest.raises(PlyFormatError, match="does not belong"):
+        load_ply(path)
+
+
+def test_fuzz_truncation_and_corruption(tmp_path):
+    scene = make_scene(1, True)
+    path = export_ply(scene, tmp_path / "f.ply")
+    sc = sidecar_path(path)
+    ply, side = path.read_bytes(), sc.read_bytes()
+    rng = np.random.default_rng(0)
+    header_len = ply.index(b"end_header") + 11
+    cuts = [0, 3, header_len // 2, header_len - 1, header_len, header_len + 5, len(ply) - 1]
+    for cut in cuts + list(rng.integers(0, len(ply), 8)):
+        path.write_bytes(ply[:cut])
+        with pytest.raises(PlyFormatError):
+            load_ply(path)
+    # Random byte corruption anywhere in the PLY: an error (or, in a comment, a correct load).
+    for _ in range(25):
+        data = bytearray(ply)
+        pos = int(rng.integers(0, len(data)))
+        data[pos] = (data[pos] + int(rng.integers(1, 256))) % 256
+        path.write_bytes(bytes(data))
+        try:
+            s = load_ply(path)
+        except PlyFormatError:
+            continue
+        np.testing.assert_array_equal(np.asarray(s.means), np.asarray(load_ply_ok(ply, tmp_path).means))
+    path.write_bytes(ply)
+    for cut in [0, 10, len(side) // 2, len(side) - 1]:
+        sc.write_bytes(side[:cut])
+        with pytest.raises(PlyFormatError, match="sidecar"):
+            load_ply(path)
+
+
+def load_ply_ok(ply_bytes, tmp_path):
+    p = tmp_path / "ok.ply"
+    p.write_bytes(ply_bytes)
+    return load_ply(p)
