@@ -158,8 +158,9 @@ class DensifyStats:
 
     @classmethod
     def zeros(cls, capacity: int) -> "DensifyStats":
-        z = jax.device_put(np.zeros((int(capacity),), np.float32))
-        return cls(grad_sum=z, count=z, max_radius=z)
+        # Three distinct buffers: the training step donates the statistics.
+        z = [jax.device_put(np.zeros((int(capacity),), np.float32)) for _ in range(3)]
+        return cls(grad_sum=z[0], count=z[1], max_radius=z[2])
 
     @property
     def capacity(self) -> int:

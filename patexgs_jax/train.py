@@ -1,0 +1,602 @@
+"""Training: the 2DGS stage, then the PATexGS texture stage (or a baseline), with checkpoints.
+
+    python -m patexgs_jax.train --data PATH --method patexgs --out DIR [--factor F]
+        [--iters-2dgs N] [--iters-tex N] [--max-gaussians N] [--resume]
+
+Without ``--data`` it trains on the embedded synthetic scene (generated once into the cache).
+
+Stages
+  1. 2DGS (every method): SfM-point initialisation, per-group Adam (:mod:`patexgs_jax.optim`),
+     loss ``0.8 L1 + 0.2 (1 - SSIM)`` plus the normal-consistency (from ``normal_from``) and
+     depth-distortion regularisers, one SH band every ``sh_interval`` steps, adaptive density
+     control (:mod:`patexgs_jax.densify`).
+  2. Textures (all methods but ``2dgs``): ``patexgs*`` start every Gaussian with a 5x5 alpha
+     texture (ones) and a 1x1 RGB offset (zeros) - the first render equals the 2DGS one - warm up
+     ``warmup_tex`` steps, then allocate Eq. 7 sizes from the max-contribution counts over all
+     training views and grow them by Eqs. 8-10 every ``growth_interval`` steps
+     (:mod:`patexgs_jax.schedule`); ``textured-fixed-N`` gives every Gaussian an N x N RGBA texture.
+
+Methods: ``2dgs``, ``textured-fixed-N`` (N in 4, 8, 16, 32; no mipmaps, as Textured Gaussians),
+``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
+``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
+the mipmaps without the adaptive allocation).
+
+Robustness
+  The data order is a per-epoch permutation seeded by (seed, epoch), and every random choice is
+  seeded by (seed, step), so ``--resume`` from a checkpoint reaches the same result as an
+  uninterrupted run. A non-finite loss or gradient, or a render whose tile capacity overflowed,
+  skips the update (never applied, never poisoning the state); overflow grows the capacity and the
+  step is retried; ``max_bad_steps`` consecutive non-finite steps stop the run, keeping the last
+  good checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from . import checkpoint as ckpt
+from . import densify as dens
+from . import losses
+from . import schedule as sched
+from .camera import Camera
+from .metrics import storage_mb
+from .optim import LearningRates, make_optimizer
+from .render import Capacity, RenderConfig, count_pairs, render_jit
+from .scene import Scene
+
+#: Traces of the jitted training step, per (render config, capacity): tests assert on it.
+STEP_TRACES: collections.Counter = collections.Counter()
+
+FIXED_SIZES = (4, 8, 16, 32)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything a run depends on (saved in checkpoints and the summary).
+
+    Attributes:
+      method: see the module docstring.
+      iters_2dgs, iters_tex: steps of the two stages (``iters_tex`` unused by ``2dgs``).
+      warmup_tex: stage-2 warm-up steps before the Eq. 7 allocation (patexgs methods).
+      growth_interval: steps between Eq. 8-10 growth events.
+      growth_stop: fraction of stage 2 after which textures stop growing (t_final).
+      tau_preset: Eq. 9's initial threshold (NDC gradient units, as densification).
+      sigma: Eq. 7's sigma; None: H * W / 1e4 of the training images (the paper's default).
+      texture_budget_mb: optional texel budget (MiB of RGBA texels): sigma is solved so the initial
+        allocation meets it, and growth is capped at it.
+      max_texture_size: largest texture side.
+      lambda_dssim, lambda_normal, lambda_dist: loss weights; ``normal_from`` the first step of
+        the normal-consistency term.
+      sh_degree, sh_interval: final SH degree and steps per added band.
+      densify: adaptive density control (stage 1).
+      max_gaussians: cap on the number of Gaussians (budget runs); None for no cap.
+      lr: learning rates.
+      background: RGB behind the scene.
+      lambda_mip: the paper's lambda_mip.
+      seed: seeds data order, initialisation and every random choice.
+      checkpoint_every: steps between checkpoints (and one at the end of each stage and the run).
+      log_every: steps between progress lines.
+      max_bad_steps: consecutive non-finite steps that stop the run.
+      init_opacity: opacity of initial Gaussians.
+    """
+
+    method: str = "patexgs"
+    iters_2dgs: int = 30_000
+    iters_tex: int = 30_000
+    warmup_tex: int = 1_000
+    growth_interval: int = 100
+    growth_stop: float = 0.5
+    tau_preset: float = 1e-5
+    sigma: float | None = None
+    texture_budget_mb: float | None = None
+    max_texture_size: int = 32
+    lambda_dssim: float = 0.2
+    lambda_normal: float = 0.05
+    normal_from: int = 7_000
+    lambda_dist: float = 0.0
+    sh_degree: int = 3
+    sh_interval: int = 1_000
+    densify: dens.DensifyConfig = dens.DensifyConfig()
+    max_gaussians: int | None = None
+    lr: LearningRates = LearningRates()
+    background: tuple = (0.0, 0.0, 0.0)
+    lambda_mip: float = 0.4
+    seed: int = 0
+    checkpoint_every: int = 2_000
+    log_every: int = 100
+    max_bad_steps: int = 20
+    init_opacity: float = 0.1
+
+    def __post_init__(self):
+        method_spec(self.method)
+        if self.iters_2dgs < 1 or self.iters_tex < 0:
+            raise ValueError("iters_2dgs must be >= 1 and iters_tex >= 0.")
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}.")
+
+    @property
+    def total_steps(self) -> int:
+        return self.iters_2dgs + (0 if self.method == "2dgs" else self.iters_tex)
+
+    def render_config(self) -> RenderConfig:
+        spec = method_spec(self.method)
+        return RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"],
+                            lambda_mip=self.lambda_mip, background=tuple(self.background))
+
+
+def method_spec(method: str) -> dict:
+    """What a ``--method`` name means: textures (None, "fixed", "adaptive"), fixed size, mip flags."""
+    base = dict(textures="adaptive", size=None, mip="nearest", rgb_mip=True, alpha_mip=True)
+    if method == "2dgs":
+        return dict(base, textures=None, mip="none")
+    if method.startswith("textured-fixed-"):
+        n = method.rsplit("-", 1)[1]
+        if not n.isdigit() or int(n) not in FIXED_SIZES:
+            raise ValueError(f"textured-fixed-N takes N in {FIXED_SIZES}, got {method!r}.")
+        return dict(base, textures="fixed", size=int(n), mip="none")
+    variants = {"patexgs": {}, "patexgs-no-mip": dict(mip="none"),
+                "patexgs-no-alpha-mip": dict(alpha_mip=False), "patexgs-no-rgb-mip": dict(rgb_mip=False),
+                "patexgs-no-adaptive": dict(textures="fixed", size=8)}
+    if method not in variants:
+        raise ValueError(f"unknown method {method!r}; choose one of 2dgs, textured-fixed-N (N in "
+                         f"{FIXED_SIZES}), {', '.join(variants)}.")
+    return dict(base, **variants[method])
+
+
+# ------------------------------------------------------------------------------------------------
+# Initialisation
+# ------------------------------------------------------------------------------------------------
+def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
+    """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
+
+    Scales: the mean distance to the 3 nearest neighbours (both axes); random rotations; opacity
+    ``config.init_opacity``; SH DC from the colours, higher bands zero.
+    """
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"need a non-empty (M, 3) point cloud to initialise from, got {points.shape}.")
+    if config.max_gaussians is not None and len(points) > config.max_gaussians:
+        keep = np.random.default_rng(config.seed).choice(len(points), config.max_gaussians, replace=False)
+        points = points[np.sort(keep)]
+        colors = None if colors is None else np.asarray(colors)[np.sort(keep)]
+    n = len(points)
+    k = min(4, n)
+    d, _ = cKDTree(points).query(points, k=k)
+    dist = np.sqrt(np.mean(np.square(d[:, 1:]), axis=1)) if k > 1 else np.ones(n)
+    dist = np.maximum(dist, 1e-7)
+    rng = np.random.default_rng(config.seed)
+    quats = rng.normal(size=(n, 4))
+    K = (config.sh_degree + 1) ** 2
+    sh = np.zeros((n, K, 3))
+    col = np.full((n, 3), 0.5) if colors is None else np.clip(np.asarray(colors, np.float64), 0, 1)
+    sh[:, 0] = (col - 0.5) / 0.28209479177387814
+    cap = capacity or 1 << max(n - 1, 1).bit_length()
+    return Scene.from_arrays(points, np.repeat(dist[:, None], 2, axis=1), quats,
+                             np.full(n, config.init_opacity), sh, capacity=cap)
+
+
+# ------------------------------------------------------------------------------------------------
+# The jitted step
+# ------------------------------------------------------------------------------------------------
+_GROUPS = ("means", "log_scales", "quats", "opacity_logits", "sh", "rgb", "alpha")
+
+
+def _step(scene, opt_state, stats, camera, image, active_sh, w_normal, *, optimizer, render_config,
+          capacity, lambda_dssim, lambda_dist):
+    STEP_TRACES[(render_config, capacity)] += 1
+    offset = jnp.zeros((scene.capacity, 2), scene.means.dtype)
+
+    def loss_fn(sc, off):
+        out = render_jit(sc, camera, config=render_config, capacity=capacity, screen_offset=off,
+                         active_sh_degree=active_sh)
+        photo, l1 = losses.photometric(out.rgb, image, lambda_dssim)
+        loss = photo
+        loss = loss + w_normal * losses.normal_consistency(out.normal, out.depth, out.alpha, camera.K)
+        if lambda_dist > 0:
+            loss = loss + lambda_dist * losses.distortion(out.distortion)
+        mse = jnp.mean(jnp.square(jnp.clip(out.rgb, 0, 1) - image))
+        return loss, (out, l1, mse)
+
+    (loss, (out, l1, mse)), (g_scene, g_off) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(
+        scene, offset)
+    finite = {}
+    for name in _GROUPS:
+        leaves = jax.tree_util.tree_leaves(getattr(g_scene, name))
+        finite[name] = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.array(True)
+    all_finite = jnp.isfinite(loss) & jnp.all(jnp.stack(list(finite.values())))
+    ok = all_finite & ~out.overflow
+    updates, new_opt = optimizer.update(g_scene, opt_state, scene)
+    new_scene = optax.apply_updates(scene, updates)
+    keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
+    new_stats = dens.accumulate(stats, jnp.where(ok, g_off, 0.0), out.visible & ok, out.radius_px,
+                                camera.width, camera.height)
+    metrics = dict(loss=loss, l1=l1, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-10)), ok=ok,
+                   finite=finite, overflow=out.overflow, pairs_needed=out.pairs_needed,
+                   max_tile_count=out.max_tile_count)
+    return keep(new_scene, scene), keep(new_opt, opt_state), new_stats, metrics
+
+
+# ------------------------------------------------------------------------------------------------
+# The run
+# ------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class TrainResult:
+    """What :func:`train` returns: the trained scene and the summary written to ``summary.json``."""
+
+    scene: Scene
+    summary: dict
+    out_dir: Path | None
+
+
+class _Run:
+    """The mutable host-side state of one run (everything a checkpoint holds)."""
+
+    def __init__(self, dataset, config: TrainConfig, out_dir: Path | None, verbose: bool):
+        self.ds, self.cfg, self.out, self.verbose = dataset, config, out_dir, verbose
+        self.train_views = list(dataset.train_views)
+        if not self.train_views:
+            raise ValueError("the dataset has no training views.")
+        self.radius = float(dataset.normalization.radius)
+        self.spec = method_spec(config.method)
+        self.render_cfg = config.render_config()
+        self.lr = dataclasses.replace(config.lr, means_steps=config.total_steps)
+        self.optimizer = make_optimizer(self.radius, self.lr)
+        self.capacity = None
+        self.step = 0
+        self.tex_state = None
+        self.bad_streak = 0
+        self.skipped = 0
+        self.recompiles = 0
+        self.t_train = 0.0
+        self.texel_budget = None
+        self.log_path = None if out_dir is None else out_dir / "log.jsonl"
+        self._jit_cache = {}
+
+    # -- state -----------------------------------------------------------------------------------
+    def fresh(self):
+        pts, cols = self.ds.points, self.ds.colors
+        self.scene = init_scene(pts, cols, self.cfg)
+        self.opt_state = self.optimizer.init(self.scene)
+        self.stats = dens.DensifyStats.zeros(self.scene.capacity)
+
+    def state_tree(self):
+        return dict(scene=self.scene, opt_state=self.opt_state, stats=self.stats,
+                    tex_sizes=None if self.tex_state is None else self.tex_state.sizes,
+                    tex_counters=None if self.tex_state is None else np.array(
+                        [self.tex_state.last_growth_step, self.tex_state.num_growth_events,
+                         self.tex_state.num_grown]),
+                    capacity=np.array([self.capacity.pairs, self.capacity.per_tile]),
+                    counters=np.array([self.step, self.skipped, self.recompiles]),
+                    t_train=np.array(self.t_train))
+
+    def load_state(self, tree):
+        self.scene, self.opt_state, self.stats = tree["scene"], tree["opt_state"], tree["stats"]
+        if tree["tex_sizes"] is not None:
+            c = tree["tex_counters"]
+            self.tex_state = sched.TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
+        self.capacity = Capacity(int(tree["capacity"][0]), int(tree["capacity"][1]))
+        self.step, self.skipped, self.recompiles = (int(v) for v in tree["counters"])
+        self.t_train = float(tree["t_train"])
+
+    def save(self):
+        if self.out is None:
+            return
+        path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
+        ckpt.save_checkpoint(path, self.state_tree(), dict(config=_config_dict(self.cfg), step=self.step),
+                             keep=2)
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def view(self, step):
+        n = len(self.train_views)
+        epoch, i = divmod(step, n)
+        perm = np.random.default_rng([self.cfg.seed, epoch]).permutation(n)
+        return self.train_views[perm[i]]
+
+    def step_fn(self):
+        key = (self.render_cfg, self.capacity)
+        if key not in self._jit_cache:
+            self._jit_cache[key] = jax.jit(
+                lambda sc, st, stats, cam, img, sh, wn: _step(
+                    sc, st, stats, cam, img, sh, wn, optimizer=self.optimizer, render_config=self.render_cfg,
+                    capacity=self.capacity, lambda_dssim=self.cfg.lambda_dssim, lambda_dist=self.cfg.lambda_dist),
+                donate_argnums=(0, 1, 2))
+        return self._jit_cache[key]
+
+    def fit_capacity(self, camera):
+        needed, max_tile = count_pairs(self.scene, camera, self.render_cfg)
+        cap = Capacity.fit(float(needed) * 1.25, int(max_tile) * 1.25, minimum=self.capacity)
+        if cap != self.capacity:
+            self.capacity = cap
+
+    def log(self, record):
+        if self.log_path is not None:
+            with open(self.log_path, "a") as f:
+                f.write(json.dumps(record) + "\n")
+
+    def say(self, msg):
+        if self.verbose:
+            print(msg, flush=True)
+
+    # -- stage transitions -----------------------------------------------------------------------
+    def start_textures(self):
+        spec = self.spec
+        C = self.scene.capacity
+        act = np.asarray(self.scene.active) > 0
+        if spec["textures"] == "fixed":
+            n = spec["size"]
+            sizes = np.where(act, n, 0)
+            self.scene, self.opt_state, _ = sched.add_textures(self.scene, self.opt_state, self.optimizer,
+                                                               sizes, sizes)
+            self.say(f"[stage 2] every Gaussian gets a {n}x{n} RGBA texture")
+        else:
+            self.scene, self.opt_state, _ = sched.add_textures(
+                self.scene, self.opt_state, self.optimizer, np.where(act, 1, 0), np.where(act, 5, 0))
+            self.say("[stage 2] 5x5 alpha + 1x1 RGB textures; warm-up "
+                     f"{self.cfg.warmup_tex} steps")
+        self.stats = dens.DensifyStats.zeros(C)
+
+    def allocate_textures(self):
+        """Eq. 6-7: contribution counts over all training views -> initial sizes."""
+        counts = []
+        for v in self.train_views:
+            out = self.render_eval(v.camera)
+            counts.append(np.asarray(out.max_contrib_count))
+        S = np.stack(counts)
+        act = np.asarray(self.scene.active) > 0
+        h, w = self.train_views[0].camera.height, self.train_views[0].camera.width
+        budget = None
+        if self.cfg.texture_budget_mb is not None:
+            budget = sched.mb_to_texels(self.cfg.texture_budget_mb)
+            sigma = sched.solve_sigma_for_budget(S, budget, max_size=self.cfg.max_texture_size, active=act)
+        else:
+            sigma = self.cfg.sigma or sched.default_sigma(h, w)
+        sides = sched.initial_texture_sizes(S, sigma, max_size=self.cfg.max_texture_size, active=act)
+        self.tex_state = sched.TextureScheduleState.create(sides)
+        self.scene, self.opt_state, info = sched.resize_textures(self.scene, self.opt_state, sides, sides)
+        self.texel_budget = budget
+        self.say(f"[stage 2] Eq. 7 allocation (sigma {sigma:.4g}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
+                 f"{int(np.sum(sides[act] ** 2))} RGBA texels")
+        self.stats = dens.DensifyStats.zeros(self.scene.capacity)
+
+    def growth_schedule(self):
+        t0 = self.cfg.iters_2dgs + self.cfg.warmup_tex + self.cfg.growth_interval
+        t_final = max(t0 + 1, self.cfg.iters_2dgs + int(self.cfg.growth_stop * self.cfg.iters_tex))
+        return sched.GrowthSchedule(t0=t0, t_final=t_final, interval=self.cfg.growth_interval,
+                                    tau_preset=self.cfg.tau_preset, max_size=self.cfg.max_texture_size)
+
+    def render_eval(self, camera, config=None):
+        config = config or self.render_cfg
+        needed, max_tile = count_pairs(self.scene, camera, config)
+        cap = Capacity.fit(float(needed), int(max_tile))
+        return render_jit(self.scene, camera, config=config, capacity=cap)
+
+    # -- main loop -------------------------------------------------------------------------------
+    def run(self):
+        cfg = self.cfg
+        total = cfg.total_steps
+        t_last = time.perf_counter()
+        window = collections.deque(maxlen=max(1, cfg.log_every))
+        while self.step < total:
+            step = self.step
+            if self.spec["textures"] is not None and step == cfg.iters_2dgs and self.scene.rgb is None:
+                self.save()  # the end of the 2DGS stage is a natural restart point
+                self.start_textures()
+            if (self.spec["textures"] == "adaptive" and self.tex_state is None
+                    and step == cfg.iters_2dgs + cfg.warmup_tex):
+                self.allocate_textures()
+            view = self.view(step)
+            if self.capacity is None:
+                self.fit_capacity(view.camera)
+            image = view.image
+            if image is None or image.size == 0 or not np.all(np.isfinite(image)):
+                self.say(f"[step {step}] skipping view {view.name!r}: image is empty or not finite")
+                self.skipped += 1
+                self.step += 1
+                continue
+            fn = self.step_fn()
+            t0 = time.perf_counter()
+            traces = sum(STEP_TRACES.values())
+            active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
+            w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from else 0.0)
+            scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, view.camera,
+                                            jnp.asarray(image), active_sh, w_normal)
+            self.scene, self.opt_state, self.stats = scene, opt_state, stats
+            if sum(STEP_TRACES.values()) > traces:
+                self.recompiles += 1
+            if bool(m["overflow"]):
+                old = self.capacity
+                self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25, int(m["max_tile_count"]) * 1.25,
+                                             minimum=old)
+                self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.capacity} and retrying")
+                continue
+            if not bool(m["ok"]):
+                bad = [k for k, v in m["finite"].items() if not bool(v)]
+                self.bad_streak += 1
+                self.skipped += 1
+                self.say(f"[step {step}] non-finite loss or gradient (groups: {bad or ['loss']}); "
+                         "update skipped")
+                if self.bad_streak >= cfg.max_bad_steps:
+                    raise FloatingPointError(
+                        f"{self.bad_streak} consecutive non-finite steps up to step {step}; stopping. "
+                        "The last good checkpoint is kept in the output directory.")
+                self.step += 1
+                continue
+            self.bad_streak = 0
+            self.step += 1
+            self.t_train += time.perf_counter() - t0
+            window.append((float(m["loss"]), float(m["psnr"])))
+            self.after_step(step + 1)
+            if self.step % cfg.log_every == 0 or self.step == total:
+                now = time.perf_counter()
+                rec = dict(step=self.step, loss=float(np.mean([w[0] for w in window])),
+                           psnr=float(np.mean([w[1] for w in window])), gaussians=self.scene.num_active(),
+                           texels=sum(self.scene.texel_count().values()),
+                           ms_per_step=1e3 * (now - t_last) / cfg.log_every, recompiles=self.recompiles,
+                           skipped=self.skipped)
+                t_last = now
+                self.log(rec)
+                self.say(f"step {rec['step']:6d}/{total}  loss {rec['loss']:.4f}  psnr {rec['psnr']:6.2f}  "
+                         f"gaussians {rec['gaussians']:7d}  texels {rec['texels']:8d}  "
+                         f"{rec['ms_per_step']:7.1f} ms/step")
+            if self.step % cfg.checkpoint_every == 0 or self.step == total:
+                self.save()
+
+    def after_step(self, step):
+        """Host-side work between steps (``step`` counts completed steps, from 1)."""
+        cfg, dc = self.cfg, self.cfg.densify
+        if step <= cfg.iters_2dgs:
+            dcfg = dataclasses.replace(dc, max_gaussians=cfg.max_gaussians)
+            if dcfg.densify_at(step) and step < cfg.iters_2dgs:
+                self.scene, self.opt_state, self.stats, info = dens.densify_and_prune(
+                    self.scene, self.opt_state, self.stats, dcfg, self.radius,
+                    np.random.default_rng([cfg.seed, step]), prune_large=dcfg.prune_large(step))
+                if info.shapes_changed:
+                    self.capacity = None
+            if dcfg.reset_opacity_at(step) and step < cfg.iters_2dgs:
+                self.scene, self.opt_state = dens.reset_opacity(self.scene, self.opt_state,
+                                                                dcfg.opacity_reset_value)
+            if self.capacity is not None and step % 100 == 0:
+                self.fit_capacity(self.view(step).camera)
+            return
+        if self.tex_state is not None:
+            schedule = self.growth_schedule()
+            if schedule.is_growth_step(step):
+                grad = self.stats.mean_grad()
+                act = np.asarray(self.scene.active) > 0
+                new_state, sides, sel = self.tex_state.step(grad, step, schedule, active=act,
+                                                            texel_budget=self.texel_budget)
+                self.tex_state = new_state
+                if sel.any():
+                    self.scene, self.opt_state, info = sched.resize_textures(self.scene, self.opt_state, sides, sides)
+                self.stats = dens.DensifyStats.zeros(self.scene.capacity)
+
+
+def _config_dict(cfg: TrainConfig) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+
+
+def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
+    """Mean PSNR and SSIM over views, renders clipped to [0, 1]."""
+    from .metrics import psnr, ssim
+
+    ps, ss = [], []
+    for v in views:
+        needed, max_tile = count_pairs(scene, v.camera, render_config)
+        out = render_jit(scene, v.camera, config=render_config, capacity=Capacity.fit(float(needed), int(max_tile)))
+        img = np.clip(np.asarray(out.rgb), 0, 1)
+        ps.append(float(psnr(img, v.image)))
+        ss.append(float(ssim(jnp.asarray(img), jnp.asarray(v.image))))
+    return dict(psnr=float(np.mean(ps)) if ps else None, ssim=float(np.mean(ss)) if ss else None)
+
+
+def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,
+          verbose: bool = True) -> TrainResult:
+    """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
+
+    Args:
+      dataset: a loaded dataset (train/test views, points).
+      config: :class:`TrainConfig`.
+      out_dir: where checkpoints, ``log.jsonl``, ``scene.ply`` (+ texture sidecar) and
+        ``summary.json`` go; None keeps everything in memory.
+      resume: continue from the newest complete checkpoint in ``out_dir`` if there is one.
+      verbose: print progress.
+    Returns:
+      :class:`TrainResult`.
+    """
+    out = None if out_dir is None else Path(out_dir)
+    if out is not None:
+        ckpt.check_writable(out)
+        ckpt.check_writable(out / "checkpoints")
+    run = _Run(dataset, config, out, verbose)
+    latest = ckpt.latest_checkpoint(out / "checkpoints") if (out is not None and resume) else None
+    if latest is not None:
+        tree, meta = ckpt.load_checkpoint(latest)
+        if meta.get("config") != _config_dict(config):
+            raise ValueError(f"checkpoint {latest} was written with a different configuration; resume with "
+                             "the same settings or choose a new output directory.")
+        run.load_state(tree)
+        if run.tex_state is not None:
+            run.texel_budget = (sched.mb_to_texels(config.texture_budget_mb)
+                                if config.texture_budget_mb is not None else None)
+        run.say(f"resuming from {latest} at step {run.step}")
+    else:
+        if out is not None and not resume and ckpt.latest_checkpoint(out / "checkpoints") is not None:
+            raise FileExistsError(f"{out} already holds checkpoints; pass resume=True (--resume) to continue "
+                                  "that run, or choose another output directory.")
+        run.fresh()
+    run.run()
+    scene = run.scene
+    texels = scene.texel_count()
+    summary = dict(method=config.method, steps=run.step, train_seconds=run.t_train,
+                   num_gaussians=scene.num_active(), texels=texels["rgb"] + texels["alpha"],
+                   texels_rgb=texels["rgb"], texels_alpha=texels["alpha"],
+                   storage_mb=storage_mb(scene.num_active(), int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]),
+                   recompiles=run.recompiles, skipped_steps=run.skipped)
+    train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
+    test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
+    summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],
+                   config=_config_dict(config))
+    if out is not None:
+        from .export import export_ply
+
+        export_ply(scene, out / "scene.ply")
+        tmp = out / "summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=1))
+        tmp.replace(out / "summary.json")
+    if verbose:
+        print(f"done: train PSNR {summary['train_psnr']:.2f}, test PSNR "
+              f"{summary['test_psnr'] if summary['test_psnr'] is None else round(summary['test_psnr'], 2)}, "
+              f"{summary['num_gaussians']} Gaussians, {summary['texels']} texels, "
+              f"{summary['storage_mb']:.2f} MB, {summary['train_seconds']:.0f} s", flush=True)
+    return TrainResult(scene=scene, summary=summary, out_dir=out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m patexgs_jax.train", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=None, help="scene folder (COLMAP, LLFF or transforms.json); "
+                    "default: the embedded synthetic scene")
+    ap.add_argument("--method", default="patexgs")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--factor", type=int, default=None)
+    ap.add_argument("--iters-2dgs", type=int, default=TrainConfig.iters_2dgs)
+    ap.add_argument("--iters-tex", type=int, default=TrainConfig.iters_tex)
+    ap.add_argument("--max-gaussians", type=int, default=None)
+    ap.add_argument("--texture-budget-mb", type=float, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--resume", action="store_true")
+    args = ap.parse_args(argv)
+    from .data import load
+
+    if args.data is None:
+        from .data.synthetic import ensure_default_scene
+
+        args.data = str(ensure_default_scene())
+    try:
+        cfg = TrainConfig(method=args.method, iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
+                          max_gaussians=args.max_gaussians, texture_budget_mb=args.texture_budget_mb,
+                          seed=args.seed)
+        ds = load(args.data, factor=args.factor)
+        train(ds, cfg, args.out, resume=args.resume)
+    except (ValueError, FileExistsError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
