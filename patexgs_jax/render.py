@@ -26,23 +26,26 @@ Conventions (fixed for the package)
 
 Structure
   ``project`` computes per-splat quantities (C of them) and screen-space bounds; ``bin`` builds
-  depth-ordered fixed-capacity per-tile lists with one stable sort of (tile) keys over pairs
-  generated in depth order; ``composite`` evaluates every tile's (pixels x slots) grid, in
-  sequential batches of tiles (``lax.map``) whose work is rematerialised in the backward pass
-  (``jax.checkpoint``), so backward memory is bounded by one batch.
+  depth-ordered per-tile lists with one stable sort of (tile) keys over pairs generated in depth
+  order; ``composite`` walks each tile's list front to back in chunks of ``RenderConfig.chunk``
+  splats (pixels x chunk at a time) and stops the tile once every pixel saturated or the list ended,
+  so the work follows the splats that actually contribute. It has a hand-written backward pass
+  (``jax.custom_vjp``) that re-walks the chunks and stores nothing per pair: backward memory is
+  the inputs plus a few per-pixel accumulators.
 
-  Static capacities (``Capacity``): total (splat, tile) pairs and slots per tile. Needs beyond them
-  are counted exactly (a 2D difference-array histogram of tile coverage) and returned, so callers
-  grow the capacity and render again; :func:`render` does this itself and never returns a truncated
-  image.
+  The one static capacity (``Capacity.pairs``, the length of the sorted pair list) is checked
+  against the exact need (counted before binning) and the need is returned, so callers grow the
+  capacity and render again; :func:`render` does this itself and never returns a truncated image.
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import math
 import warnings
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -78,8 +81,9 @@ class RenderConfig:
       near: near-plane depth; splats whose centre, or pairs whose intersection, is not beyond it are
         skipped.
       tile_size: tile side in pixels.
-      tiles_per_batch: tiles composited together in one sequential step (bounded by memory: it is
-        reduced automatically for large per-tile capacities).
+      chunk: splats evaluated together per tile step; a tile stops after the chunk in which all its
+        pixels saturated (transmittance < 1e-4) or its list ended.
+      tile_batch: tiles advanced together (sorted by list length, so they finish at similar steps).
     """
 
     mip: str = "nearest"
@@ -89,7 +93,8 @@ class RenderConfig:
     background: tuple = (0.0, 0.0, 0.0)
     near: float = 0.01
     tile_size: int = 16
-    tiles_per_batch: int = 16
+    chunk: int = 32
+    tile_batch: int = 8
 
     def __post_init__(self):
         if self.mip not in MIP_MODES:
@@ -99,33 +104,28 @@ class RenderConfig:
         if len(tuple(self.background)) != 3:
             raise ValueError("background must be an RGB triple.")
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))
-        if self.tile_size < 1 or self.tiles_per_batch < 1:
-            raise ValueError("tile_size and tiles_per_batch must be positive.")
+        if self.tile_size < 1 or self.chunk < 1 or self.tile_batch < 1:
+            raise ValueError("tile_size, chunk and tile_batch must be positive.")
         if not self.near > 0:
             raise ValueError(f"near must be positive, got {self.near}.")
 
 
 @dataclasses.dataclass(frozen=True)
 class Capacity:
-    """Static buffer sizes of the tile lists.
+    """Static buffer size of the tile lists.
 
     Attributes:
-      pairs: total (splat, tile) pairs that can be binned.
-      per_tile: splats composited per tile (slots).
+      pairs: total (splat, tile) pairs that can be binned (the length of the sorted pair list).
     """
 
     pairs: int = 1 << 14
-    per_tile: int = 64
 
     @staticmethod
-    def fit(pairs_needed, max_tile_count, minimum: "Capacity | None" = None) -> "Capacity":
-        """The smallest power-of-two capacity holding the given needs (never below ``minimum``)."""
-        def pow2(v, lo):
-            v = max(int(math.ceil(float(v))), lo, 1)
-            return 1 << (v - 1).bit_length()
-
-        lo_p, lo_t = (minimum.pairs, minimum.per_tile) if minimum is not None else (1024, 16)
-        return Capacity(pairs=pow2(pairs_needed, lo_p), per_tile=pow2(max_tile_count, lo_t))
+    def fit(pairs_needed, minimum: "Capacity | None" = None) -> "Capacity":
+        """The smallest power-of-two capacity (at least 1024, never below ``minimum``) that holds
+        ``pairs_needed`` pairs."""
+        v = max(int(math.ceil(float(pairs_needed))), minimum.pairs if minimum is not None else 1024, 1)
+        return Capacity(pairs=1 << (v - 1).bit_length())
 
 
 @jax.tree_util.register_dataclass
@@ -145,8 +145,8 @@ class RenderOutput:
       radius_px: (C,) float, screen-space half-extent of each splat's footprint (0: not visible).
       visible: (C,) bool, binned into at least one tile.
       pairs_needed: () float32, (splat, tile) pairs the view needs.
-      max_tile_count: () int32, the most splats any tile needs.
-      overflow: () bool, some pair or slot did not fit the capacity (the image is then truncated).
+      max_tile_count: () int32, the most splats any tile lists (a statistic).
+      overflow: () bool, some pair did not fit the capacity (the image is then truncated).
     """
 
     rgb: jax.Array
@@ -313,107 +313,316 @@ def _uv(s0, s1, s2):
     return u, v, ok
 
 
-def _sample_bank(atlas: tex.Atlas, gid, u, v, footprint, config: RenderConfig, use_mip: bool,
-                 default: float):
-    """Texture values of the splats ``gid`` (S,) at (u, v) (pixels, S); (pixels, S, ch)."""
-    base, side_p, n = atlas.base[gid], atlas.bucket_side[gid], atlas.size[gid]
-    has = atlas.has[gid]
+_F_ACC = 9  # per-pixel accumulators: rgb (3), depth (1), normal (3), D1 = sum w m, D2 = sum w m^2
+_LOG_T_MIN = math.log(T_MIN)
+
+
+class _Meta(NamedTuple):
+    """Per-splat texture addressing of one bank (see :class:`patexgs_jax.textures.Atlas`)."""
+
+    base: jax.Array
+    bucket_side: jax.Array
+    size: jax.Array
+    max_level: jax.Array
+    has: jax.Array
+
+
+def _meta(atlas: tex.Atlas | None):
+    if atlas is None:
+        return None
+    return _Meta(atlas.base, atlas.bucket_side, atlas.size, atlas.max_level, atlas.has)
+
+
+def _tex_corners(meta: _Meta, gid, u, v, footprint, config: RenderConfig, use_mip: bool):
+    """Texel addresses and weights of the lookups of splats ``gid`` (c,) at (u, v) (P, c).
+
+    Returns (idx (P, c, K) int32, w (P, c, K)) with K = 4 (one level) or 8 (trilinear).
+    """
+    base, side_p, n = meta.base[gid], meta.bucket_side[gid], meta.size[gid]
+    ni = n.astype(jnp.int32)
     if not use_mip or config.mip == "none":
-        val = tex.sample(atlas.texels, base, side_p, n.astype(jnp.int32), u, v)
-    else:
-        L = atlas.max_level[gid]
-        trilinear = config.mip == "trilinear"
-        lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear)
-        ni = n.astype(jnp.int32)
-
-        def at_level(l):
-            return tex.sample(atlas.texels, *tex.level_address(base, side_p, ni, l), u, v)
-
-        if trilinear:
-            l0 = jnp.floor(lev)
-            frac = (lev - l0)[..., None]
-            l0i = l0.astype(jnp.int32)
-            l1i = jnp.minimum(l0i + 1, L)
-            val = (1 - frac) * at_level(l0i) + frac * at_level(l1i)
-        else:
-            val = at_level(lev)
-    return jnp.where(has[:, None], val, default)
+        return tex.corners(base, side_p, ni, u, v)
+    L = meta.max_level[gid]
+    if config.mip == "nearest":
+        lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear=False)
+        return tex.corners(*tex.level_address(base, side_p, ni, lev), u, v)
+    lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear=True)
+    l0 = jnp.floor(lev)
+    frac = (lev - l0)[..., None]
+    l0i = l0.astype(jnp.int32)
+    i0, w0 = tex.corners(*tex.level_address(base, side_p, ni, l0i), u, v)
+    i1, w1 = tex.corners(*tex.level_address(base, side_p, ni, jnp.minimum(l0i + 1, L)), u, v)
+    return jnp.concatenate([i0, i1], axis=-1), jnp.concatenate([w0 * (1 - frac), w1 * frac], axis=-1)
 
 
-def _composite_tiles(packed, rgb_atlas, alpha_atlas, ids_sorted, tile_start, binned, config,
-                     capacity: Capacity, tiles_x, num_tiles):
-    """Composites all tiles. Returns per-tile (T, ts*ts, ...) rgb, T_final, depth, normal, best id."""
-    ts = config.tile_size
-    S = capacity.per_tile
-    npx = ts * ts
-    bg = jnp.asarray(config.background, packed.dtype)
-    iy, ix = jnp.divmod(jnp.arange(npx, dtype=jnp.int32), ts)
-    need_footprint = config.mip != "none" and (
-        (rgb_atlas is not None and config.rgb_mip) or (alpha_atlas is not None and config.alpha_mip))
+def _geometry(pk, x, y, need_footprint: bool):
+    """Ray-splat quantities of a chunk: pk (c, F) splats, x, y (P, 1) pixel centres.
 
-    def tile_fn(t):
-        start, cnt = tile_start[t], binned[t]
-        slot = jnp.arange(S, dtype=jnp.int32)
-        valid = slot < cnt
-        gid = jnp.where(valid, ids_sorted[jnp.clip(start + slot, 0, ids_sorted.shape[0] - 1)], 0)
-        pk = packed[gid]                                              # (S, F)
-        x = ((t % tiles_x) * ts + ix).astype(packed.dtype)[:, None] + 0.5   # (npx, 1)
-        y = ((t // tiles_x) * ts + iy).astype(packed.dtype)[:, None] + 0.5
-        A, B, Cc = pk[:, _A], pk[:, _B], pk[:, _C]
-        s = [x * A[:, i] + y * B[:, i] + Cc[:, i] for i in range(3)]  # each (npx, S)
-        u, v, ok = _uv(*s)
-        rho3d = jnp.where(ok, u * u + v * v, 1e8)
-        dx, dy = x - pk[:, _MU][:, 0], y - pk[:, _MU][:, 1]
-        rho2d = 2.0 * (dx * dx + dy * dy)
-        use3d = rho3d <= rho2d
-        G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
-        M2 = pk[:, _M2]
-        z = jnp.where(use3d, M2[:, 0] * u + M2[:, 1] * v + M2[:, 2], pk[:, _DEP])
+    Returns u, v, G, z (P, c) and the mip footprint (P, c) or None.
+    """
+    A, B, Cc = pk[:, _A], pk[:, _B], pk[:, _C]
+    s = [x * A[:, i] + y * B[:, i] + Cc[:, i] for i in range(3)]
+    u, v, ok = _uv(*s)
+    rho3d = jnp.where(ok, u * u + v * v, 1e8)
+    dx, dy = x - pk[:, 12], y - pk[:, 13]
+    rho2d = 2.0 * (dx * dx + dy * dy)
+    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
+    M2 = pk[:, _M2]
+    z = jnp.where(rho3d <= rho2d, M2[:, 0] * u + M2[:, 1] * v + M2[:, 2], pk[:, _DEP])
+    footprint = None
+    if need_footprint:
+        ux, vx, okx = _uv(*(s[i] + A[:, i] for i in range(3)))
+        uy, vy, oky = _uv(*(s[i] + B[:, i] for i in range(3)))
+        d12 = safe_sqrt((ux - u) ** 2 + (vx - v) ** 2)
+        d13 = safe_sqrt((uy - u) ** 2 + (vy - v) ** 2)
+        footprint = jnp.where(ok & okx & oky, jnp.maximum(d12, d13), _UV_LIMIT)
+    return u, v, G, z, footprint
 
-        footprint = None
-        if need_footprint:
-            ux, vx, okx = _uv(*(s[i] + A[:, i] for i in range(3)))
-            uy, vy, oky = _uv(*(s[i] + B[:, i] for i in range(3)))
-            d12 = safe_sqrt((ux - u) ** 2 + (vx - v) ** 2)
-            d13 = safe_sqrt((uy - u) ** 2 + (vy - v) ** 2)
-            footprint = jnp.where(ok & okx & oky, jnp.maximum(d12, d13), _UV_LIMIT)
 
-        a = pk[:, _OP] * G
-        if alpha_atlas is not None:
-            a = a * _sample_bank(alpha_atlas, gid, u, v, footprint, config, config.alpha_mip, 1.0)[..., 0]
-        a = jnp.clip(a, 0.0, ALPHA_MAX)
-        keep = valid & (a >= ALPHA_MIN) & (z > config.near)
-        a = jnp.where(keep, a, 0.0)
-        log1m = jnp.log1p(-a)
-        cum = jnp.cumsum(log1m, axis=1)
-        include = jnp.exp(cum) >= T_MIN
-        w = jnp.where(include, a * jnp.exp(cum - log1m), 0.0)            # (npx, S)
-        log_t = jnp.sum(jnp.where(include, log1m, 0.0), axis=1)
-        t_final = jnp.exp(log_t)
-        rgb = w @ pk[:, _COL]
-        if rgb_atlas is not None:
-            offs = _sample_bank(rgb_atlas, gid, u, v, footprint, config, config.rgb_mip, 0.0)
-            rgb = rgb + jnp.einsum("ps,psc->pc", w, offs)
-        rgb = rgb + t_final[:, None] * bg
-        depth = jnp.sum(w * z, axis=1)
-        normal = w @ pk[:, _NRM]
-        # 2DGS depth distortion: sum_{i<j} w_i w_j (m_i - m_j)^2 = A D2 - D1^2 with m the
-        # NDC-mapped depth, A = sum w, D1 = sum w m, D2 = sum w m^2.
-        m = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * (1.0 - _DIST_NEAR / jnp.where(keep, z, 1.0))
-        wm = w * m
-        d1 = jnp.sum(wm, axis=1)
-        distortion = (1.0 - t_final) * jnp.sum(wm * m, axis=1) - d1 * d1
-        best_slot = jnp.argmax(w, axis=1)
-        best = jnp.where(jnp.max(w, axis=1) > 0, gid[best_slot], -1)
-        return rgb, t_final, depth, normal, distortion, best
+class _Static(NamedTuple):
+    """Hashable static settings of the compositor."""
 
-    # Per-batch work bounded to about 2^16 (pixel, slot) pairs per tile step times the batch.
-    tb = max(1, min(config.tiles_per_batch, (1 << 20) // (npx * S)))
-    nb = -(-num_tiles // tb)
-    tiles = jnp.arange(nb * tb, dtype=jnp.int32).reshape(nb, tb)
-    tiles = jnp.minimum(tiles, num_tiles - 1)
-    out = lax.map(jax.checkpoint(jax.vmap(tile_fn)), tiles)
-    return jax.tree_util.tree_map(lambda o: o.reshape((nb * tb,) + o.shape[2:])[:num_tiles], out)
+    config: RenderConfig
+    tiles_x: int
+    num_tiles: int
+    rgb: bool          # RGB textures present
+    alpha: bool        # alpha textures present
+
+    @property
+    def rgb_mip(self):
+        return self.rgb and self.config.mip != "none" and self.config.rgb_mip
+
+    @property
+    def alpha_mip(self):
+        return self.alpha and self.config.mip != "none" and self.config.alpha_mip
+
+    @property
+    def need_footprint(self):
+        return self.rgb_mip or self.alpha_mip
+
+
+def _pixel_coords(st: _Static, t, dtype):
+    ts = st.config.tile_size
+    iy, ix = jnp.divmod(jnp.arange(ts * ts, dtype=jnp.int32), ts)
+    x = ((t % st.tiles_x) * ts + ix).astype(dtype)[:, None] + 0.5
+    y = ((t // st.tiles_x) * ts + iy).astype(dtype)[:, None] + 0.5
+    return x, y
+
+
+def _chunk_slots(st: _Static, ctx, t, k):
+    """Splat ids (c,) and validity of chunk k of tile t."""
+    c = st.config.chunk
+    slots = k * c + jnp.arange(c, dtype=jnp.int32)
+    valid = slots < ctx["binned"][t]
+    ids = ctx["ids_sorted"]
+    gid = jnp.where(valid, ids[jnp.clip(ctx["tile_start"][t] + slots, 0, ids.shape[0] - 1)], 0)
+    return gid, valid
+
+
+def _chunk_addresses(st: _Static, ctx, pk, gid, x, y):
+    """Texel addresses (no gradient) of a chunk's lookups: (rgb idx or None, alpha idx or None)."""
+    if not (st.rgb or st.alpha):
+        return None, None
+    u, v, _, _, fp = _geometry(lax.stop_gradient(pk), x, y, st.need_footprint)
+    cfg = st.config
+    ir = _tex_corners(ctx["rgb_meta"], gid, u, v, fp, cfg, st.rgb_mip)[0] if st.rgb else None
+    ia = _tex_corners(ctx["alpha_meta"], gid, u, v, fp, cfg, st.alpha_mip)[0] if st.alpha else None
+    return ir, ia
+
+
+def _chunk_contrib(st: _Static, ctx, pk, vals_rgb, vals_a, gid, valid, x, y, log_t_in, done_in,
+                   texels=(None, None)):
+    """One chunk's contribution, differentiable in (pk, vals_rgb, vals_a).
+
+    Args:
+      pk: (c, F) packed splats; vals_rgb (P, c, K, 3) / vals_a (P, c, K, 1) the texels at the
+        chunk's lookup addresses, or None to gather them here from ``texels`` (the atlases);
+        gid, valid (c,); x, y (P, 1); log_t_in (P,) log transmittance before the chunk; done_in
+        (P,) compositing already stopped.
+    Returns:
+      ((dacc (P, 9), log_t_out (P,)), (done_out (P,), w (P, c)))
+    """
+    cfg = st.config
+    u, v, G, z, fp = _geometry(pk, x, y, st.need_footprint)
+    a = pk[:, _OP] * G
+    if st.alpha:
+        meta = ctx["alpha_meta"]
+        ia, wa = _tex_corners(meta, gid, u, v, fp, cfg, st.alpha_mip)
+        if vals_a is None:
+            vals_a = _gather(texels[1], lax.stop_gradient(ia))
+        a = a * jnp.where(meta.has[gid], jnp.sum(wa * vals_a[..., 0], axis=-1), 1.0)
+    a = jnp.clip(a, 0.0, ALPHA_MAX)
+    keep = valid & (a >= ALPHA_MIN) & (z > cfg.near)
+    a = jnp.where(keep, a, 0.0)
+    log1m = jnp.log1p(-a)
+    cum = jnp.cumsum(log1m, axis=1)
+    include = ~done_in[:, None] & (log_t_in[:, None] + cum >= _LOG_T_MIN)
+    w = jnp.where(include, a * jnp.exp(log_t_in[:, None] + cum - log1m), 0.0)     # (P, c)
+    rgb = w @ pk[:, _COL]
+    if st.rgb:
+        meta = ctx["rgb_meta"]
+        ir, wr = _tex_corners(meta, gid, u, v, fp, cfg, st.rgb_mip)
+        if vals_rgb is None:
+            vals_rgb = _gather(texels[0], lax.stop_gradient(ir))
+        offs = jnp.where(meta.has[gid][:, None], jnp.sum(wr[..., None] * vals_rgb, axis=-2), 0.0)
+        rgb = rgb + jnp.einsum("pc,pcj->pj", w, offs)
+    m = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * (1.0 - _DIST_NEAR / jnp.where(keep, z, 1.0))
+    wm = w * m
+    dacc = jnp.concatenate([rgb, jnp.sum(w * z, axis=1, keepdims=True), w @ pk[:, _NRM],
+                            jnp.sum(wm, axis=1, keepdims=True), jnp.sum(wm * m, axis=1, keepdims=True)],
+                           axis=1)
+    log_t_out = log_t_in + jnp.sum(jnp.where(include, log1m, 0.0), axis=1)
+    done_out = done_in | (log_t_in + cum[:, -1] < _LOG_T_MIN)
+    return (dacc, log_t_out), (done_out, w)
+
+
+def _gather(texels, idx):
+    return None if idx is None else texels.at[idx].get(mode="promise_in_bounds")
+
+
+def _num_chunks(st: _Static, ctx, t):
+    return (ctx["binned"][t] + st.config.chunk - 1) // st.config.chunk
+
+
+def _tile_batches(st: _Static, ctx):
+    """(num_batches, B) tile ids, longest lists first so a batch's tiles need similar numbers of
+    chunks (a batch loops until its slowest tile is done). Padding repeats the last tile."""
+    B = st.config.tile_batch
+    nb = -(-st.num_tiles // B)
+    order = jnp.argsort(-ctx["binned"], stable=True).astype(jnp.int32)
+    order = jnp.concatenate([order, jnp.full((nb * B - st.num_tiles,), order[-1], jnp.int32)])
+    return order.reshape(nb, B)
+
+
+def _batch_state(st, ctx, tb, dt):
+    xy = jax.vmap(lambda t: _pixel_coords(st, t, dt))(tb)
+    return xy, jax.vmap(lambda t: _num_chunks(st, ctx, t))(tb)
+
+
+def _composite_fwd_impl(st: _Static, packed, rgb_texels, alpha_texels, ctx):
+    npx = st.config.tile_size ** 2
+    dt = packed.dtype
+    B = st.config.tile_batch
+
+    def batch(tb):
+        (x, y), nch = _batch_state(st, ctx, tb, dt)
+
+        def cond(state):
+            return jnp.any((state[0] < nch) & ~jnp.all(state[2], axis=1))
+
+        def one(t, k, x, y, log_t, done):
+            gid, valid = _chunk_slots(st, ctx, t, k)
+            (dacc, log_t2), (done2, w) = _chunk_contrib(
+                st, ctx, packed[gid], None, None, gid, valid, x, y, log_t, done, (rgb_texels, alpha_texels))
+            return dacc, log_t2, done2, jnp.max(w, axis=1), gid[jnp.argmax(w, axis=1)]
+
+        def body(state):
+            k, log_t, done, acc, best_w, best_id = state
+            dacc, log_t2, done2, wmax, arg = jax.vmap(one, (0, None, 0, 0, 0, 0))(tb, k, x, y, log_t, done)
+            better = wmax > best_w
+            return (k + 1, log_t2, done2, acc + dacc, jnp.maximum(best_w, wmax),
+                    jnp.where(better, arg, best_id))
+
+        init = (jnp.int32(0), jnp.zeros((B, npx), dt), jnp.zeros((B, npx), bool),
+                jnp.zeros((B, npx, _F_ACC), dt), jnp.zeros((B, npx), dt), jnp.full((B, npx), -1, jnp.int32))
+        _, log_t, _, acc, _, best = lax.while_loop(cond, body, init)
+        return acc, jnp.exp(log_t), best
+
+    batches = _tile_batches(st, ctx)
+    acc, t_final, best = lax.map(batch, batches)
+    flat = batches.reshape(-1)
+    T = st.num_tiles
+
+    def unsort(v):  # duplicated padding tiles write identical values
+        return jnp.zeros((T,) + v.shape[2:], v.dtype).at[flat].set(v.reshape((-1,) + v.shape[2:]))
+
+    return unsort(acc), unsort(t_final), unsort(best)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _composite(st: _Static, packed, rgb_texels, alpha_texels, ctx):
+    """All tiles, front to back in chunks of ``config.chunk`` splats, stopping each tile once every
+    pixel's transmittance fell below 1e-4 or its list is exhausted; ``config.tile_batch`` tiles
+    (of similar list lengths) advance together.
+
+    Args:
+      st: static settings.
+      packed: (C, F) per-splat quantities (differentiable).
+      rgb_texels, alpha_texels: (M, 3) / (M, 1) atlases or None (differentiable).
+      ctx: dict of int/bool arrays (tile lists, texture addressing); no gradient.
+    Returns:
+      acc (T, P, 9) accumulators, t_final (T, P), best (T, P) int32 id of the largest-weight splat.
+
+    The backward pass walks each tile's chunks front to back again; a chunk's influence on everything
+    behind it is through its output transmittance, whose cotangent is
+    ``ct_acc . (acc_final - acc_through_chunk) + ct_T * T_final`` (later contributions are linear in
+    it), so nothing per pair is stored: the residuals are the inputs and the per-pixel outputs.
+    """
+    return _composite_fwd_impl(st, packed, rgb_texels, alpha_texels, ctx)
+
+
+def _composite_fwd(st, packed, rgb_texels, alpha_texels, ctx):
+    out = _composite_fwd_impl(st, packed, rgb_texels, alpha_texels, ctx)
+    return out, (packed, rgb_texels, alpha_texels, ctx, out[0], out[1])
+
+
+def _composite_bwd(st, res, cts):
+    packed, rgb_texels, alpha_texels, ctx, acc_all, tfin_all = res
+    ct_acc_all, ct_t_all, _ = cts
+    npx = st.config.tile_size ** 2
+    dt = packed.dtype
+    B = st.config.tile_batch
+
+    def one(t, k, x, y, log_t, done, dot_through, ct_acc, base_term):
+        """One tile's chunk k: its cotangents for the packed splats and the texels it read."""
+        gid, valid = _chunk_slots(st, ctx, t, k)
+        pk = packed[gid]
+        ir, ia = _chunk_addresses(st, ctx, pk, gid, x, y)
+        vr, va = _gather(rgb_texels, ir), _gather(alpha_texels, ia)
+
+        def f(pk_, vr_, va_):
+            return _chunk_contrib(st, ctx, pk_, vr_, va_, gid, valid, x, y, log_t, done)
+
+        (dacc, log_t2), vjp, (done2, _) = jax.vjp(f, pk, vr, va, has_aux=True)
+        dot_through = dot_through + jnp.sum(ct_acc * dacc, axis=1)
+        g_pkc, g_vr, g_va = vjp((ct_acc, base_term - dot_through))
+        return log_t2, done2, dot_through, gid, jnp.where(valid[:, None], g_pkc, 0.0), ir, g_vr, ia, g_va
+
+    def batch(carry, inp):
+        tb, pad = inp
+        # Padding entries repeat a tile: zero cotangents so its gradient is not added twice.
+        ct_acc = jnp.where(pad[:, None, None], 0.0, ct_acc_all[tb])      # (B, P, 9)
+        ct_t = jnp.where(pad[:, None], 0.0, ct_t_all[tb])                # (B, P)
+        base_term = ct_t * tfin_all[tb] + jnp.sum(ct_acc * acc_all[tb], axis=-1)
+        (x, y), nch = _batch_state(st, ctx, tb, dt)
+
+        def cond(state):
+            return jnp.any((state[0] < nch) & ~jnp.all(state[2], axis=1))
+
+        def body(state):
+            k, log_t, done, dot_through, (g_pk, g_rt, g_at) = state
+            log_t, done, dot_through, gid, g_pkc, ir, g_vr, ia, g_va = jax.vmap(
+                one, (0, None, 0, 0, 0, 0, 0, 0, 0))(tb, k, x, y, log_t, done, dot_through, ct_acc, base_term)
+            g_pk = g_pk.at[gid.reshape(-1)].add(g_pkc.reshape(-1, g_pkc.shape[-1]))
+            if ir is not None:
+                g_rt = g_rt.at[ir].add(g_vr, mode="promise_in_bounds")
+            if ia is not None:
+                g_at = g_at.at[ia].add(g_va, mode="promise_in_bounds")
+            return k + 1, log_t, done, dot_through, (g_pk, g_rt, g_at)
+
+        init = (jnp.int32(0), jnp.zeros((B, npx), dt), jnp.zeros((B, npx), bool), jnp.zeros((B, npx), dt),
+                carry)
+        return lax.while_loop(cond, body, init)[4], None
+
+    batches = _tile_batches(st, ctx)
+    pad = (jnp.arange(batches.size) >= st.num_tiles).reshape(batches.shape)
+    zeros = (jnp.zeros_like(packed), None if rgb_texels is None else jnp.zeros_like(rgb_texels),
+             None if alpha_texels is None else jnp.zeros_like(alpha_texels))
+    (g_pk, g_rt, g_at), _ = lax.scan(batch, zeros, (batches, pad))
+    return g_pk, g_rt, g_at, jax.tree_util.tree_map(lambda _: None, ctx)
+
+
+_composite.defvjp(_composite_fwd, _composite_bwd)
 
 
 def _untile(x, tiles_x, tiles_y, ts, H, W):
@@ -460,9 +669,16 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
         rgb_atlas = tex.build_atlas(scene.rgb, use_mip and config.rgb_mip)
     if scene.alpha is not None:
         alpha_atlas = tex.build_atlas(scene.alpha, use_mip and config.alpha_mip)
-    rgb, t_final, depth, normal, distortion, best = _composite_tiles(
-        proj["packed"], rgb_atlas, alpha_atlas, ids_sorted, tile_start, binned, config, capacity,
-        tiles_x, num_tiles)
+    st = _Static(config=config, tiles_x=tiles_x, num_tiles=num_tiles, rgb=rgb_atlas is not None,
+                 alpha=alpha_atlas is not None)
+    ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
+               rgb_meta=_meta(rgb_atlas), alpha_meta=_meta(alpha_atlas))
+    acc, t_final, best = _composite(st, proj["packed"], None if rgb_atlas is None else rgb_atlas.texels,
+                                    None if alpha_atlas is None else alpha_atlas.texels, ctx)
+    bg = jnp.asarray(config.background, acc.dtype)
+    rgb = acc[..., 0:3] + t_final[..., None] * bg
+    depth, normal = acc[..., 3], acc[..., 4:7]
+    distortion = (1.0 - t_final) * acc[..., 8] - acc[..., 7] ** 2
     rgb = _untile(rgb, tiles_x, tiles_y, ts, H, W)
     alpha = 1.0 - _untile(t_final, tiles_x, tiles_y, ts, H, W)
     depth = _untile(depth, tiles_x, tiles_y, ts, H, W)
@@ -472,7 +688,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     best = _untile(best, tiles_x, tiles_y, ts, H, W).reshape(-1)
     C = scene.capacity
     counts = jnp.zeros((C,), jnp.int32).at[jnp.where(best >= 0, best, C)].add(1, mode="drop")
-    overflow = (pairs_needed > capacity.pairs) | (max_tile > capacity.per_tile)
+    overflow = pairs_needed > capacity.pairs
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, distortion=distortion,
                         max_contrib_count=counts,
                         radius_px=jnp.where(ok, proj["radius"], 0.0), visible=ok,
@@ -481,8 +697,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
 
 #: The jitted renderer: ``render_jit(scene, camera, config=..., capacity=..., screen_offset=None,
 #: active_sh_degree=None)``. It never grows its capacity: check ``output.overflow`` on the host
-#: (training does, between steps) and call again with ``Capacity.fit(output.pairs_needed,
-#: output.max_tile_count)``. ``screen_offset`` ((C, 2) zeros) is a gradient hook: its gradient is
+#: (training does, between steps) and call again with ``Capacity.fit(output.pairs_needed)``. ``screen_offset`` ((C, 2) zeros) is a gradient hook: its gradient is
 #: the loss gradient with respect to a screen-space translation of each splat, in pixels (the
 #: densification statistic); ``active_sh_degree`` (traced int) masks SH bands above it.
 render_jit = jax.jit(_render, static_argnames=("config", "capacity"))
@@ -524,7 +739,7 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = RenderConfig(), 
     if cap is None:
         try:
             needed, max_tile = count_pairs(lax.stop_gradient(scene), camera, config)
-            cap = Capacity.fit(float(needed), int(max_tile))
+            cap = Capacity.fit(float(needed))
         except jax.errors.ConcretizationTypeError:
             cap = Capacity()
     for _ in range(4):
@@ -537,9 +752,8 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = RenderConfig(), 
         if not overflowed:
             _capacity_cache[key] = cap
             return out
-        new = Capacity.fit(float(out.pairs_needed), int(out.max_tile_count), minimum=cap)
-        warnings.warn(f"render: capacity {cap} too small for this view (needs "
-                      f"{int(out.pairs_needed)} pairs, {int(out.max_tile_count)} splats in one tile); "
-                      f"growing to {new} and rendering again.", stacklevel=2)
+        new = Capacity.fit(float(out.pairs_needed), minimum=cap)
+        warnings.warn(f"render: capacity {cap} too small for this view (needs {int(out.pairs_needed)} "
+                      f"(splat, tile) pairs); growing to {new} and rendering again.", stacklevel=2)
         cap = new
     raise RuntimeError("render: capacity did not converge; this is a bug, please report it.")

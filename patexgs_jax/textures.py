@@ -263,15 +263,16 @@ def level_address(base, bucket_side, size, level):
     return base + off, jnp.where(zero, bucket_side, s), jnp.where(zero, size, s)
 
 
-def sample(texels, base, stride, side, u, v):
-    """Bilinear, edge-clamped lookups of one level (align-corners over [-3, 3]^2).
+def corners(base, stride, side, u, v):
+    """Addresses and weights of the bilinear, edge-clamped lookup of one level (align-corners).
 
     Args:
-      texels: (M, ch) atlas texels.
-      base, stride, side: int32 arrays broadcastable with u (per lookup).
-      u, v: float splat-plane coordinates in units of the scales.
+      base, stride, side: int32 arrays broadcastable with u (per lookup): the level's flat offset,
+        row stride and side.
+      u, v: float splat-plane coordinates in units of the scales (texture spans [-3, 3]^2).
     Returns:
-      (..., ch) sampled values.
+      (idx (..., 4) int32 flat texel addresses, w (..., 4) float weights summing to one); the
+      weights are differentiable in (u, v), the addresses piecewise constant.
     """
     sidef = side.astype(u.dtype)
     last = jnp.maximum(sidef - 1.0, 0.0)
@@ -279,17 +280,20 @@ def sample(texels, base, stride, side, u, v):
     tb = jnp.clip((v + 3.0) * (1.0 / 6.0) * last, 0.0, last)
     a0 = jnp.minimum(jnp.floor(ta), jnp.maximum(last - 1.0, 0.0))
     b0 = jnp.minimum(jnp.floor(tb), jnp.maximum(last - 1.0, 0.0))
-    fa = (ta - a0)[..., None]
-    fb = (tb - b0)[..., None]
+    fa, fb = ta - a0, tb - b0
     a0i, b0i = a0.astype(jnp.int32), b0.astype(jnp.int32)
     a1i = jnp.minimum(a0i + 1, side - 1)
     b1i = jnp.minimum(b0i + 1, side - 1)
+    idx = jnp.stack([base + a0i * stride + b0i, base + a0i * stride + b1i,
+                     base + a1i * stride + b0i, base + a1i * stride + b1i], axis=-1)
+    w = jnp.stack([(1 - fa) * (1 - fb), (1 - fa) * fb, fa * (1 - fb), fa * fb], axis=-1)
+    return idx, w
 
-    def get(ai, bi):
-        return texels.at[base + ai * stride + bi].get(mode="promise_in_bounds")
 
-    return ((1 - fa) * ((1 - fb) * get(a0i, b0i) + fb * get(a0i, b1i))
-            + fa * ((1 - fb) * get(a1i, b0i) + fb * get(a1i, b1i)))
+def sample(texels, base, stride, side, u, v):
+    """Bilinear, edge-clamped lookups of one level: (..., ch) values (see :func:`corners`)."""
+    idx, w = corners(base, stride, side, u, v)
+    return jnp.sum(w[..., None] * texels.at[idx].get(mode="promise_in_bounds"), axis=-2)
 
 
 def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):

@@ -279,7 +279,7 @@ class _Run:
                     tex_counters=None if self.tex_state is None else np.array(
                         [self.tex_state.last_growth_step, self.tex_state.num_growth_events,
                          self.tex_state.num_grown]),
-                    capacity=np.array([self.capacity.pairs, self.capacity.per_tile]),
+                    capacity=np.array([self.capacity.pairs]),
                     counters=np.array([self.step, self.skipped, self.recompiles]),
                     t_train=np.array(self.t_train))
 
@@ -288,7 +288,7 @@ class _Run:
         if tree["tex_sizes"] is not None:
             c = tree["tex_counters"]
             self.tex_state = sched.TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
-        self.capacity = Capacity(int(tree["capacity"][0]), int(tree["capacity"][1]))
+        self.capacity = Capacity(int(tree["capacity"][0]))
         self.step, self.skipped, self.recompiles = (int(v) for v in tree["counters"])
         self.t_train = float(tree["t_train"])
 
@@ -317,8 +317,8 @@ class _Run:
         return self._jit_cache[key]
 
     def fit_capacity(self, camera):
-        needed, max_tile = count_pairs(self.scene, camera, self.render_cfg)
-        cap = Capacity.fit(float(needed) * 1.25, int(max_tile) * 1.25, minimum=self.capacity)
+        needed, _ = count_pairs(self.scene, camera, self.render_cfg)
+        cap = Capacity.fit(float(needed) * 1.25, minimum=self.capacity)
         if cap != self.capacity:
             self.capacity = cap
 
@@ -380,8 +380,8 @@ class _Run:
 
     def render_eval(self, camera, config=None):
         config = config or self.render_cfg
-        needed, max_tile = count_pairs(self.scene, camera, config)
-        cap = Capacity.fit(float(needed), int(max_tile))
+        needed, _ = count_pairs(self.scene, camera, config)
+        cap = Capacity.fit(float(needed))
         return render_jit(self.scene, camera, config=config, capacity=cap)
 
     # -- main loop -------------------------------------------------------------------------------
@@ -419,7 +419,7 @@ class _Run:
                 self.recompiles += 1
             if bool(m["overflow"]):
                 old = self.capacity
-                self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25, int(m["max_tile_count"]) * 1.25,
+                self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25,
                                              minimum=old)
                 self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.capacity} and retrying")
                 continue
@@ -495,8 +495,8 @@ def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
 
     ps, ss = [], []
     for v in views:
-        needed, max_tile = count_pairs(scene, v.camera, render_config)
-        out = render_jit(scene, v.camera, config=render_config, capacity=Capacity.fit(float(needed), int(max_tile)))
+        needed, _ = count_pairs(scene, v.camera, render_config)
+        out = render_jit(scene, v.camera, config=render_config, capacity=Capacity.fit(float(needed)))
         img = np.clip(np.asarray(out.rgb), 0, 1)
         ps.append(float(psnr(img, v.image)))
         ss.append(float(ssim(jnp.asarray(img), jnp.asarray(v.image))))

@@ -22,7 +22,7 @@ from render_reference import reference_render, scene_to_reference, sh_color
 
 C = 48
 W, H = 44, 36
-CAP = Capacity(pairs=4096, per_tile=64)
+CAP = Capacity(pairs=4096)
 # Texture sides per Gaussian, fixed so every textured scene has the same bucket layout (shapes).
 RGB_SIZES = [0, 1, 2, 3, 4, 5, 7, 8, 9, 16] * 4 + [0] * 8
 ALPHA_SIZES = [5, 0, 1, 3, 4, 6, 8, 2, 9, 12] * 4 + [5] * 8
@@ -146,7 +146,7 @@ def test_one_compile_per_configuration():
 def test_overflow_is_counted_and_render_grows():
     sc, cam, cfg = scene(7), camera(), CONFIGS["nearest"][2]
     full = tile_render(sc, cam, cfg)
-    tiny = Capacity(pairs=64, per_tile=4)
+    tiny = Capacity(pairs=64)
     out = render_jit(sc, cam, config=cfg, capacity=tiny)
     assert bool(out.overflow)
     assert float(out.pairs_needed) == float(full.pairs_needed)
@@ -228,9 +228,9 @@ def test_constant_texture_is_mip_invariant():
     alpha = np.full((6, 6), 0.8)
     sc = _single_splat_scene(rgb, alpha)
     cam = camera(eye=(0.0, 0.0, -12.0), f=30.0)  # strong minification: high levels are chosen
-    base = tile_render(sc, cam, RenderConfig(mip="none"), capacity=Capacity(1024, 16))
+    base = tile_render(sc, cam, RenderConfig(mip="none"), capacity=Capacity(1024))
     for cfg in (RenderConfig(mip="nearest"), RenderConfig(mip="trilinear")):
-        out = tile_render(sc, cam, cfg, capacity=Capacity(1024, 16))
+        out = tile_render(sc, cam, cfg, capacity=Capacity(1024))
         np.testing.assert_allclose(out.rgb, base.rgb, atol=2e-6)
         np.testing.assert_allclose(out.alpha, base.alpha, atol=2e-6)
 
@@ -241,8 +241,8 @@ def test_magnification_picks_level_zero():
     alpha = rng.uniform(0.2, 1.0, (8, 8))
     sc = _single_splat_scene(rgb, alpha, scale=0.5)
     cam = camera(eye=(0.0, 0.0, -2.0), f=80.0)  # ~20 px per unit of scale: D ~ 0.05, 0.4*8*D < 1
-    base = tile_render(sc, cam, RenderConfig(mip="none"), capacity=Capacity(1024, 16))
-    out = tile_render(sc, cam, RenderConfig(mip="nearest"), capacity=Capacity(1024, 16))
+    base = tile_render(sc, cam, RenderConfig(mip="none"), capacity=Capacity(1024))
+    out = tile_render(sc, cam, RenderConfig(mip="nearest"), capacity=Capacity(1024))
     # Same texels, same level: equal up to float32 rounding of a different fusion of the lookups.
     np.testing.assert_allclose(out.rgb, base.rgb, atol=1e-6, rtol=0)
     np.testing.assert_allclose(out.alpha, base.alpha, atol=1e-6, rtol=0)
@@ -308,7 +308,7 @@ def test_hard_case_gradients_finite(case, mip):
     sc = _hard_scene(case)
     cam = camera(eye=(0.0, 0.0, -3.0), target=(0.0, 0.0, 1.0))
     cfg = RenderConfig(mip=mip)
-    cap = Capacity(pairs=1024, per_tile=16)
+    cap = Capacity(pairs=1024)
 
     def loss(s):
         out = render_jit(s, cam, config=cfg, capacity=cap)
@@ -327,7 +327,7 @@ def test_thousands_of_splats_on_one_pixel():
     sc = Scene.from_arrays(means, np.full((n, 2), 0.01), np.tile([1.0, 0, 0, 0], (n, 1)),
                            np.full(n, 0.05), np.zeros((n, 1, 3)) + 0.5)
     cam = Camera.from_intrinsics([50.0, 50.0, 8.0, 8.0], look_at((0, 0, -2.0), (0, 0, 0)), 16, 16)
-    cap = Capacity(pairs=4096, per_tile=2048)
+    cap = Capacity(pairs=4096)
 
     def loss(s):
         return jnp.sum(render_jit(s, cam, config=RenderConfig(mip="none"), capacity=cap).rgb)

@@ -253,7 +253,7 @@ def test_exact_growth_leaves_the_render_unchanged():
     grown, _, info = resize_textures(scene, None, [3, 4, 2, 1], [5, 5, 2, 3])
     assert not info.shapes_changed and info.changed == {"rgb": 4, "alpha": 4}
     cam = Camera.from_intrinsics([40.0, 40.0, 16.0, 16.0], look_at((0.2, -0.1, -2.0), (0, 0, 0)), 32, 32)
-    cfg, cap = RenderConfig(mip="none"), Capacity(pairs=256, per_tile=8)
+    cfg, cap = RenderConfig(mip="none"), Capacity(pairs=256)
     outs = [render_jit(s, cam, config=cfg, capacity=cap) for s in (scene, grown)]
     assert not any(bool(o.overflow) for o in outs)
     np.testing.assert_allclose(np.asarray(outs[1].rgb), np.asarray(outs[0].rgb), atol=2e-5)
