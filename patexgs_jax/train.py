@@ -136,6 +136,28 @@ class TrainConfig:
                             lambda_mip=self.lambda_mip, background=tuple(self.background))
 
 
+#: Named schedules. ``tiny``: minutes on a 2-core CPU (the embedded-scene default); ``small``: a
+#: quick real-scene run; ``paper``: the 2DGS/PATexGS iteration counts (the TrainConfig defaults).
+PRESETS = {
+    "tiny": dict(iters_2dgs=600, iters_tex=400, warmup_tex=100, growth_interval=50, normal_from=300,
+                 sh_interval=150, log_every=50, checkpoint_every=200,
+                 densify=dens.DensifyConfig(start=100, stop=450, interval=50, opacity_reset_interval=300)),
+    "small": dict(iters_2dgs=7_000, iters_tex=5_000, warmup_tex=500, growth_interval=100, normal_from=3_500,
+                  sh_interval=1_000, densify=dens.DensifyConfig(start=500, stop=3_500, interval=100,
+                                                                opacity_reset_interval=3_000)),
+    "paper": {},
+}
+
+
+def preset_config(preset: str = "paper", **overrides) -> TrainConfig:
+    """A :class:`TrainConfig` from a named preset, with keyword overrides (None values ignored)."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}.")
+    kw = dict(PRESETS[preset])
+    kw.update({k: v for k, v in overrides.items() if v is not None})
+    return TrainConfig(**kw)
+
+
 def method_spec(method: str) -> dict:
     """What a ``--method`` name means: textures (None, "fixed", "adaptive"), fixed size, mip flags."""
     base = dict(textures="adaptive", size=None, mip="nearest", rgb_mip=True, alpha_mip=True)
@@ -573,8 +595,10 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="patexgs")
     ap.add_argument("--out", required=True)
     ap.add_argument("--factor", type=int, default=None)
-    ap.add_argument("--iters-2dgs", type=int, default=TrainConfig.iters_2dgs)
-    ap.add_argument("--iters-tex", type=int, default=TrainConfig.iters_tex)
+    ap.add_argument("--preset", default="paper", choices=sorted(PRESETS),
+                    help="iteration schedule (default: paper); --iters-* override it")
+    ap.add_argument("--iters-2dgs", type=int, default=None)
+    ap.add_argument("--iters-tex", type=int, default=None)
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--texture-budget-mb", type=float, default=None)
     ap.add_argument("--seed", type=int, default=0)
@@ -587,9 +611,9 @@ def main(argv=None) -> int:
 
         args.data = str(ensure_default_scene())
     try:
-        cfg = TrainConfig(method=args.method, iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
-                          max_gaussians=args.max_gaussians, texture_budget_mb=args.texture_budget_mb,
-                          seed=args.seed)
+        cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
+                            iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
+                            texture_budget_mb=args.texture_budget_mb, seed=args.seed)
         ds = load(args.data, factor=args.factor)
         train(ds, cfg, args.out, resume=args.resume)
     except (ValueError, FileExistsError, OSError) as e:
