@@ -336,7 +336,7 @@ def _meta(atlas: tex.Atlas | None):
 def _tex_corners(meta: _Meta, gid, u, v, footprint, config: RenderConfig, use_mip: bool):
     """Texel addresses and weights of the lookups of splats ``gid`` (c,) at (u, v) (P, c).
 
-    Returns (idx (P, c, K) int32, w (P, c, K)) with K = 4 (one level) or 8 (trilinear).
+    Returns (idx (P, c, K/2) int32 paired-atlas rows, w (P, c, K)), K = 4 (one level) or 8 (trilinear).
     """
     base, side_p, n = meta.base[gid], meta.bucket_side[gid], meta.size[gid]
     ni = n.astype(jnp.int32)
@@ -436,7 +436,7 @@ def _chunk_contrib(st: _Static, ctx, pk, vals_rgb, vals_a, gid, valid, x, y, log
 
     Args:
       pk: (c, F) packed splats; vals_rgb (P, c, K, 3) / vals_a (P, c, K, 1) the texels at the
-        chunk's lookup addresses, or None to gather them here from ``texels`` (the atlases);
+        chunk's lookup addresses, or None to gather them here from ``texels`` (paired atlases);
         gid, valid (c,); x, y (P, 1); log_t_in (P,) log transmittance before the chunk; done_in
         (P,) compositing already stopped.
     Returns:
@@ -476,8 +476,13 @@ def _chunk_contrib(st: _Static, ctx, pk, vals_rgb, vals_a, gid, valid, x, y, log
     return (dacc, log_t_out), (done_out, w)
 
 
-def _gather(texels, idx):
-    return None if idx is None else texels.at[idx].get(mode="promise_in_bounds")
+def _gather(texels2, idx):
+    return None if idx is None else tex.gather_pairs(texels2, idx)
+
+
+def _unpair(g):
+    """Cotangents of :func:`patexgs_jax.textures.gather_pairs` values (..., 2K, ch) -> (..., K, 2 ch)."""
+    return g.reshape(g.shape[:-2] + (g.shape[-2] // 2, 2 * g.shape[-1]))
 
 
 def _num_chunks(st: _Static, ctx, t):
@@ -548,7 +553,8 @@ def _composite(st: _Static, packed, rgb_texels, alpha_texels, ctx):
     Args:
       st: static settings.
       packed: (C, F) per-splat quantities (differentiable).
-      rgb_texels, alpha_texels: (M, 3) / (M, 1) atlases or None (differentiable).
+      rgb_texels, alpha_texels: (M, 6) / (M, 2) paired atlases (:func:`textures.paired`) or None
+        (differentiable).
       ctx: dict of int/bool arrays (tile lists, texture addressing); no gradient.
     Returns:
       acc (T, P, 9) accumulators, t_final (T, P), best (T, P) int32 id of the largest-weight splat.
@@ -605,9 +611,9 @@ def _composite_bwd(st, res, cts):
                 one, (0, None, 0, 0, 0, 0, 0, 0, 0))(tb, k, x, y, log_t, done, dot_through, ct_acc, base_term)
             g_pk = g_pk.at[gid.reshape(-1)].add(g_pkc.reshape(-1, g_pkc.shape[-1]))
             if ir is not None:
-                g_rt = g_rt.at[ir].add(g_vr, mode="promise_in_bounds")
+                g_rt = g_rt.at[ir].add(_unpair(g_vr), mode="promise_in_bounds")
             if ia is not None:
-                g_at = g_at.at[ia].add(g_va, mode="promise_in_bounds")
+                g_at = g_at.at[ia].add(_unpair(g_va), mode="promise_in_bounds")
             return k + 1, log_t, done, dot_through, (g_pk, g_rt, g_at)
 
         init = (jnp.int32(0), jnp.zeros((B, npx), dt), jnp.zeros((B, npx), bool), jnp.zeros((B, npx), dt),
@@ -673,8 +679,8 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
                  alpha=alpha_atlas is not None)
     ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
                rgb_meta=_meta(rgb_atlas), alpha_meta=_meta(alpha_atlas))
-    acc, t_final, best = _composite(st, proj["packed"], None if rgb_atlas is None else rgb_atlas.texels,
-                                    None if alpha_atlas is None else alpha_atlas.texels, ctx)
+    acc, t_final, best = _composite(st, proj["packed"], None if rgb_atlas is None else tex.paired(rgb_atlas.texels),
+                                    None if alpha_atlas is None else tex.paired(alpha_atlas.texels), ctx)
     bg = jnp.asarray(config.background, acc.dtype)
     rgb = acc[..., 0:3] + t_final[..., None] * bg
     depth, normal = acc[..., 3], acc[..., 4:7]

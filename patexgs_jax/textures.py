@@ -266,13 +266,18 @@ def level_address(base, bucket_side, size, level):
 def corners(base, stride, side, u, v):
     """Addresses and weights of the bilinear, edge-clamped lookup of one level (align-corners).
 
+    Lookups read texel *pairs* from a :func:`paired` atlas: row ``i`` holds texels ``i`` and
+    ``i + 1``, i.e. columns b0 and b0 + 1 of a texture row, so a bilinear lookup is two gathers.
+    Column b0 is at most side - 2 (for side >= 2) and, for side 1, the second column has weight 0.
+
     Args:
       base, stride, side: int32 arrays broadcastable with u (per lookup): the level's flat offset,
         row stride and side.
       u, v: float splat-plane coordinates in units of the scales (texture spans [-3, 3]^2).
     Returns:
-      (idx (..., 4) int32 flat texel addresses, w (..., 4) float weights summing to one); the
-      weights are differentiable in (u, v), the addresses piecewise constant.
+      (idx (..., 2) int32 paired-atlas rows of texture rows a0 and a1, w (..., 4) float weights of
+      texels (a0, b0), (a0, b0+1), (a1, b0), (a1, b0+1), summing to one); the weights are
+      differentiable in (u, v), the addresses piecewise constant.
     """
     sidef = side.astype(u.dtype)
     last = jnp.maximum(sidef - 1.0, 0.0)
@@ -283,17 +288,27 @@ def corners(base, stride, side, u, v):
     fa, fb = ta - a0, tb - b0
     a0i, b0i = a0.astype(jnp.int32), b0.astype(jnp.int32)
     a1i = jnp.minimum(a0i + 1, side - 1)
-    b1i = jnp.minimum(b0i + 1, side - 1)
-    idx = jnp.stack([base + a0i * stride + b0i, base + a0i * stride + b1i,
-                     base + a1i * stride + b0i, base + a1i * stride + b1i], axis=-1)
+    idx = jnp.stack([base + a0i * stride + b0i, base + a1i * stride + b0i], axis=-1)
     w = jnp.stack([(1 - fa) * (1 - fb), (1 - fa) * fb, fa * (1 - fb), fa * fb], axis=-1)
     return idx, w
+
+
+def paired(texels):
+    """(M, ch) atlas -> (M, 2 ch) whose row i is texels i and i + 1 (the last paired with zeros)."""
+    nxt = jnp.concatenate([texels[1:], jnp.zeros_like(texels[:1])], axis=0)
+    return jnp.concatenate([texels, nxt], axis=1)
+
+
+def gather_pairs(texels2, idx):
+    """Texel values at :func:`corners` addresses: (..., K) rows -> (..., 2K, ch)."""
+    vals = texels2.at[idx].get(mode="promise_in_bounds")          # (..., K, 2 ch)
+    return vals.reshape(vals.shape[:-2] + (2 * vals.shape[-2], vals.shape[-1] // 2))
 
 
 def sample(texels, base, stride, side, u, v):
     """Bilinear, edge-clamped lookups of one level: (..., ch) values (see :func:`corners`)."""
     idx, w = corners(base, stride, side, u, v)
-    return jnp.sum(w[..., None] * texels.at[idx].get(mode="promise_in_bounds"), axis=-2)
+    return jnp.sum(w[..., None] * gather_pairs(paired(texels), idx), axis=-2)
 
 
 def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):
