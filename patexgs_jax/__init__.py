@@ -14,6 +14,8 @@ from .textures import TextureBank
 
 __all__ = [
     "Camera",
+    "TrainConfig",
+    "TrainResult",
     "Capacity",
     "RenderConfig",
     "RenderOutput",
@@ -23,4 +25,20 @@ __all__ = [
     "random_scene",
     "render",
     "render_jit",
+    "train",
 ]
+
+_LAZY = ("train", "TrainConfig", "TrainResult")
+
+
+def __getattr__(name):
+    # Training pulls in optax, scipy and the data loaders: imported on first use. Not importing the
+    # submodule here also keeps `python -m patexgs_jax.train` free of runpy's double-import warning.
+    if name in _LAZY:
+        import importlib
+
+        mod = importlib.import_module(".train", __name__)
+        for n in _LAZY:
+            globals()[n] = getattr(mod, n)  # also replaces the submodule attribute import just set
+        return globals()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
