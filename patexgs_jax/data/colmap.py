@@ -23,6 +23,7 @@ import PIL.Image  # noqa: F401  -- must be loaded before pycolmap (see data/__in
 import pycolmap
 
 from .dataset import (
+    image_loader,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
     IMAGE_EXTENSIONS,
@@ -515,7 +516,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         w2c = np.eye(4)
         w2c[:3, :] = im.cam_from_world().matrix()
         records.append(dict(name=im.name, K=K, w2c=w2c, width=w, height=h, image_path=files[im.name],
-                            load=_loader(files[im.name], post, background)))
+                            load=image_loader(files[im.name], post, background)))
 
     ids = sorted(rec.points3D.keys())
     if ids:
@@ -536,12 +537,6 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
                           normalize=normalize, points=pts, colors=cols, points_source=source,
                           cache=ImageCache(image_cache_size), info=info, random_points=rand)
 
-
-def _loader(path: Path, post: int, background):
-    def load():
-        return box_downsample(read_image(path, background), post)
-
-    return load
 
 
 def _undistort(scene, sparse, rec, kept, files, ratios, folder, cache_dir, distorted, verbose) -> Path:

@@ -182,6 +182,15 @@ def handle_unreadable(problems: list[tuple[str, str]], total: int, source: str, 
     return [str(p) for p, _ in problems]
 
 
+def image_loader(path, factor: int, background):
+    """A zero-argument function that reads ``path`` (RGBA composited on ``background``) and
+    box-downsamples it by ``factor``: the lazy loader a :class:`View` holds."""
+    def load():
+        return box_downsample(read_image(path, background), factor)
+
+    return load
+
+
 def box_downsample(image: np.ndarray, factor: int) -> np.ndarray:
     """Box (area) downsampling by an integer factor, matching :meth:`Camera.scaled`.
 

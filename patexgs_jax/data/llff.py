@@ -15,6 +15,7 @@ import numpy as np
 
 from .colmap import default_factor, find_sparse_dir, read_model
 from .dataset import (
+    image_loader,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
     Dataset,
@@ -144,7 +145,7 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
         c2w = orthonormalize_pose(llff_to_opencv_c2w(poses[i]), f"{pb_path} row {i}")
         records.append(dict(name=base_files[i].name, K=K, w2c=np.linalg.inv(c2w), width=w, height=h,
                             image_path=files[i], near=bounds[i, 0], far=bounds[i, 1],
-                            load=_loader(files[i], post, background)))
+                            load=image_loader(files[i], post, background)))
     skipped = handle_unreadable(problems, n, f"{pb_path} (images in {folder})", skip_missing)
     if not records:
         raise DatasetError(f"No readable image in {folder}.")
@@ -173,9 +174,3 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
                           normalize=normalize, points=pts, colors=cols, points_source=source,
                           cache=ImageCache(image_cache_size), info=info, random_points=rand)
 
-
-def _loader(path: Path, post: int, background):
-    def load():
-        return box_downsample(read_image(path, background), post)
-
-    return load

@@ -34,6 +34,7 @@ import pycolmap
 
 from .colmap import default_factor
 from .dataset import (
+    image_loader,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
     Dataset,
@@ -412,7 +413,7 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
             if w < 1 or h < 1:
                 raise DatasetError(f"factor {factor} leaves no pixel of image {m['file']}.")
         records.append(dict(name=m["name"], K=K, w2c=np.linalg.inv(m["c2w"]), width=w, height=h,
-                            image_path=m["file"], load=_loader(m["file"], factor, background)))
+                            image_path=m["file"], load=image_loader(m["file"], factor, background)))
 
     splits = None
     if "train" in found:
@@ -438,12 +439,6 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
                           points=pts, colors=cols, points_source=source, cache=ImageCache(image_cache_size),
                           info=info, splits=splits, random_points=rand)
 
-
-def _loader(path: Path, factor: int, background):
-    def load():
-        return box_downsample(read_image(path, background), factor)
-
-    return load
 
 
 def _undistort_frames(scene: Path, metas: list[dict], cache_dir, verbose: bool, info: dict) -> None:
