@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from typing import Sequence
 
 import jax
@@ -232,7 +231,7 @@ def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
     offset = 1
     base = jnp.zeros(bucket.shape, jnp.int32)
     for b, data in enumerate(bank.buckets):
-        cap, P = data.shape[0], data.shape[1]
+        cap = data.shape[0]
         if cap == 0:
             continue
         mine = bucket == b

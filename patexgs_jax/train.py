@@ -36,7 +36,6 @@ import argparse
 import collections
 import dataclasses
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -50,7 +49,6 @@ from . import checkpoint as ckpt
 from . import densify as dens
 from . import losses
 from . import schedule as sched
-from .camera import Camera
 from .metrics import storage_mb
 from .optim import LearningRates, make_optimizer
 from .render import Capacity, RenderConfig, count_pairs, render_jit
@@ -139,8 +137,8 @@ class TrainConfig:
 #: Named schedules. ``tiny``: minutes on a 2-core CPU (the embedded-scene default); ``small``: a
 #: quick real-scene run; ``paper``: the 2DGS/PATexGS iteration counts (the TrainConfig defaults).
 PRESETS = {
-    "tiny": dict(iters_2dgs=600, iters_tex=400, warmup_tex=100, growth_interval=50, normal_from=300,
-                 sh_interval=150, log_every=50, checkpoint_every=200,
+    "tiny": dict(iters_2dgs=600, iters_tex=300, warmup_tex=60, growth_interval=40, normal_from=300,
+                 sh_interval=150, log_every=50, checkpoint_every=200, max_gaussians=5_000,
                  densify=dens.DensifyConfig(start=100, stop=450, interval=50, opacity_reset_interval=300)),
     "small": dict(iters_2dgs=7_000, iters_tex=5_000, warmup_tex=500, growth_interval=100, normal_from=3_500,
                   sh_interval=1_000, densify=dens.DensifyConfig(start=500, stop=3_500, interval=100,
@@ -285,6 +283,7 @@ class _Run:
         self.recompiles = 0
         self.t_train = 0.0
         self.texel_budget = None
+        self.allocation = None
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
         self._jit_cache = {}
 
@@ -301,18 +300,20 @@ class _Run:
                     tex_counters=None if self.tex_state is None else np.array(
                         [self.tex_state.last_growth_step, self.tex_state.num_growth_events,
                          self.tex_state.num_grown]),
-                    capacity=np.array([self.capacity.pairs]),
+                    # None (refit before the next step) after a densification that grew the scene: 0.
+                    capacity=np.array([0 if self.capacity is None else self.capacity.pairs]),
                     counters=np.array([self.step, self.skipped, self.recompiles]),
-                    t_train=np.array(self.t_train))
+                    t_train=np.array(self.t_train), allocation=self.allocation)
 
     def load_state(self, tree):
         self.scene, self.opt_state, self.stats = tree["scene"], tree["opt_state"], tree["stats"]
         if tree["tex_sizes"] is not None:
             c = tree["tex_counters"]
             self.tex_state = sched.TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
-        self.capacity = Capacity(int(tree["capacity"][0]))
+        self.capacity = Capacity(int(tree["capacity"][0])) if int(tree["capacity"][0]) > 0 else None
         self.step, self.skipped, self.recompiles = (int(v) for v in tree["counters"])
         self.t_train = float(tree["t_train"])
+        self.allocation = tree.get("allocation")
 
     def save(self):
         if self.out is None:
@@ -390,6 +391,9 @@ class _Run:
         self.tex_state = sched.TextureScheduleState.create(sides)
         self.scene, self.opt_state, info = sched.resize_textures(self.scene, self.opt_state, sides, sides)
         self.texel_budget = budget
+        self.allocation = dict(step=self.step, sigma=float(sigma), texels=int(np.sum(sides[act] ** 2)),
+                               budget_texels=budget)
+        self.log(dict(event="allocation", **self.allocation))
         self.say(f"[stage 2] Eq. 7 allocation (sigma {sigma:.4g}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
                  f"{int(np.sum(sides[act] ** 2))} RGBA texels")
         self.stats = dens.DensifyStats.zeros(self.scene.capacity)
@@ -567,7 +571,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
                    num_gaussians=scene.num_active(), texels=texels["rgb"] + texels["alpha"],
                    texels_rgb=texels["rgb"], texels_alpha=texels["alpha"],
                    storage_mb=storage_mb(scene.num_active(), int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]),
-                   recompiles=run.recompiles, skipped_steps=run.skipped)
+                   recompiles=run.recompiles, skipped_steps=run.skipped, allocation=run.allocation)
     train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
     test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
     summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],

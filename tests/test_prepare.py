@@ -1,6 +1,5 @@
 """Tests of ``patexgs_jax.prepare`` (pycolmap SfM to the Mip-NeRF 360 layout)."""
 
-import shutil
 
 import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
 import numpy as np

@@ -31,7 +31,6 @@ from .dataset import (
     DatasetError,
     ImageCache,
     atomic_build_dir,
-    box_downsample,
     check_size_against_camera,
     finish_dataset,
     fingerprint,
@@ -41,7 +40,6 @@ from .dataset import (
     list_images,
     probe_image,
     random_points_in_box,
-    read_image,
     resolve_cache_dir,
     warn,
 )

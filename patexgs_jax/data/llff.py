@@ -21,7 +21,6 @@ from .dataset import (
     Dataset,
     DatasetError,
     ImageCache,
-    box_downsample,
     check_size_against_camera,
     finish_dataset,
     handle_unreadable,
@@ -29,7 +28,6 @@ from .dataset import (
     orthonormalize_pose,
     probe_image,
     random_points_in_frustums,
-    read_image,
 )
 
 __all__ = ["load_llff", "llff_to_opencv_c2w", "opencv_c2w_to_llff"]

@@ -41,7 +41,6 @@ from .dataset import (
     DatasetError,
     ImageCache,
     atomic_build_dir,
-    box_downsample,
     check_size_against_camera,
     finish_dataset,
     fingerprint,
@@ -50,7 +49,6 @@ from .dataset import (
     orthonormalize_pose,
     probe_image,
     random_points_in_box,
-    read_image,
     resolve_cache_dir,
 )
 
