@@ -137,9 +137,12 @@ class TrainConfig:
 #: Named schedules. ``tiny``: minutes on a 2-core CPU (the embedded-scene default); ``small``: a
 #: quick real-scene run; ``paper``: the 2DGS/PATexGS iteration counts (the TrainConfig defaults).
 PRESETS = {
-    "tiny": dict(iters_2dgs=600, iters_tex=300, warmup_tex=60, growth_interval=40, normal_from=300,
-                 sh_interval=150, log_every=50, checkpoint_every=200, max_gaussians=5_000,
-                 densify=dens.DensifyConfig(start=100, stop=450, interval=50, opacity_reset_interval=300)),
+    # tiny: no opacity reset (it costs more steps to recover than the run has) and sigma = 20: the
+    # paper's H*W/1e4 assumes Mip-NeRF 360 resolutions and Gaussian counts; on a 128x96 scene with
+    # a few thousand Gaussians it would give every Gaussian the largest texture.
+    "tiny": dict(iters_2dgs=600, iters_tex=150, warmup_tex=40, growth_interval=20, normal_from=300,
+                 sh_interval=150, log_every=50, checkpoint_every=200, max_gaussians=4_000, sigma=20.0,
+                 densify=dens.DensifyConfig(start=100, stop=450, interval=50, opacity_reset_interval=10_000)),
     "small": dict(iters_2dgs=7_000, iters_tex=5_000, warmup_tex=500, growth_interval=100, normal_from=3_500,
                   sh_interval=1_000, densify=dens.DensifyConfig(start=500, stop=3_500, interval=100,
                                                                 opacity_reset_interval=3_000)),
@@ -425,61 +428,61 @@ class _Run:
                     and step == cfg.iters_2dgs + cfg.warmup_tex):
                 self.allocate_textures()
             view = self.view(step)
-            if self.capacity is None:
-                self.fit_capacity(view.camera)
             image = view.image
-            if image is None or image.size == 0 or not np.all(np.isfinite(image)):
-                self.say(f"[step {step}] skipping view {view.name!r}: image is empty or not finite")
-                self.skipped += 1
-                self.step += 1
-                continue
-            fn = self.step_fn()
-            t0 = time.perf_counter()
-            traces = sum(STEP_TRACES.values())
-            active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
-            w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from else 0.0)
-            scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, view.camera,
-                                            jnp.asarray(image), active_sh, w_normal)
-            self.scene, self.opt_state, self.stats = scene, opt_state, stats
-            if sum(STEP_TRACES.values()) > traces:
-                self.recompiles += 1
-            if bool(m["overflow"]):
-                old = self.capacity
-                self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25,
-                                             minimum=old)
-                self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.capacity} and retrying")
-                continue
-            if not bool(m["ok"]):
-                bad = [k for k, v in m["finite"].items() if not bool(v)]
+            problem = _view_problem(view.camera, image)
+            if problem is None:
+                if self.capacity is None:
+                    self.fit_capacity(view.camera)
+                fn = self.step_fn()
+                t0 = time.perf_counter()
+                traces = sum(STEP_TRACES.values())
+                active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
+                w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from else 0.0)
+                scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, view.camera,
+                                                jnp.asarray(image), active_sh, w_normal)
+                self.scene, self.opt_state, self.stats = scene, opt_state, stats
+                if sum(STEP_TRACES.values()) > traces:
+                    self.recompiles += 1
+                if bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"])):
+                    old = self.capacity
+                    self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25,
+                                                 minimum=old)
+                    self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.capacity} and retrying")
+                    continue
+                if not bool(m["ok"]):
+                    bad = [k for k, v in m["finite"].items() if not bool(v)]
+                    problem = f"non-finite loss or gradient (groups: {bad or ['loss']})"
+            if problem is not None:
+                # Skipped (never applied); the step still counts, and its scheduled host-side work,
+                # log line and checkpoint happen as usual.
                 self.bad_streak += 1
                 self.skipped += 1
-                self.say(f"[step {step}] non-finite loss or gradient (groups: {bad or ['loss']}); "
-                         "update skipped")
+                self.say(f"[step {step}] view {view.name!r}: {problem}; update skipped")
                 if self.bad_streak >= cfg.max_bad_steps:
                     raise FloatingPointError(
                         f"{self.bad_streak} consecutive non-finite steps up to step {step}; stopping. "
                         "The last good checkpoint is kept in the output directory.")
-                self.step += 1
-                continue
-            self.bad_streak = 0
+            else:
+                self.bad_streak = 0
+                self.t_train += time.perf_counter() - t0
+                window.append((float(m["loss"]), float(m["psnr"])))
             self.step += 1
-            self.t_train += time.perf_counter() - t0
-            window.append((float(m["loss"]), float(m["psnr"])))
             self.after_step(step + 1)
             if self.step % cfg.log_every == 0 or self.step == total:
                 now = time.perf_counter()
-                rec = dict(step=self.step, loss=float(np.mean([w[0] for w in window])),
-                           psnr=float(np.mean([w[1] for w in window])), gaussians=self.scene.num_active(),
+                mean = lambda k: float(np.mean([w[k] for w in window])) if window else float("nan")  # noqa: E731
+                rec = dict(step=self.step, loss=mean(0), psnr=mean(1), gaussians=self.scene.num_active(),
                            texels=sum(self.scene.texel_count().values()),
                            ms_per_step=1e3 * (now - t_last) / cfg.log_every, recompiles=self.recompiles,
                            skipped=self.skipped)
                 t_last = now
+                window.clear()
                 self.log(rec)
                 self.say(f"step {rec['step']:6d}/{total}  loss {rec['loss']:.4f}  psnr {rec['psnr']:6.2f}  "
                          f"gaussians {rec['gaussians']:7d}  texels {rec['texels']:8d}  "
                          f"{rec['ms_per_step']:7.1f} ms/step")
-            if self.step % cfg.checkpoint_every == 0 or self.step == total:
-                self.save()
+            if (self.step % cfg.checkpoint_every == 0 or self.step == total) and self.bad_streak == 0:
+                self.save()  # (not during a non-finite streak: the last good checkpoint stays the newest)
 
     def after_step(self, step):
         """Host-side work between steps (``step`` counts completed steps, from 1)."""
@@ -515,12 +518,23 @@ def _config_dict(cfg: TrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
 
 
+def _view_problem(camera, image) -> str | None:
+    """Why a view cannot be used (empty or non-finite image, non-finite camera), or None."""
+    if image is None or np.size(image) == 0 or not np.all(np.isfinite(image)):
+        return "image is empty or not finite"
+    if not (np.all(np.isfinite(np.asarray(camera.K))) and np.all(np.isfinite(np.asarray(camera.world_to_camera)))):
+        return "camera is not finite"
+    return None
+
+
 def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
     """Mean PSNR and SSIM over views, renders clipped to [0, 1]."""
     from .metrics import psnr, ssim
 
     ps, ss = [], []
     for v in views:
+        if _view_problem(v.camera, v.image) is not None:
+            continue  # as in training: empty or non-finite images and cameras are left out
         needed, _ = count_pairs(scene, v.camera, render_config)
         out = render_jit(scene, v.camera, config=render_config, capacity=Capacity.fit(float(needed)))
         img = np.clip(np.asarray(out.rgb), 0, 1)
@@ -620,7 +634,7 @@ def main(argv=None) -> int:
                             texture_budget_mb=args.texture_budget_mb, seed=args.seed)
         ds = load(args.data, factor=args.factor)
         train(ds, cfg, args.out, resume=args.resume)
-    except (ValueError, FileExistsError, OSError) as e:
+    except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     return 0

@@ -1,0 +1,474 @@
+"""The training loop end to end on a tiny synthetic COLMAP scene (64 x 48 images, 400 SfM points):
+both stages learn, resume equals an uninterrupted run, optimiser state follows densification,
+recompiles are counted and absent in steady state, non-finite steps are skipped (and repeated ones
+stop the run), the texture budget is met, the CLI, the method names, and a real capture.
+
+Compiles dominate the runtime, so the tests share one scene (fixed image size) and one main run
+(``run_p``, patexgs with densification, Eq. 7 allocation and growth), and use few steps. Within one
+process JAX reuses the executables of identical step functions, so the resumed runs and the small
+runs mostly hit compiled code; the CLI subprocesses share a persistent compilation cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from patexgs_jax import checkpoint as ckpt
+from patexgs_jax import losses
+from patexgs_jax import schedule as sched
+from patexgs_jax.data import load
+from patexgs_jax.data.synthetic import generate
+from patexgs_jax.densify import DensifyConfig
+from patexgs_jax.optim import adam_moments
+
+# The package attribute ``patexgs_jax.train`` is the train() function; this is the module.
+T = importlib.import_module("patexgs_jax.train")
+
+BEER = Path(__file__).resolve().parents[2] / "shared" / "data" / "beer"
+PER_GAUSSIAN = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
+NO_DENSIFY = DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000)
+
+
+def tiny_config(**kw) -> T.TrainConfig:
+    """The main run's settings: 30 2DGS steps (densify at 3, 6, 9; the first doubles the capacity
+    512 -> 1024, capped at 700 Gaussians), then 24 texture steps (warm-up 3, allocation at 33,
+    growth at 36, 39, ..., 48, textures up to 6 x 6)."""
+    base = dict(method="patexgs", iters_2dgs=30, iters_tex=24, warmup_tex=3, growth_interval=3, growth_stop=0.75,
+                max_texture_size=6, sh_interval=6, normal_from=8, checkpoint_every=3, log_every=3,
+                max_gaussians=700,
+                densify=DensifyConfig(start=2, stop=12, interval=3, prune_opacity=0.095,
+                                      opacity_reset_interval=10_000))
+    base.update(kw)
+    return T.TrainConfig(**base)
+
+
+class Killed(Exception):
+    """Stands in for the process being killed (raised from a hook, in-process)."""
+
+
+def train_killed(dataset, config, out, kill_after: int, resume: bool):
+    """Trains until ``kill_after`` steps are complete (after their host-side work, before a
+    checkpoint of that step is written), then 'dies'."""
+    orig = T._Run.after_step
+
+    def after_step(self, step):
+        orig(self, step)
+        if step == kill_after:
+            raise Killed(step)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(T._Run, "after_step", after_step)
+        with pytest.raises(Killed):
+            T.train(dataset, config, out, resume=resume, verbose=False)
+
+
+def ckpt_step(out) -> int:
+    latest = ckpt.latest_checkpoint(Path(out) / "checkpoints")
+    return -1 if latest is None else int(ckpt.read_metadata(latest)["step"])
+
+
+def host(tree):
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+def assert_trees_equal(a, b, what: str, atol: float = 1e-6):
+    """Same structure and shapes; values bitwise equal, or else within ``atol`` (reported)."""
+    la, da = jax.tree_util.tree_flatten(host(a))
+    lb, db = jax.tree_util.tree_flatten(host(b))
+    assert da == db, f"{what}: tree structures differ"
+    worst = 0.0
+    for x, y in zip(la, lb):
+        assert x.shape == y.shape and x.dtype == y.dtype, f"{what}: {x.shape} {x.dtype} vs {y.shape} {y.dtype}"
+        if not np.array_equal(x, y, equal_nan=True):
+            worst = max(worst, float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64)))))
+    assert worst <= atol, f"{what}: max abs difference {worst:.3g} > {atol}"
+    return worst
+
+
+def all_finite(tree) -> bool:
+    return all(np.all(np.isfinite(x)) for x in jax.tree_util.tree_leaves(host(tree)))
+
+
+def shape_key(*trees):
+    leaves, treedef = jax.tree_util.tree_flatten(trees)
+    return str(treedef), tuple((tuple(np.shape(x)), str(x.dtype)) for x in leaves)
+
+
+def alignment_problems(scene, opt_state) -> list[str]:
+    """Adam moments laid out like the scene, and zero on inactive slots."""
+    problems = []
+    inactive = np.asarray(scene.active) == 0
+    for name, m in zip(("mu", "nu"), adam_moments(opt_state)):
+        ls, ds = jax.tree_util.tree_flatten(scene)
+        lm, dm = jax.tree_util.tree_flatten(m)
+        if ds != dm:
+            problems.append(f"{name}: structure differs from the scene")
+            continue
+        if [np.shape(x) for x in ls] != [np.shape(x) for x in lm]:
+            problems.append(f"{name}: shapes differ from the scene")
+        for f in PER_GAUSSIAN:
+            v = np.asarray(getattr(m, f))
+            if v.shape[0] != inactive.shape[0] or np.any(v[inactive] != 0):
+                problems.append(f"{name}.{f}: non-zero moments on inactive slots")
+    return problems
+
+
+# ------------------------------------------------------------------------------------------------
+# Shared data and the main run
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module", autouse=True)
+def compile_cache(tmp_path_factory):
+    """A persistent compilation cache for this module (and its CLI subprocesses): every run builds
+    new ``jax.jit`` step functions, which in-process reuse only through this cache."""
+    path = tmp_path_factory.mktemp("jax_cache")
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    yield path
+    jax.config.update("jax_compilation_cache_dir", old)
+    try:  # forget the initialised cache so later modules do not keep using this directory
+        from jax._src import compilation_cache
+
+        compilation_cache.reset_cache()
+    except (ImportError, AttributeError):
+        pass
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("synthetic") / "scene", seed=0, num_views=10, width=64, height=48,
+                    num_points=400)
+
+
+@pytest.fixture(scope="module")
+def dataset(scene_dir, tmp_path_factory):
+    ds = load(scene_dir, factor=1, test_every=5, cache_dir=tmp_path_factory.mktemp("cache"), verbose=False)
+    assert len(ds.train_views) == 8 and len(ds.test_views) == 2 and len(ds.points) == 400
+    return ds
+
+
+@pytest.fixture(scope="module")
+def run_p(dataset, tmp_path_factory):
+    """The main run (uninterrupted), instrumented: PSNR before training and at the end of stage 1,
+    every (capacity, shapes) key the jitted step is called with, moment alignment after every
+    step's host-side work (densification, growth), pruned slots."""
+    cfg = tiny_config()
+    out = tmp_path_factory.mktemp("run_p")
+    rec = dict(keys=set(), problems=[], capacities=set(), pruned=0, checks=0)
+    init = T.init_scene(dataset.points, dataset.colors, cfg)
+    rec["psnr_init"] = T.evaluate(init, dataset.train_views, cfg.render_config())["psnr"]
+    orig_step_fn, orig_after, orig_start = T._Run.step_fn, T._Run.after_step, T._Run.start_textures
+
+    def step_fn(self):
+        rec["keys"].add((self.capacity, shape_key(self.scene, self.opt_state, self.stats)))
+        return orig_step_fn(self)
+
+    def after_step(self, step):
+        before = np.asarray(self.scene.active) > 0
+        orig_after(self, step)
+        after = np.asarray(self.scene.active) > 0
+        rec["pruned"] += int(np.sum(before & ~after[: before.size]))
+        rec["capacities"].add(self.scene.capacity)
+        rec["problems"] += [f"step {step}: {p}" for p in alignment_problems(self.scene, self.opt_state)]
+        rec["checks"] += 1
+
+    def start_textures(self):
+        rec["psnr_stage1"] = T.evaluate(self.scene, self.train_views, self.render_cfg)["psnr"]
+        orig_start(self)
+
+    traces = sum(T.STEP_TRACES.values())
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(T._Run, "step_fn", step_fn)
+        mp.setattr(T._Run, "after_step", after_step)
+        mp.setattr(T._Run, "start_textures", start_textures)
+        result = T.train(dataset, cfg, out, verbose=False)
+    rec["traces"] = sum(T.STEP_TRACES.values()) - traces
+    tree, meta = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
+    return dict(cfg=cfg, out=out, result=result, rec=rec, final=tree, meta=meta)
+
+
+# ------------------------------------------------------------------------------------------------
+# 1. Both stages learn
+# ------------------------------------------------------------------------------------------------
+def test_both_stages_improve(run_p):
+    rec, s, final = run_p["rec"], run_p["result"].summary, run_p["final"]
+    assert s["steps"] == run_p["cfg"].total_steps == 54 and s["skipped_steps"] == 0
+    assert rec["psnr_stage1"] > rec["psnr_init"] + 1.0, rec
+    assert s["train_psnr"] >= rec["psnr_stage1"] - 0.25, (s["train_psnr"], rec)
+    assert s["train_psnr"] > rec["psnr_init"] + 1.0
+    assert s["test_psnr"] is not None and np.isfinite(s["test_psnr"])
+    # Stage 2: textures exist, Eq. 7 ran at step 33 = 30 + warm-up 3, growth events happened.
+    alloc = s["allocation"]
+    assert alloc is not None and alloc["step"] == 33 and alloc["budget_texels"] is None
+    assert alloc["texels"] > s["num_gaussians"]  # sizes above 1 x 1 (Eq. 7 with the default sigma)
+    sizes, counters = np.asarray(final["tex_sizes"]), np.asarray(final["tex_counters"])
+    assert counters[1] == 5 and counters[0] == 48  # growth at 36, 39, 42, 45, 48
+    assert counters[2] > 0, "no texture grew in five growth events"
+    assert s["texels"] > 0 and s["texels_rgb"] == s["texels_alpha"] >= alloc["texels"]
+    scene = run_p["result"].scene
+    act = np.asarray(scene.active) > 0
+    np.testing.assert_array_equal(np.asarray(scene.rgb.size)[act], sched.side_of(sizes, 6)[act])
+    assert np.all(np.asarray(scene.rgb.size)[act] >= 1) and np.all(np.asarray(scene.rgb.size)[~act] == 0)
+    assert all_finite(scene)
+    log = [json.loads(line) for line in (run_p["out"] / "log.jsonl").read_text().splitlines()]
+    assert [r for r in log if r.get("event") == "allocation"] == [dict(event="allocation", **alloc)]
+    assert log[-1]["step"] == 54 and log[-1]["texels"] == s["texels"]
+
+
+# ------------------------------------------------------------------------------------------------
+# 2. Resume equals uninterrupted
+# ------------------------------------------------------------------------------------------------
+def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
+    cfg, out = run_p["cfg"], tmp_path / "run_b"
+    # Killed in stage 1 at step 5: the newest checkpoint (step 3) was written right after the
+    # densification that doubled the capacity (no tile capacity fitted yet).
+    train_killed(dataset, cfg, out, kill_after=5, resume=False)
+    assert ckpt_step(out) == 3
+    tree, _ = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
+    assert tree["scene"].capacity == 1024 and int(tree["capacity"][0]) == 0
+    # Killed in stage 2 before the Eq. 7 allocation (resumes from step 33, allocation redone) ...
+    train_killed(dataset, cfg, out, kill_after=35, resume=True)
+    assert ckpt_step(out) == 33
+    # ... and after two growth events (resumes with a texture schedule state).
+    train_killed(dataset, cfg, out, kill_after=41, resume=True)
+    assert ckpt_step(out) == 39
+    result = T.train(dataset, cfg, out, resume=True, verbose=False)
+    assert result.summary["steps"] == 54
+    # CPU XLA runs the same executables on the same inputs: expect bitwise equality.
+    assert assert_trees_equal(result.scene, run_p["result"].scene, "scene") == 0.0
+    final, _ = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
+    for key in ("opt_state", "stats", "tex_sizes", "tex_counters", "capacity"):
+        assert_trees_equal(final[key], run_p["final"][key], key)
+    assert np.asarray(final["counters"])[0] == 54
+    assert result.summary["allocation"] == run_p["result"].summary["allocation"]
+    # A finished run resumes to itself; without resume the directory is refused.
+    again = T.train(dataset, cfg, out, resume=True, verbose=False)
+    assert_trees_equal(again.scene, result.scene, "scene after a no-op resume")
+    with pytest.raises(FileExistsError, match="resume"):
+        T.train(dataset, cfg, out, verbose=False)
+    with pytest.raises(ValueError, match="different configuration"):
+        T.train(dataset, dataclasses.replace(cfg, seed=1), out, resume=True, verbose=False)
+
+
+# ------------------------------------------------------------------------------------------------
+# 3. Optimiser state follows densification
+# ------------------------------------------------------------------------------------------------
+def test_optimizer_state_aligned_through_densification(run_p):
+    rec = run_p["rec"]
+    assert rec["checks"] == 54 and rec["problems"] == []
+    assert rec["capacities"] == {512, 1024}  # doubled at the first densification (step 3)
+    assert rec["pruned"] > 0, "no Gaussian was pruned: the inactive-slot check saw no freed slots"
+    final = run_p["final"]
+    assert alignment_problems(final["scene"], final["opt_state"]) == []
+    assert final["stats"].capacity == final["scene"].capacity
+    mu, _ = adam_moments(final["opt_state"])
+    # Texel moments have the texture buckets' shapes.
+    for name in ("rgb", "alpha"):
+        assert ([b.shape for b in getattr(mu, name).buckets]
+                == [b.shape for b in getattr(final["scene"], name).buckets])
+
+
+# ------------------------------------------------------------------------------------------------
+# 4. Recompiles
+# ------------------------------------------------------------------------------------------------
+def test_recompiles_counted(run_p):
+    rec, s = run_p["rec"], run_p["result"].summary
+    # One trace per distinct (tile capacity, scene / optimiser / statistics shapes) the step saw:
+    # at least 512 -> 1024 Gaussians, the texture banks' appearance, the allocation's buckets.
+    assert s["recompiles"] == rec["traces"] == len(rec["keys"]) >= 4
+
+
+def test_steady_state_has_one_trace(dataset):
+    cfg = tiny_config(method="2dgs", iters_2dgs=12, densify=NO_DENSIFY)
+    traces = sum(T.STEP_TRACES.values())
+    result = T.train(dataset, cfg, None, verbose=False)
+    assert result.summary["recompiles"] == 1
+    assert sum(T.STEP_TRACES.values()) - traces == 1
+
+
+# ------------------------------------------------------------------------------------------------
+# 5. Non-finite steps
+# ------------------------------------------------------------------------------------------------
+class BadView:
+    def __init__(self, camera, image, name):
+        self.camera, self.image, self.name = camera, image, name
+
+
+def test_bad_views_are_skipped(dataset, tmp_path, capsys):
+    views = list(dataset.train_views)
+    perm = np.random.default_rng([0, 0]).permutation(len(views))  # the first epoch's order (seed 0)
+    nan_img = views[perm[2]].image.copy()
+    nan_img[10:20, 5:30] = np.nan
+    views[perm[2]] = BadView(views[perm[2]].camera, nan_img, "nan-pixels")
+    views[perm[4]] = BadView(views[perm[4]].camera, np.zeros((0, 0, 3), np.float32), "empty")
+    cam = views[perm[6]].camera
+    bad_pose = dataclasses.replace(cam, world_to_camera=jnp.asarray(cam.world_to_camera).at[:3, 3].set(jnp.nan))
+    views[perm[6]] = BadView(bad_pose, views[perm[6]].image, "nan-pose")
+    ds = dataclasses.replace(dataset, train_views=tuple(views))
+    cfg = tiny_config(method="2dgs", iters_2dgs=8, densify=NO_DENSIFY, checkpoint_every=4, log_every=4)
+    result = T.train(ds, cfg, tmp_path / "out", verbose=True)
+    said = capsys.readouterr().out
+    for step, name in ((2, "nan-pixels"), (4, "empty"), (6, "nan-pose")):
+        assert f"[step {step}] view {name!r}" in said and "update skipped" in said
+    s = result.summary
+    assert s["steps"] == 8 and s["skipped_steps"] == 3
+    assert all_finite(result.scene) and np.isfinite(s["train_psnr"])  # evaluated on the usable views
+    log = [json.loads(line) for line in (tmp_path / "out" / "log.jsonl").read_text().splitlines()]
+    assert [(r["step"], r["skipped"]) for r in log] == [(4, 1), (8, 3)]
+    assert ckpt_step(tmp_path / "out") == 8
+    tree, _ = ckpt.load_checkpoint(ckpt.latest_checkpoint(tmp_path / "out" / "checkpoints"))
+    assert all_finite(tree["scene"]) and all_finite(tree["opt_state"])
+    assert int(tree["opt_state"][0].count) == 5  # only the good steps moved Adam
+
+
+def test_repeated_nonfinite_steps_stop_the_run(dataset, tmp_path):
+    out = tmp_path / "out"
+    cfg = tiny_config(method="2dgs", iters_2dgs=12, densify=NO_DENSIFY, checkpoint_every=2, max_bad_steps=3)
+    train_killed(dataset, cfg, out, kill_after=5, resume=False)
+    assert ckpt_step(out) == 4
+    good = ckpt.latest_checkpoint(out / "checkpoints")
+    good_bytes = good.read_bytes()
+
+    def nan_loss(rgb, target, lambda_dssim=0.2):
+        l1 = jnp.mean(jnp.abs(rgb - target))
+        return l1 * jnp.nan, l1
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(losses, "photometric", nan_loss)
+        with pytest.raises(FloatingPointError, match="3 consecutive non-finite steps"):
+            T.train(dataset, cfg, out, resume=True, verbose=False)
+    assert ckpt.latest_checkpoint(out / "checkpoints") == good and good.read_bytes() == good_bytes
+    tree, _ = ckpt.load_checkpoint(good)
+    assert all_finite(tree["scene"]) and all_finite(tree["opt_state"])
+    # The kept checkpoint resumes normally once the cause is gone.
+    result = T.train(dataset, cfg, out, resume=True, verbose=False)
+    assert result.summary["steps"] == 12 and all_finite(result.scene)
+
+
+# ------------------------------------------------------------------------------------------------
+# 6. Texture budget
+# ------------------------------------------------------------------------------------------------
+def test_texture_budget_met_by_allocation(dataset):
+    mb = 0.09
+    target = sched.mb_to_texels(mb)
+    run = T._Run(dataset, tiny_config(texture_budget_mb=mb), None, verbose=False)
+    run.fresh()
+    run.start_textures()
+    run.allocate_textures()
+    texels = run.scene.texel_count()
+    assert texels["rgb"] == texels["alpha"] == run.allocation["texels"]
+    assert abs(texels["rgb"] - target) <= 0.01 * target, (texels, target)
+    assert run.allocation["budget_texels"] == run.texel_budget == target
+
+
+# ------------------------------------------------------------------------------------------------
+# 7. Command line
+# ------------------------------------------------------------------------------------------------
+def run_cli(*args, cache):
+    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache))
+    return subprocess.run([sys.executable, "-m", "patexgs_jax.train", *map(str, args)], capture_output=True,
+                          text=True, env=env, timeout=600)
+
+
+def test_cli(scene_dir, tmp_path, compile_cache):
+    cache, out = compile_cache, tmp_path / "out"
+    bad = run_cli("--data", scene_dir, "--method", "3dgs", "--out", tmp_path / "bad", cache=cache)
+    assert bad.returncode == 2 and "unknown method '3dgs'" in bad.stderr and "Traceback" not in bad.stderr
+    first = run_cli("--data", scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
+    assert first.returncode == 0, first.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("train_psnr", "test_psnr", "num_gaussians", "texels", "storage_mb", "train_seconds"):
+        assert key in summary, key
+    assert summary["steps"] == 30 and summary["texels"] == 0 and summary["num_gaussians"] > 0
+    assert np.isfinite(summary["train_psnr"]) and summary["train_seconds"] > 0
+    assert (out / "scene.ply").is_file() and (out / "scene.textures.npz").is_file()
+    assert ckpt_step(out) == 30
+    again = run_cli("--data", scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
+    assert again.returncode == 2 and "already holds checkpoints" in again.stderr and "--resume" in again.stderr
+    assert "Traceback" not in again.stderr
+    not_dir = tmp_path / "a_file"
+    not_dir.write_text("")
+    blocked = run_cli("--data", scene_dir, "--method", "2dgs", "--out", not_dir, "--iters-2dgs", 30, cache=cache)
+    assert blocked.returncode == 2 and "error: cannot create checkpoint directory" in blocked.stderr
+    assert "Traceback" not in blocked.stderr
+    resumed = run_cli("--data", scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, "--resume",
+                      cache=cache)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming from" in resumed.stdout and "at step 30" in resumed.stdout
+    summary2 = json.loads((out / "summary.json").read_text())
+    assert summary2["steps"] == 30 and summary2["train_seconds"] == summary["train_seconds"]  # no new steps
+
+
+# ------------------------------------------------------------------------------------------------
+# 8. Methods
+# ------------------------------------------------------------------------------------------------
+ALL_METHODS = (["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-alpha-mip", "patexgs-no-rgb-mip",
+                "patexgs-no-adaptive"] + [f"textured-fixed-{n}" for n in T.FIXED_SIZES])
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_method_names_parse(method):
+    spec = T.method_spec(method)
+    cfg = T.TrainConfig(method=method)
+    rc = cfg.render_config()
+    assert spec["textures"] in (None, "fixed", "adaptive")
+    assert (spec["textures"] is None) == (method == "2dgs") == (cfg.total_steps == cfg.iters_2dgs)
+    assert (rc.mip == "none") == (method == "2dgs" or method.startswith("textured-fixed") or method.endswith("no-mip"))
+    if spec["textures"] == "fixed":
+        assert spec["size"] == (8 if method == "patexgs-no-adaptive" else int(method.rsplit("-", 1)[1]))
+
+
+@pytest.mark.parametrize("method", ["textured-fixed-5", "textured-fixed-", "textured-fixed-x", "patexgs-no",
+                                    "3dgs", ""])
+def test_bad_method_names(method):
+    with pytest.raises(ValueError, match="method|textured-fixed-N"):
+        T.TrainConfig(method=method)
+
+
+def test_textured_fixed_8(dataset):
+    cfg = tiny_config(method="textured-fixed-8", iters_2dgs=3, iters_tex=3, densify=NO_DENSIFY)
+    run = T._Run(dataset, cfg, None, verbose=False)  # the loop of train(), without the final evaluation
+    run.fresh()
+    run.run()
+    scene = run.scene
+    assert run.step == 6 and run.skipped == 0 and run.tex_state is None and all_finite(scene)
+    act = np.asarray(scene.active) > 0
+    for name in ("rgb", "alpha"):
+        bank = getattr(scene, name)
+        assert np.all(np.asarray(bank.size)[act] == 8) and np.all(np.asarray(bank.bucket)[act] == 3), name
+        assert np.all(np.asarray(bank.size)[~act] == 0), name
+    assert scene.texel_count() == dict(rgb=64 * int(act.sum()), alpha=64 * int(act.sum()))
+    assert run.render_cfg.mip == "none"
+
+
+# ------------------------------------------------------------------------------------------------
+# Real capture
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_real_capture_beer(tmp_path):
+    if not (BEER / "sparse").is_dir():
+        pytest.skip(f"real capture not found at {BEER} (see shared/data/README.md)")
+    ds = load(BEER, factor=16, cache_dir=tmp_path, verbose=False)
+    assert "SIMPLE_RADIAL" in ds.info["undistorted_from"], ds.info
+    # Undistortion gives per-image sizes (43..45 x 76..80 px here); every size is a new compile of the
+    # step, so train on the views of the most common size (the loader path is the same for all).
+    sizes = [(v.camera.width, v.camera.height) for v in ds.train_views]
+    common = max(set(sizes), key=sizes.count)
+    ds = dataclasses.replace(ds, train_views=tuple(v for v, s in zip(ds.train_views, sizes) if s == common),
+                             test_views=tuple(v for v in ds.test_views
+                                              if (v.camera.width, v.camera.height) == common))
+    cfg = T.TrainConfig(method="2dgs", iters_2dgs=30, max_gaussians=1000, densify=NO_DENSIFY, log_every=10)
+    result = T.train(ds, cfg, None, verbose=False)
+    s = result.summary
+    assert s["steps"] == 30 and s["skipped_steps"] == 0 and s["num_gaussians"] == 1000
+    assert all_finite(result.scene) and np.isfinite(s["train_psnr"])
