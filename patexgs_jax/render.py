@@ -5,7 +5,11 @@ Conventions (fixed for the package)
     at continuous coordinates (j + 0.5, i + 0.5).
   * Kernel (2DGS): the ray of a pixel meets the splat plane at (u, v), in units of the scales
     (homogeneous ray-splat intersection); ``rho3d = u^2 + v^2``; the screen-space low-pass is
-    ``rho2d = 2 |x - mu2d|^2`` in pixels; ``G = exp(-0.5 min(rho3d, rho2d))``.
+    ``rho2d = 2 |x - mu2d|^2`` in pixels; ``G = exp(-0.5 min(rho3d, rho2d))``. The depth of a
+    pair is the intersection's camera z where rho3d <= rho2d, else the splat centre's. A ray within
+    about 1e-4 rad of parallel to the splat plane (|u| or |v| would exceed 1e4) has no 3D
+    intersection: rho3d is taken as 1e8 (G from the low-pass only) and its texture lookups use the
+    splat centre (u, v) = (0, 0) (whose mip footprint is the coarsest level).
   * ``alpha = min(0.99, opacity * G * A_tex(u, v))``; a pair with alpha < 1/255, or whose
     intersection lies at depth <= ``near``, is skipped; front-to-back compositing in order of the
     Gaussians' centre depths stops before the first splat that would bring transmittance below 1e-4.
