@@ -6,9 +6,8 @@ Conventions (fixed for the package)
   * Kernel (2DGS): the ray of a pixel meets the splat plane at (u, v), in units of the scales
     (homogeneous ray-splat intersection); ``rho3d = u^2 + v^2``; the screen-space low-pass is
     ``rho2d = 2 |x - mu2d|^2`` in pixels; ``G = exp(-0.5 min(rho3d, rho2d))``. The depth of a
-    pair is the intersection's camera z where rho3d <= rho2d, else the splat centre's. A ray within
-    about 1e-4 rad of parallel to the splat plane (|u| or |v| would exceed 1e4) has no 3D
-    intersection: rho3d is taken as 1e8 (G from the low-pass only) and its texture lookups use the
+    pair is the intersection's camera z where rho3d <= rho2d, else the splat centre's. A ray so
+    nearly parallel to the splat plane that |u| or |v| would exceed 1e4 has no 3D intersection: rho3d is taken as 1e8 (G from the low-pass only) and its texture lookups use the
     splat centre (u, v) = (0, 0) (whose mip footprint is the coarsest level).
   * ``alpha = min(0.99, opacity * G * A_tex(u, v))``; a pair with alpha < 1/255, or whose
     intersection lies at depth <= ``near``, is skipped; front-to-back compositing in order of the
