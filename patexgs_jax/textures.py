@@ -304,12 +304,6 @@ def gather_pairs(texels2, idx):
     return vals.reshape(vals.shape[:-2] + (2 * vals.shape[-2], vals.shape[-1] // 2))
 
 
-def sample(texels, base, stride, side, u, v):
-    """Bilinear, edge-clamped lookups of one level: (..., ch) values (see :func:`corners`)."""
-    idx, w = corners(base, stride, side, u, v)
-    return jnp.sum(w[..., None] * gather_pairs(paired(texels), idx), axis=-2)
-
-
 def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):
     """Per-lookup mip level from the splat-plane footprint (paper Eq. 11).
 

@@ -30,7 +30,7 @@ NEUTRAL = {"rgb": 0.0, "alpha": 1.0}
 
 # ----------------------------------------------------------------------------------- helpers
 def ref_resample(tex: np.ndarray, m: int) -> np.ndarray:
-    """Independent reference: evaluate the renderer's bilinear lookup (textures.sample, in float64)
+    """Independent reference: evaluate the renderer's bilinear lookup (textures.corners, in float64)
     at the new texel positions -3 + 6 j / (m - 1) (the centre for m = 1), one texel at a time."""
     n = tex.shape[0]
     tex = tex.astype(np.float64)
