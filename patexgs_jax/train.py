@@ -16,10 +16,10 @@ Stages
      training views and grow them by Eqs. 8-10 every ``growth_interval`` steps
      (:mod:`patexgs_jax.schedule`); ``textured-fixed-N`` gives every Gaussian an N x N RGBA texture.
 
-Methods: ``2dgs``, ``textured-fixed-N`` (N in 4, 8, 16, 32; no mipmaps, as Textured Gaussians),
+Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as Textured Gaussians),
 ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
 ``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
-the mipmaps without the adaptive allocation).
+the mipmaps without the adaptive allocation), ``patexgs-trilinear`` (mip levels blended trilinearly).
 
 Robustness
   The data order is a per-epoch permutation seeded by (seed, epoch), and every random choice is
@@ -57,7 +57,7 @@ from .scene import Scene
 #: Traces of the jitted training step, per (render config, capacity): tests assert on it.
 STEP_TRACES: collections.Counter = collections.Counter()
 
-FIXED_SIZES = (4, 8, 16, 32)
+FIXED_SIZES = (1, 2, 4, 8, 16, 32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,6 +88,12 @@ class TrainConfig:
       log_every: steps between progress lines.
       max_bad_steps: consecutive non-finite steps that stop the run.
       init_opacity: opacity of initial Gaussians.
+      batch_size: views per step (one Adam update from the mean of their gradients); 1 is the
+        single-view step. B > 1 takes B consecutive views of the per-epoch permutations and splits
+        them over ``devices`` (:mod:`patexgs_jax.parallel`); every training view must have the
+        same image size.
+      devices: devices the batch is split over (must divide ``batch_size``); None: as many as
+        JAX sees that divide it. Unused when ``batch_size`` is 1.
     """
 
     method: str = "patexgs"
@@ -116,9 +122,13 @@ class TrainConfig:
     log_every: int = 100
     max_bad_steps: int = 20
     init_opacity: float = 0.1
+    batch_size: int = 1
+    devices: int | None = None
 
     def __post_init__(self):
         method_spec(self.method)
+        if self.batch_size < 1 or (self.devices is not None and self.devices < 1):
+            raise ValueError(f"batch_size and devices must be >= 1, got {self.batch_size} and {self.devices}.")
         if self.iters_2dgs < 1 or self.iters_tex < 0:
             raise ValueError("iters_2dgs must be >= 1 and iters_tex >= 0.")
         if not 0 <= self.sh_degree <= 3:
@@ -171,7 +181,8 @@ def method_spec(method: str) -> dict:
         return dict(base, textures="fixed", size=int(n), mip="none")
     variants = {"patexgs": {}, "patexgs-no-mip": dict(mip="none"),
                 "patexgs-no-alpha-mip": dict(alpha_mip=False), "patexgs-no-rgb-mip": dict(rgb_mip=False),
-                "patexgs-no-adaptive": dict(textures="fixed", size=8)}
+                "patexgs-no-adaptive": dict(textures="fixed", size=8),
+                "patexgs-trilinear": dict(mip="trilinear")}
     if method not in variants:
         raise ValueError(f"unknown method {method!r}; choose one of 2dgs, textured-fixed-N (N in "
                          f"{FIXED_SIZES}), {', '.join(variants)}.")
@@ -218,9 +229,10 @@ def init_scene(points, colors, config: TrainConfig, capacity: int | None = None)
 _GROUPS = ("means", "log_scales", "quats", "opacity_logits", "sh", "rgb", "alpha")
 
 
-def _step(scene, opt_state, stats, camera, image, active_sh, w_normal, *, optimizer, render_config,
-          capacity, lambda_dssim, lambda_dist):
-    STEP_TRACES[(render_config, capacity)] += 1
+def _view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_config, capacity, lambda_dssim,
+                         lambda_dist):
+    """One view's loss and gradients: ``((loss, (out, l1, mse)), (g_scene, g_offset))``, g_offset
+    (C, 2) the gradient w.r.t. the renderer's ``screen_offset`` (densification statistics)."""
     offset = jnp.zeros((scene.capacity, 2), scene.means.dtype)
 
     def loss_fn(sc, off):
@@ -234,12 +246,25 @@ def _step(scene, opt_state, stats, camera, image, active_sh, w_normal, *, optimi
         mse = jnp.mean(jnp.square(jnp.clip(out.rgb, 0, 1) - image))
         return loss, (out, l1, mse)
 
-    (loss, (out, l1, mse)), (g_scene, g_off) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(
-        scene, offset)
+    return jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(scene, offset)
+
+
+def _finite_groups(g_scene) -> dict:
+    """Per parameter group, whether every gradient entry is finite (() bool each)."""
     finite = {}
     for name in _GROUPS:
         leaves = jax.tree_util.tree_leaves(getattr(g_scene, name))
         finite[name] = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.array(True)
+    return finite
+
+
+def _step(scene, opt_state, stats, camera, image, active_sh, w_normal, *, optimizer, render_config,
+          capacity, lambda_dssim, lambda_dist):
+    STEP_TRACES[(render_config, capacity)] += 1
+    (loss, (out, l1, mse)), (g_scene, g_off) = _view_loss_and_grads(
+        scene, camera, image, active_sh, w_normal, render_config=render_config, capacity=capacity,
+        lambda_dssim=lambda_dssim, lambda_dist=lambda_dist)
+    finite = _finite_groups(g_scene)
     all_finite = jnp.isfinite(loss) & jnp.all(jnp.stack(list(finite.values())))
     ok = all_finite & ~out.overflow
     updates, new_opt = optimizer.update(g_scene, opt_state, scene)
@@ -250,6 +275,57 @@ def _step(scene, opt_state, stats, camera, image, active_sh, w_normal, *, optimi
     metrics = dict(loss=loss, l1=l1, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-10)), ok=ok,
                    finite=finite, overflow=out.overflow, pairs_needed=out.pairs_needed,
                    max_tile_count=out.max_tile_count)
+    return keep(new_scene, scene), keep(new_opt, opt_state), new_stats, metrics
+
+
+def _batch_step(scene, opt_state, stats, cameras, images, active_sh, w_normal, *, mesh, optimizer,
+                render_config, capacity, lambda_dssim, lambda_dist):
+    """One update from a batch of B views (data-parallel over ``mesh``, see :mod:`.parallel`).
+
+    Args:
+      cameras: a Camera with K (B, 3, 3) and world_to_camera (B, 4, 4), one image size.
+      images: (B, H, W, 3) float32.
+      Everything else as :func:`_step`.
+    Returns:
+      As :func:`_step`. The loss is the mean of the B views' losses (so the gradient is the mean of
+      their gradients: one Adam update), the densification statistics gain the B views one after
+      another (each with its own screen-offset gradient, as B single-view steps would add them), and
+      the update is skipped if any view overflowed or any gradient is non-finite; ``pairs_needed``
+      and ``max_tile_count`` are the maxima over the batch, ``l1`` and ``psnr`` the means.
+    """
+    from . import parallel
+
+    B = images.shape[0]
+    STEP_TRACES[(render_config, capacity, B)] += 1
+
+    def one_view(shared, view):
+        sc, sh, wn = shared
+        cam, img = view
+        (loss, (out, l1, mse)), (g_scene, g_off) = _view_loss_and_grads(
+            sc, cam, img, sh, wn, render_config=render_config, capacity=capacity, lambda_dssim=lambda_dssim,
+            lambda_dist=lambda_dist)
+        per = dict(loss=loss, l1=l1, mse=mse, g_off=g_off, visible=out.visible, radius_px=out.radius_px,
+                   overflow=out.overflow, pairs_needed=out.pairs_needed, max_tile_count=out.max_tile_count)
+        return g_scene, per
+
+    g_sum, per = parallel.sum_over_views(one_view, mesh)((scene, active_sh, w_normal), (cameras, images))
+    g_scene = jax.tree_util.tree_map(lambda g: g / B, g_sum)
+    loss = jnp.mean(per["loss"])
+    finite = _finite_groups(g_scene)
+    all_finite = jnp.isfinite(loss) & jnp.all(jnp.stack(list(finite.values())))
+    overflow = jnp.any(per["overflow"])
+    ok = all_finite & ~overflow
+    updates, new_opt = optimizer.update(g_scene, opt_state, scene)
+    new_scene = optax.apply_updates(scene, updates)
+    keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
+    new_stats = stats
+    for b in range(B):
+        new_stats = dens.accumulate(new_stats, jnp.where(ok, per["g_off"][b], 0.0), per["visible"][b] & ok,
+                                    per["radius_px"][b], cameras.width, cameras.height)
+    psnr = -10.0 * jnp.log10(jnp.maximum(per["mse"], 1e-10))
+    metrics = dict(loss=loss, l1=jnp.mean(per["l1"]), psnr=jnp.mean(psnr), ok=ok, finite=finite,
+                   overflow=overflow, pairs_needed=jnp.max(per["pairs_needed"]),
+                   max_tile_count=jnp.max(per["max_tile_count"]))
     return keep(new_scene, scene), keep(new_opt, opt_state), new_stats, metrics
 
 
@@ -276,7 +352,9 @@ class _Run:
         self.radius = float(dataset.normalization.radius)
         self.spec = method_spec(config.method)
         self.render_cfg = config.render_config()
-        self.lr = dataclasses.replace(config.lr, means_steps=config.total_steps)
+        # The position learning rate decays over the 2DGS stage for every method, so stage 1 is the
+        # same run whatever the method (and can be shared: ``train(..., stage1=)``).
+        self.lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
         self.optimizer = make_optimizer(self.radius, self.lr)
         self.capacity = None
         self.step = 0
@@ -333,6 +411,8 @@ class _Run:
         return self.train_views[perm[i]]
 
     def step_fn(self):
+        if self.cfg.batch_size > 1:
+            return self._batch_step_fn()
         key = (self.render_cfg, self.capacity)
         if key not in self._jit_cache:
             self._jit_cache[key] = jax.jit(
@@ -341,6 +421,35 @@ class _Run:
                     capacity=self.capacity, lambda_dssim=self.cfg.lambda_dssim, lambda_dist=self.cfg.lambda_dist),
                 donate_argnums=(0, 1, 2))
         return self._jit_cache[key]
+
+    def data_mesh(self):
+        """The device mesh of the data-parallel step (``batch_size`` > 1), built once per run."""
+        from . import parallel
+
+        if getattr(self, "_mesh", None) is None:
+            self._mesh = parallel.data_mesh(parallel.num_batch_devices(self.cfg.batch_size, self.cfg.devices))
+        return self._mesh
+
+    def _batch_step_fn(self):
+        key = (self.render_cfg, self.capacity, self.cfg.batch_size)
+        if key not in self._jit_cache:
+            mesh = self.data_mesh()
+            self._jit_cache[key] = jax.jit(
+                lambda sc, st, stats, cams, imgs, sh, wn: _batch_step(
+                    sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
+                    render_config=self.render_cfg, capacity=self.capacity, lambda_dssim=self.cfg.lambda_dssim,
+                    lambda_dist=self.cfg.lambda_dist),
+                donate_argnums=(0, 1, 2))
+        return self._jit_cache[key]
+
+    def batch_inputs(self, views, images):
+        """Stacked cameras and (B, H, W, 3) images placed over the mesh, the state replicated on it."""
+        from . import parallel
+
+        mesh = self.data_mesh()
+        self.scene, self.opt_state, self.stats = parallel.replicate((self.scene, self.opt_state, self.stats), mesh)
+        cams = parallel.stack_cameras([v.camera for v in views])
+        return parallel.shard_batch((cams, np.stack([np.asarray(im, np.float32) for im in images])), mesh)
 
     def fit_capacity(self, camera):
         needed, _ = count_pairs(self.scene, camera, self.render_cfg)
@@ -427,19 +536,24 @@ class _Run:
             if (self.spec["textures"] == "adaptive" and self.tex_state is None
                     and step == cfg.iters_2dgs + cfg.warmup_tex):
                 self.allocate_textures()
-            view = self.view(step)
-            image = view.image
-            problem = _view_problem(view.camera, image)
+            # Step s takes views s B .. s B + B - 1 of the stream of per-epoch permutations.
+            views = [self.view(step * cfg.batch_size + j) for j in range(cfg.batch_size)]
+            images = [v.image for v in views]
+            problems = [_view_problem(v.camera, im) for v, im in zip(views, images)]
+            bad_view = next((i for i, p in enumerate(problems) if p is not None), 0)
+            view, image, problem = views[bad_view], images[bad_view], problems[bad_view]
             if problem is None:
                 if self.capacity is None:
-                    self.fit_capacity(view.camera)
+                    for v in views:
+                        self.fit_capacity(v.camera)
                 fn = self.step_fn()
                 t0 = time.perf_counter()
                 traces = sum(STEP_TRACES.values())
                 active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
                 w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from else 0.0)
-                scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, view.camera,
-                                                jnp.asarray(image), active_sh, w_normal)
+                data = ((view.camera, jnp.asarray(image)) if cfg.batch_size == 1
+                        else self.batch_inputs(views, images))
+                scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)
                 self.scene, self.opt_state, self.stats = scene, opt_state, stats
                 if sum(STEP_TRACES.values()) > traces:
                     self.recompiles += 1
@@ -514,6 +628,33 @@ class _Run:
                 self.stats = dens.DensifyStats.zeros(self.scene.capacity)
 
 
+#: Fields that only matter after the 2DGS stage: runs that agree on every other field have the same
+#: stage 1, which :func:`train` can take from another run's end-of-stage-1 checkpoint.
+STAGE2_FIELDS = frozenset({"method", "iters_tex", "warmup_tex", "growth_interval", "growth_stop", "tau_preset",
+                           "sigma", "texture_budget_mb", "max_texture_size", "lambda_mip", "checkpoint_every",
+                           "log_every", "max_bad_steps"})
+
+
+def stage1_key(cfg: TrainConfig) -> dict:
+    """The part of a config that determines stage 1 (JSON-able; equal keys, equal 2DGS stages)."""
+    return {k: v for k, v in _config_dict(cfg).items() if k not in STAGE2_FIELDS}
+
+
+def stage1_checkpoint(run_dir, config: TrainConfig) -> Path | None:
+    """The end-of-2DGS-stage checkpoint in ``run_dir/checkpoints`` usable by ``config``, or None."""
+    directory = Path(run_dir) / "checkpoints"
+    for path in reversed(ckpt.list_checkpoints(directory)) if directory.is_dir() else ():
+        try:
+            meta = ckpt.read_metadata(path)
+        except ckpt.CheckpointError:
+            continue
+        cfg = meta.get("config") or {}
+        if meta.get("step") == config.iters_2dgs and {k: v for k, v in cfg.items()
+                                                       if k not in STAGE2_FIELDS} == stage1_key(config):
+            return path
+    return None
+
+
 def _config_dict(cfg: TrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
 
@@ -544,7 +685,7 @@ def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,
-          verbose: bool = True) -> TrainResult:
+          verbose: bool = True, stage1=None) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -554,6 +695,10 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         ``summary.json`` go; None keeps everything in memory.
       resume: continue from the newest complete checkpoint in ``out_dir`` if there is one.
       verbose: print progress.
+      stage1: start from the end of another run's 2DGS stage instead of training it again: a
+        checkpoint file written at step ``config.iters_2dgs`` by a run whose config agrees with
+        ``config`` outside :data:`STAGE2_FIELDS` (see :func:`stage1_checkpoint`). The stage-1
+        training time is carried over into ``train_seconds``. Ignored when resuming.
     Returns:
       :class:`TrainResult`.
     """
@@ -577,7 +722,10 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         if out is not None and not resume and ckpt.latest_checkpoint(out / "checkpoints") is not None:
             raise FileExistsError(f"{out} already holds checkpoints; pass resume=True (--resume) to continue "
                                   "that run, or choose another output directory.")
-        run.fresh()
+        if stage1 is not None:
+            _load_stage1(run, Path(stage1), config)
+        else:
+            run.fresh()
     run.run()
     scene = run.scene
     texels = scene.texel_count()
@@ -585,7 +733,8 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
                    num_gaussians=scene.num_active(), texels=texels["rgb"] + texels["alpha"],
                    texels_rgb=texels["rgb"], texels_alpha=texels["alpha"],
                    storage_mb=storage_mb(scene.num_active(), int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]),
-                   recompiles=run.recompiles, skipped_steps=run.skipped, allocation=run.allocation)
+                   recompiles=run.recompiles, skipped_steps=run.skipped, allocation=run.allocation,
+                   stage1_from=None if stage1 is None else str(stage1))
     train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
     test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
     summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],
@@ -605,6 +754,23 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     return TrainResult(scene=scene, summary=summary, out_dir=out)
 
 
+def _load_stage1(run: _Run, path: Path, config: TrainConfig) -> None:
+    meta = ckpt.read_metadata(path)
+    cfg = {k: v for k, v in (meta.get("config") or {}).items() if k not in STAGE2_FIELDS}
+    want = stage1_key(config)
+    if cfg != want:
+        diff = sorted(k for k in set(cfg) | set(want) if cfg.get(k) != want.get(k))
+        raise ValueError(f"stage-1 checkpoint {path} was trained with different 2DGS-stage settings "
+                         f"({', '.join(diff)}); train stage 1 again or pass a matching checkpoint.")
+    if meta.get("step") != config.iters_2dgs:
+        raise ValueError(f"stage-1 checkpoint {path} is at step {meta.get('step')}, not at the end of the "
+                         f"2DGS stage (step {config.iters_2dgs}).")
+    tree, _ = ckpt.load_checkpoint(path)
+    run.load_state(tree)
+    run.capacity = None  # refit for this method's render configuration
+    run.say(f"stage 1 from {path} ({run.t_train:.0f} s of 2DGS training)")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m patexgs_jax.train", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -620,8 +786,17 @@ def main(argv=None) -> int:
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--texture-budget-mb", type=float, default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--batch-size", type=int, default=None,
+                    help="views per step (default 1); > 1 trains data-parallel (see patexgs_jax.parallel)")
+    ap.add_argument("--devices", type=int, default=None,
+                    help="devices the batch is split over (must divide --batch-size; default: as many as "
+                         "divide it); on CPU this many CPU devices are created")
     ap.add_argument("--resume", action="store_true")
     args = ap.parse_args(argv)
+    if args.devices is not None:
+        from .parallel import request_cpu_devices
+
+        request_cpu_devices(args.devices)
     from .data import load
 
     if args.data is None:
@@ -631,7 +806,8 @@ def main(argv=None) -> int:
     try:
         cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                             iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
-                            texture_budget_mb=args.texture_budget_mb, seed=args.seed)
+                            texture_budget_mb=args.texture_budget_mb, seed=args.seed,
+                            batch_size=args.batch_size, devices=args.devices)
         ds = load(args.data, factor=args.factor)
         train(ds, cfg, args.out, resume=args.resume)
     except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:

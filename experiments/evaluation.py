@@ -1,0 +1,138 @@
+"""Evaluation shared by the studies: metrics at zoom-out scales, render timing, side-by-side images.
+
+Every function takes a trained :class:`patexgs_jax.Scene`, views from :mod:`patexgs_jax.data` and
+a :class:`patexgs_jax.RenderConfig`. Renders are clipped to [0, 1] before any metric, as in the
+3DGS / Mip-NeRF 360 evaluation protocol. Render capacities are fitted per view (exact pair count),
+so nothing is ever truncated; render timing excludes compilation.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from patexgs_jax.render import Capacity, RenderConfig, count_pairs, render_jit
+
+#: The zoom-out factors of the paper's Table 2 (1 = full resolution).
+SCALES = (1, 2, 4, 8)
+
+
+def usable(view) -> bool:
+    """False for views training and evaluation leave out (empty or non-finite image or camera)."""
+    from patexgs_jax.train import _view_problem
+
+    return _view_problem(view.camera, view.image) is None
+
+
+def render_view(scene, camera, config: RenderConfig, *, active_sh_degree=None):
+    """The :class:`RenderOutput` of one view with an exactly fitted capacity."""
+    needed, _ = count_pairs(scene, camera, config)
+    return render_jit(scene, camera, config=config, capacity=Capacity.fit(float(needed)),
+                      active_sh_degree=active_sh_degree)
+
+
+def render_image(scene, camera, config: RenderConfig, *, active_sh_degree=None) -> np.ndarray:
+    """(H, W, 3) float32 render clipped to [0, 1]."""
+    out = render_view(scene, camera, config, active_sh_degree=active_sh_degree)
+    return np.clip(np.asarray(out.rgb, np.float32), 0.0, 1.0)
+
+
+class LPIPS:
+    """LPIPS (AlexNet) when its weights are installed; ``available`` says whether they are."""
+
+    def __init__(self, enabled: bool = True, net: str = "alex"):
+        from patexgs_jax import lpips as lp
+
+        self.available = bool(enabled) and lp.lpips_available(net)
+        self._params = lp.load_lpips(net) if self.available else None
+        self._min_side = 31 if net == "alex" else 16
+
+    def __call__(self, img: np.ndarray, ref: np.ndarray) -> float | None:
+        """The distance, or None (no weights, or an image smaller than the network accepts)."""
+        if not self.available or min(img.shape[:2]) < self._min_side:
+            return None
+        from patexgs_jax.lpips import lpips
+
+        return float(lpips(jnp.asarray(img), jnp.asarray(ref), self._params))
+
+
+def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Sequence[int] = SCALES,
+                    lpips: LPIPS | None = None, active_sh_degree=None, keep_images: int = 0) -> dict:
+    """Mean PSNR / SSIM / LPIPS over ``views`` at each zoom-out scale.
+
+    Args:
+      scene: trained scene.
+      views: test views at full resolution (each is box-downsampled by ``view.scaled(s)``).
+      config: render configuration (the method's).
+      scales: zoom-out factors.
+      lpips: an :class:`LPIPS` or None (lpips reported as None).
+      active_sh_degree: optional cap on SH bands (effect studies).
+      keep_images: keep (render, ground truth) of the first ``keep_images`` views per scale.
+
+    Returns:
+      ``{str(s): {"psnr", "ssim", "lpips", "views"}}`` (means; lpips None where unavailable), plus
+      ``"images": {str(s): [(render, gt), ...]}`` when ``keep_images`` > 0.
+    """
+    from patexgs_jax.metrics import psnr, ssim
+
+    views = [v for v in views if usable(v)]
+    result, images = {}, {}
+    for s in scales:
+        ps, ss, ls, kept = [], [], [], []
+        for i, v in enumerate(views):
+            v = v if s == 1 else v.scaled(int(s))
+            gt = np.asarray(v.image, np.float32)
+            img = render_image(scene, v.camera, config, active_sh_degree=active_sh_degree)
+            ps.append(float(psnr(img, gt)))
+            ss.append(float(ssim(jnp.asarray(img), jnp.asarray(gt))))
+            if lpips is not None:
+                ls.append(lpips(img, gt))
+            if i < keep_images:
+                kept.append((img, gt))
+        lp = [x for x in ls if x is not None]
+        result[str(s)] = dict(psnr=_mean(ps), ssim=_mean(ss),
+                              lpips=_mean(lp) if lp and len(lp) == len(ls) else None, views=len(ps))
+        if keep_images:
+            images[str(s)] = kept
+    if keep_images:
+        result["images"] = images
+    return result
+
+
+def render_ms(scene, views: Sequence, config: RenderConfig, *, max_views: int = 8, active_sh_degree=None) -> float | None:
+    """Median wall-clock milliseconds of one render (binning, sort, compositing; no compilation).
+
+    Each view's shape is compiled (and capacity counted) before its timed run; the median is over
+    up to ``max_views`` usable views.
+    """
+    ts = []
+    for v in [v for v in views if usable(v)][:max_views]:
+        needed, _ = count_pairs(scene, v.camera, config)
+        cap = Capacity.fit(float(needed))
+        run = lambda: render_jit(scene, v.camera, config=config, capacity=cap,  # noqa: E731
+                                 active_sh_degree=active_sh_degree).rgb
+        jax.block_until_ready(run())
+        t = time.perf_counter()
+        jax.block_until_ready(run())
+        ts.append(time.perf_counter() - t)
+    return 1e3 * float(np.median(ts)) if ts else None
+
+
+def side_by_side(pairs: Sequence[tuple[np.ndarray, np.ndarray]], gap: int = 4) -> np.ndarray:
+    """One uint8 image: for each (render, ground truth) pair a row ``GT | render`` (white gaps)."""
+    rows = []
+    for img, gt in pairs:
+        h = gt.shape[0]
+        sep = np.ones((h, gap, 3), np.float32)
+        rows.append(np.concatenate([gt, sep, img], axis=1))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, gap), (0, width - r.shape[1]), (0, 0)), constant_values=1.0) for r in rows]
+    return (np.clip(np.concatenate(rows, axis=0), 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def _mean(xs):
+    return float(np.mean(xs)) if xs else None

@@ -1,0 +1,589 @@
+"""The paper's protocol end to end: train, evaluate at zoom-out scales, tabulate, plot.
+
+    python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
+        [--preset tiny|small|paper] [--factor F] [--out DIR] [--budget 10%|1%|N] [--renders K]
+
+ROOT holds Mip-NeRF 360 scene folders (``bicycle/``, ``garden/``, ... each in COLMAP layout) or is
+one scene (any format :func:`patexgs_jax.data.load` reads). Without ``--data`` the study runs on the
+embedded synthetic scene with the ``tiny`` preset (methods ``2dgs,patexgs``); with ``--data`` the
+default preset is ``paper`` (the paper's iteration counts) and the default factor the Mip-NeRF 360
+one (4 outdoors, 2 indoors).
+
+For each scene:
+  1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every textured
+     method starts from its end-of-stage-1 checkpoint (:func:`patexgs_jax.train.stage1_checkpoint`),
+     so method comparisons start from the same 2DGS model, as in the paper.
+  2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
+     evaluated on the test split (every 8th image) at full resolution and zoomed out by 2, 4 and 8
+     (box-downsampled images, scaled cameras): PSNR, SSIM, LPIPS (AlexNet, when its weights are
+     installed: see ``experiments/convert_lpips_weights.py``; else null), storage, Gaussian and
+     texel counts, training time and the median render time of one test image.
+  3. Results are written after every (scene, method): ``DIR/results.json``, ``DIR/tables.md``
+     (the layouts of the paper's Tables 1-4 plus a cost table), ``DIR/plots/*.png`` and
+     ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views).
+
+``--budget 10%`` trains every method with at most 10% of the Gaussians the unbudgeted 2DGS run
+reached (the paper's "10% of the default optimized number of Gaussians"; the unbudgeted 2DGS run is
+trained first if it is not there yet); ``--budget 5000`` caps at 5000. Labels then read
+``method(10%)``, as in the paper's Table 1.
+
+Interrupted studies resume: finished (scene, method) entries in ``results.json`` are kept and
+skipped, and an interrupted training run continues from its last checkpoint. Changing the
+protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is refused.
+
+``results.json`` schema::
+
+    {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 1},
+     "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
+                "train_config": {...}, "machine": str},
+     "results": {scene: {label: {
+         "1": {"psnr", "ssim", "lpips", "views"}, "2": {...}, "4": {...}, "8": {...},
+         "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
+         "max_gaussians", "steps"}}}}
+
+Scale keys are the zoom-out factors; ``lpips`` is null where unavailable (no weights, or images
+under 31 pixels); ``train_seconds`` is the wall-clock time of the training steps of both stages
+(stage 1 counted for every method; compilation included); ``render_ms`` the median time of one
+full-resolution test render after compilation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+RESULTS_SCHEMA = 1
+SCALES = (1, 2, 4, 8)
+EMBEDDED_METHODS = ("2dgs", "patexgs")
+DEFAULT_METHODS = ("2dgs", "textured-fixed-8", "patexgs")
+#: The paper's nine Mip-NeRF 360 scenes (the order of its per-scene tables).
+MIPNERF360_SCENES = ("bicycle", "flowers", "garden", "stump", "treehill", "room", "counter", "kitchen", "bonsai")
+
+
+class StudyError(ValueError):
+    """The study cannot run as asked (bad arguments, no scenes, mismatched output directory)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Arguments
+# ------------------------------------------------------------------------------------------------
+def find_scenes(root, names=None) -> dict[str, Path]:
+    """``{name: folder}`` of the scenes under ``root`` (or ``{root.name: root}`` if it is a scene).
+
+    Args:
+      root: a scene folder or a folder of scene folders.
+      names: optional scene names to keep (each must exist).
+    """
+    from patexgs_jax.data import DatasetError, detect_format
+
+    root = Path(root)
+    if not root.exists():
+        raise StudyError(f"--data {root} does not exist.")
+
+    def is_scene(p):
+        try:
+            detect_format(p)
+            return True
+        except DatasetError:
+            return False
+
+    if is_scene(root):
+        scenes = {root.resolve().name: root}
+    else:
+        found = {p.name: p for p in sorted(root.iterdir()) if p.is_dir() and is_scene(p)}
+        order = [n for n in MIPNERF360_SCENES if n in found] + [n for n in found if n not in MIPNERF360_SCENES]
+        scenes = {n: found[n] for n in order}
+    if not scenes:
+        raise StudyError(f"no scene under {root}: expected scene folders (COLMAP sparse/0, transforms.json or "
+                         "poses_bounds.npy), e.g. the Mip-NeRF 360 release's bicycle/, garden/, ...")
+    if names:
+        missing = [n for n in names if n not in scenes]
+        if missing:
+            raise StudyError(f"scene(s) {', '.join(missing)} not found under {root}; found: {', '.join(scenes)}.")
+        scenes = {n: scenes[n] for n in names}
+    return scenes
+
+
+def parse_budget(text: str | None):
+    """``None``, ``("fraction", f)`` from ``"10%"``, or ``("count", n)`` from ``"5000"``."""
+    if text is None or text in ("", "100%"):
+        return None
+    t = text.strip()
+    try:
+        if t.endswith("%"):
+            f = float(t[:-1]) / 100.0
+            if not 0 < f <= 1:
+                raise ValueError
+            return ("fraction", f)
+        n = int(t)
+        if n < 1:
+            raise ValueError
+        return ("count", n)
+    except ValueError:
+        raise StudyError(f"--budget takes a percentage in (0, 100] such as 10% or a Gaussian count such as "
+                         f"5000, got {text!r}.") from None
+
+
+def label(method: str, budget: str | None) -> str:
+    """The results key of a method: ``patexgs`` or, under a budget, ``patexgs(10%)``."""
+    return method if parse_budget(budget) is None else f"{method}({budget.strip()})"
+
+
+def _version() -> dict:
+    import importlib.metadata
+
+    import jax
+
+    try:
+        git = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent,
+                             capture_output=True, text=True, timeout=10).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        git = None
+    try:
+        pkg = importlib.metadata.version("patexgs_jax")
+    except importlib.metadata.PackageNotFoundError:
+        pkg = None
+    return dict(patexgs_jax=pkg, git=git, jax=jax.__version__, results_schema=RESULTS_SCHEMA)
+
+
+def _write_json(path: Path, data) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def _save_png(path: Path, image: np.ndarray) -> None:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.png")
+    Image.fromarray(image).save(tmp)
+    os.replace(tmp, path)
+
+
+# ------------------------------------------------------------------------------------------------
+# The study
+# ------------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class StudyConfig:
+    """What the results depend on (recorded in results.json; a resumed study must match)."""
+
+    preset: str = "tiny"
+    factor: int | None = None
+    budget: str | None = None
+    iters_2dgs: int | None = None
+    iters_tex: int | None = None
+    max_gaussians: int | None = None
+    seed: int = 0
+    test_views: int | None = None   # evaluate at most this many test views (None: all)
+    train_overrides: dict | None = None  # further TrainConfig fields (JSON-able values), Python API only
+
+    def train_config(self, method: str, max_gaussians: int | None = None):
+        from patexgs_jax.train import preset_config
+
+        return preset_config(self.preset, method=method, iters_2dgs=self.iters_2dgs, iters_tex=self.iters_tex,
+                             max_gaussians=max_gaussians if max_gaussians is not None else self.max_gaussians,
+                             seed=self.seed, **(self.train_overrides or {}))
+
+    def record(self) -> dict:
+        from patexgs_jax.train import _config_dict
+
+        return dict(dataclasses.asdict(self), train_config=_config_dict(self.train_config("patexgs")))
+
+
+class Study:
+    """One output directory: its results, and the training/evaluation of (scene, method) entries."""
+
+    def __init__(self, out_dir, config: StudyConfig, *, renders: int = 3, use_lpips: bool = True,
+                 verbose: bool = True):
+        from patexgs_jax import checkpoint as ckpt
+
+        self.out = Path(out_dir)
+        ckpt.check_writable(self.out)
+        self.cfg = config
+        self.renders = renders
+        self.verbose = verbose
+        self.path = self.out / "results.json"
+        record = dict(config.record(), machine=f"{platform.machine()} {os.cpu_count()} cores, {platform.system()}")
+        if self.path.exists():
+            try:
+                old = json.loads(self.path.read_text())
+            except (OSError, json.JSONDecodeError) as e:
+                raise StudyError(f"{self.path} is unreadable ({e}); move it away or choose another --out.") from None
+            ours = {k: v for k, v in record.items() if k != "machine"}
+            theirs = {k: v for k, v in old.get("config", {}).items() if k != "machine"}
+            if ours != theirs:
+                diff = sorted(k for k in set(ours) | set(theirs) if ours.get(k) != theirs.get(k))
+                raise StudyError(f"{self.path} holds results of a different protocol ({', '.join(diff)} differ); "
+                                 "use the same settings to resume, or another --out.")
+            self.data = old
+            self.data["version"] = _version()
+        else:
+            self.data = dict(version=_version(), config=record, results={})
+        from experiments.evaluation import LPIPS
+
+        self.lpips = LPIPS(enabled=use_lpips)
+        if use_lpips and not self.lpips.available:
+            self.say("LPIPS weights not installed: lpips is recorded as null "
+                     "(python -m experiments.convert_lpips_weights installs them)")
+
+    def say(self, msg: str) -> None:
+        if self.verbose:
+            print(msg, flush=True)
+
+    def done(self, scene: str, key: str) -> bool:
+        return key in self.data["results"].get(scene, {})
+
+    def save(self) -> None:
+        _write_json(self.path, self.data)
+        (self.out / "tables.md").write_text(tables_markdown(self.data))
+        try:
+            write_plots(self.data, self.out / "plots")
+        except Exception as e:  # plots are a convenience: never lose a finished entry over them
+            self.say(f"warning: plots not written ({type(e).__name__}: {e})")
+
+    # -- one scene ---------------------------------------------------------------------------------
+    def run_scene(self, name: str, path: Path, methods) -> None:
+        from patexgs_jax.data import load
+        from patexgs_jax.train import stage1_checkpoint, train
+
+        todo = [m for m in methods if not self.done(name, label(m, self.cfg.budget))]
+        if not todo:
+            self.say(f"[{name}] all of {', '.join(methods)} done; skipped")
+            return
+        ds = load(path, factor=self.cfg.factor)
+        runs = self.out / "runs" / name
+        budget = parse_budget(self.cfg.budget)
+        max_g = None
+        if budget is not None:
+            if budget[0] == "count":
+                max_g = budget[1]
+            else:
+                self.say(f"[{name}] unbudgeted 2DGS run, for the Gaussian count the budget is a fraction of")
+                ref = train(ds, self.cfg.train_config("2dgs"), runs / "2dgs", resume=True, verbose=self.verbose)
+                max_g = max(1, int(round(budget[1] * ref.summary["num_gaussians"])))
+            self.say(f"[{name}] budget {self.cfg.budget}: at most {max_g} Gaussians")
+        s1_cfg = self.cfg.train_config("2dgs", max_g)
+        s1_dir = runs / label("2dgs", self.cfg.budget)
+        self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(todo)}")
+        s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose)
+        for method in todo:
+            key = label(method, self.cfg.budget)
+            cfg = self.cfg.train_config(method, max_g)
+            if method == "2dgs":
+                result = s1
+            else:
+                ck = stage1_checkpoint(s1_dir, cfg)
+                if ck is None:
+                    raise StudyError(f"no end-of-stage-1 checkpoint in {s1_dir}/checkpoints for {method}; "
+                                     "delete that run folder to train stage 1 again.")
+                self.say(f"[{name}] {key}")
+                result = train(ds, cfg, runs / key, resume=True, verbose=self.verbose, stage1=ck)
+            entry = self.evaluate(name, key, result, ds, cfg)
+            self.data["results"].setdefault(name, {})[key] = entry
+            self.save()
+            full = entry["1"]
+            self.say(f"[{name}] {key}: PSNR {' / '.join(_fmt(entry[str(s)]['psnr'], 2) for s in SCALES)} dB at 1, "
+                     f"1/2, 1/4, 1/8; SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
+                     f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
+                     f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
+
+    def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
+        from experiments.evaluation import evaluate_scales, render_ms, side_by_side
+
+        views = list(ds.test_views)
+        if not views:
+            raise StudyError(f"scene {scene} has no test views (the protocol holds out every 8th image).")
+        if self.cfg.test_views is not None:
+            views = views[: self.cfg.test_views]
+        rc = cfg.render_config()
+        t = time.perf_counter()
+        ev = evaluate_scales(result.scene, views, rc, scales=SCALES, lpips=self.lpips, keep_images=self.renders)
+        images = ev.pop("images", {})
+        for s in (str(SCALES[0]), str(SCALES[-1])):
+            if images.get(s):
+                _save_png(self.out / "renders" / scene / f"{key}_x{s}.png", side_by_side(images[s]))
+        s = result.summary
+        entry = {k: v for k, v in ev.items()}
+        entry.update(method=cfg.method, storage_mb=s["storage_mb"], num_gaussians=s["num_gaussians"],
+                     texels=s["texels"], train_seconds=s["train_seconds"], steps=s["steps"],
+                     max_gaussians=cfg.max_gaussians, render_ms=render_ms(result.scene, views, rc),
+                     eval_seconds=time.perf_counter() - t)
+        return entry
+
+
+# ------------------------------------------------------------------------------------------------
+# Tables and plots
+# ------------------------------------------------------------------------------------------------
+def _fmt(v, digits: int) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def _mean_over_scenes(results: dict, key: str, field) -> float | None:
+    vals = []
+    for per in results.values():
+        if key in per:
+            v = field(per[key])
+            if v is None:
+                return None
+            vals.append(v)
+    return float(np.mean(vals)) if vals else None
+
+
+def _labels(results: dict) -> list[str]:
+    seen = []
+    for per in results.values():
+        for k in per:
+            if k not in seen:
+                seen.append(k)
+    return seen
+
+
+def _row_name(key: str, names: dict) -> str:
+    base, _, rest = key.partition("(")
+    return names.get(base, base) + (f"({rest}" if rest else "")
+
+
+_TABLE3 = {"patexgs": "Full", "patexgs-no-mip": "w/o mip.", "patexgs-no-alpha-mip": "w/o alpha mip.",
+           "patexgs-no-rgb-mip": "w/o RGB mip."}
+_TABLE4 = {"patexgs": "Full", "patexgs-no-adaptive": "8 x 8 + mip (no adaptive)", "textured-fixed-1": "1 x 1",
+           "textured-fixed-2": "2 x 2", "textured-fixed-4": "4 x 4", "textured-fixed-8": "8 x 8",
+           "textured-fixed-16": "16 x 16", "textured-fixed-32": "32 x 32"}
+
+
+def tables_markdown(data: dict) -> str:
+    """The study's tables in Markdown: the layouts of the paper's Tables 1-4, plus a cost table.
+
+    Values are means over the scenes that have the entry (Table 1 also lists each scene).
+    """
+    results = data.get("results", {})
+    labels = _labels(results)
+    scenes = list(results)
+    cfg = data.get("config", {})
+    out = [f"# Results: preset {cfg.get('preset')}, budget {cfg.get('budget') or '100%'}, "
+           f"{len(scenes)} scene(s): {', '.join(scenes) or '-'}", ""]
+    if not labels:
+        return "\n".join(out + ["(no results yet)", ""])
+
+    def metric(key, scale, name):
+        return _mean_over_scenes(results, key, lambda e: e.get(str(scale), {}).get(name))
+
+    # Table 1: quality at full resolution, per scene and mean.
+    cols = scenes + (["mean"] if len(scenes) > 1 else [])
+    out += ["## Table 1: quality at full resolution", "",
+            "| method | " + " | ".join(f"{c} PSNR | {c} SSIM | {c} LPIPS" for c in cols) + " |",
+            "| --- |" + " ---: |" * (3 * len(cols))]
+    for key in labels:
+        cells = []
+        for c in cols:
+            if c == "mean":
+                vals = [metric(key, 1, m) for m in ("psnr", "ssim", "lpips")]
+            else:
+                e = results[c].get(key, {}).get("1", {})
+                vals = [e.get("psnr"), e.get("ssim"), e.get("lpips")]
+            cells += [_fmt(vals[0], 2), _fmt(vals[1], 3), _fmt(vals[2], 3)]
+        out.append(f"| {key} | " + " | ".join(cells) + " |")
+    out.append("")
+
+    def scale_table(title, rows):
+        lines = [title, "", "| method | " + " | ".join(
+            f"{'Full' if s == 1 else f'1/{s}'} PSNR | SSIM | LPIPS" for s in SCALES) + " |",
+            "| --- |" + " ---: |" * (3 * len(SCALES))]
+        for key, name in rows:
+            cells = []
+            for s in SCALES:
+                cells += [_fmt(metric(key, s, "psnr"), 2), _fmt(metric(key, s, "ssim"), 3),
+                          _fmt(metric(key, s, "lpips"), 3)]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        return lines + [""]
+
+    out += scale_table("## Table 2: zoom-out (anti-aliasing)", [(k, k) for k in labels])
+    t3 = [(k, _row_name(k, _TABLE3)) for k in labels if k.partition("(")[0] in _TABLE3]
+    if len(t3) >= 2:
+        out += scale_table("## Table 3: mipmap ablation", t3)
+    t4 = [(k, _row_name(k, _TABLE4)) for k in labels if k.partition("(")[0] in _TABLE4]
+    if len(t4) >= 2:
+        out += ["## Table 4: adaptive texture allocation", "",
+                "| method | PSNR | SSIM | LPIPS | storage MB |", "| --- | ---: | ---: | ---: | ---: |"]
+        for key, name in t4:
+            out.append(f"| {name} | {_fmt(metric(key, 1, 'psnr'), 2)} | {_fmt(metric(key, 1, 'ssim'), 3)} | "
+                       f"{_fmt(metric(key, 1, 'lpips'), 3)} | "
+                       f"{_fmt(_mean_over_scenes(results, key, lambda e: e['storage_mb']), 2)} |")
+        out.append("")
+    out += ["## Cost: what the accuracy costs", "",
+            "| method | PSNR | Gaussians | texels | storage MB | train s | render ms |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for key in labels:
+        m = lambda f: _mean_over_scenes(results, key, f)  # noqa: E731
+        out.append(f"| {key} | {_fmt(metric(key, 1, 'psnr'), 2)} | {_fmt(m(lambda e: e['num_gaussians']), 0)} | "
+                   f"{_fmt(m(lambda e: e['texels']), 0)} | {_fmt(m(lambda e: e['storage_mb']), 2)} | "
+                   f"{_fmt(m(lambda e: e['train_seconds']), 0)} | {_fmt(m(lambda e: e['render_ms']), 1)} |")
+    out.append("")
+    return "\n".join(out)
+
+
+def write_plots(data: dict, directory) -> list[Path]:
+    """``psnr_vs_scale.png`` and ``accuracy_vs_time.png`` (means over scenes); returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    results = data.get("results", {})
+    labels = _labels(results)
+    if not labels:
+        return []
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    paths = []
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key in labels:
+        ys = [_mean_over_scenes(results, key, lambda e, s=s: e.get(str(s), {}).get("psnr")) for s in SCALES]
+        ax.plot(SCALES, [np.nan if y is None else y for y in ys], marker="o", label=key)
+    ax.set_xscale("log", base=2)
+    ax.set_xticks(SCALES, ["full", "1/2", "1/4", "1/8"])
+    ax.set_xlabel("zoom-out")
+    ax.set_ylabel("PSNR (dB)")
+    ax.set_title("PSNR vs scale (mean over scenes)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths.append(directory / "psnr_vs_scale.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, field, xlabel in ((axes[0], "train_seconds", "training time (s)"),
+                              (axes[1], "render_ms", "render time per image (ms)")):
+        for key in labels:
+            x = _mean_over_scenes(results, key, lambda e, f=field: e.get(f))
+            y = _mean_over_scenes(results, key, lambda e: e.get("1", {}).get("psnr"))
+            if x is None or y is None:
+                continue
+            ax.scatter([x], [y])
+            ax.annotate(key, (x, y), fontsize=8, xytext=(3, 3), textcoords="offset points")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("PSNR at full resolution (dB)")
+        ax.grid(alpha=0.3)
+    fig.suptitle("accuracy vs time (mean over scenes)")
+    fig.tight_layout()
+    paths.append(directory / "accuracy_vs_time.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    return paths
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line
+# ------------------------------------------------------------------------------------------------
+def _enable_compile_cache() -> None:
+    """A persistent XLA compilation cache under the project cache: repeated runs skip compiles."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    root = Path(os.environ.get("PATEXGS_CACHE") or Path.home() / ".cache" / "patexgs_jax")
+    try:
+        (root / "xla").mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return
+    jax.config.update("jax_compilation_cache_dir", str(root / "xla"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders: int = 3, use_lpips: bool = True,
+        verbose: bool = True, **config) -> dict:
+    """Runs the study (the command line in Python); returns the results dictionary.
+
+    Args:
+      data: ROOT (folder of scenes or one scene); None: the embedded synthetic scene.
+      scenes: optional list of scene names under ROOT.
+      methods: list of method names (see :func:`patexgs_jax.train.method_spec`).
+      out: output directory.
+      renders: test views kept as side-by-side PNGs per method and scale (0: none).
+      use_lpips: compute LPIPS when its weights are installed.
+      **config: :class:`StudyConfig` fields (preset, factor, budget, iters_2dgs, iters_tex,
+        max_gaussians, seed, test_views, train_overrides).
+    """
+    from patexgs_jax.train import method_spec
+
+    if data is None:
+        from patexgs_jax.data.synthetic import ensure_default_scene
+
+        root = ensure_default_scene(verbose=verbose)
+        config.setdefault("preset", "tiny")
+        methods = list(methods or EMBEDDED_METHODS)
+    else:
+        root = Path(data)
+        config.setdefault("preset", "paper")
+        methods = list(methods or DEFAULT_METHODS)
+    for m in methods:
+        method_spec(m)  # unknown names fail before any work
+    if len(set(methods)) != len(methods):
+        raise StudyError(f"--methods lists a method twice: {methods}.")
+    parse_budget(config.get("budget"))
+    found = find_scenes(root, scenes)
+    cfg = StudyConfig(**config)
+    study = Study(out, cfg, renders=renders, use_lpips=use_lpips, verbose=verbose)
+    t = time.perf_counter()
+    for name, path in found.items():
+        study.run_scene(name, path, methods)
+    study.save()
+    if verbose:
+        print(f"\n{tables_markdown(study.data)}\nwritten to {study.out} ({time.perf_counter() - t:.0f} s)")
+    return study.data
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.mipnerf360", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=None, help="folder of scene folders, or one scene (default: the embedded "
+                    "synthetic scene)")
+    ap.add_argument("--scenes", default=None, help="comma-separated scene names under --data")
+    ap.add_argument("--methods", default=None, help="comma-separated methods (default: 2dgs,patexgs on the embedded "
+                    f"scene, {','.join(DEFAULT_METHODS)} with --data)")
+    ap.add_argument("--preset", default=None, choices=["tiny", "small", "paper"],
+                    help="iteration schedule (default: tiny without --data, paper with it)")
+    ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor)")
+    ap.add_argument("--out", default="runs/mipnerf360")
+    ap.add_argument("--budget", default=None, help="Gaussian budget: 10%%, 1%% (of the unbudgeted 2DGS count) or "
+                    "a count")
+    ap.add_argument("--iters-2dgs", type=int, default=None)
+    ap.add_argument("--iters-tex", type=int, default=None)
+    ap.add_argument("--max-gaussians", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--test-views", type=int, default=None, help="evaluate at most this many test views")
+    ap.add_argument("--renders", type=int, default=3, help="test views saved side by side per method (0: none)")
+    ap.add_argument("--no-lpips", action="store_true")
+    ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs")
+    args = ap.parse_args(argv)
+    from patexgs_jax import checkpoint as ckpt
+
+    if not args.no_compile_cache:
+        _enable_compile_cache()
+    split = lambda s: None if s is None else [x.strip() for x in s.split(",") if x.strip()]  # noqa: E731
+    config = {k: v for k, v in dict(preset=args.preset, factor=args.factor, budget=args.budget,
+                                    iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
+                                    max_gaussians=args.max_gaussians, seed=args.seed,
+                                    test_views=args.test_views).items() if v is not None}
+    try:
+        run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
+            renders=args.renders, use_lpips=not args.no_lpips, **config)
+    except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,187 @@
+"""The main job, ``experiments.mipnerf360``: end to end on a small synthetic scene (few steps), the
+results.json schema, the tables, plots and renders, resume, and argument errors.
+
+One study (two methods, stage 1 shared) is run once per module; the other tests read it, re-run it
+(everything finished: nothing may train) or call the pure table/argument functions.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from experiments import mipnerf360 as mn
+from patexgs_jax.data.synthetic import generate
+
+T = importlib.import_module("patexgs_jax.train")
+
+STUDY = dict(preset="tiny", iters_2dgs=12, iters_tex=8, max_gaussians=300, test_views=2,
+             # Eq. 7 allocation after 2 texture steps; no growth event (each re-bucketing compiles a step).
+             train_overrides=dict(warmup_tex=2, growth_interval=100, max_texture_size=8, log_every=4,
+                                  checkpoint_every=4))
+METHODS = ["2dgs", "patexgs"]
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    # 10 views: the protocol's every-8th hold-out gives 2 test views (0 and 8).
+    return generate(tmp_path_factory.mktemp("mn360") / "scene", seed=0, num_views=10, width=64, height=48,
+                    num_points=400)
+
+
+@pytest.fixture(scope="module")
+def study(scene_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("study")
+    data = mn.run(str(scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False,
+                  **STUDY)
+    return out, data
+
+
+def _finite(x):
+    return isinstance(x, float) and math.isfinite(x)
+
+
+@pytest.mark.slow
+def test_results_schema_and_values(study):
+    out, data = study
+    on_disk = json.loads((out / "results.json").read_text())
+    assert on_disk == json.loads(json.dumps(data))
+    assert set(on_disk) == {"version", "config", "results"}
+    assert on_disk["version"]["results_schema"] == mn.RESULTS_SCHEMA
+    assert on_disk["config"]["preset"] == "tiny" and on_disk["config"]["iters_2dgs"] == 12
+    (scene,) = on_disk["results"]
+    entries = on_disk["results"][scene]
+    assert list(entries) == METHODS
+    for key, e in entries.items():
+        for s in ("1", "2", "4", "8"):
+            m = e[s]
+            assert _finite(m["psnr"]) and 5.0 < m["psnr"] < 60.0, (key, s, m)
+            assert _finite(m["ssim"]) and -1.0 <= m["ssim"] <= 1.0
+            assert m["lpips"] is None  # LPIPS switched off
+            assert m["views"] == 2
+        assert 0 < e["num_gaussians"] <= 300
+        assert e["storage_mb"] > 0 and e["train_seconds"] > 0 and e["render_ms"] > 0
+        assert e["method"] == key and e["steps"] == (12 if key == "2dgs" else 20)
+    assert entries["2dgs"]["texels"] == 0 and entries["patexgs"]["texels"] > 0
+    assert entries["patexgs"]["storage_mb"] > entries["2dgs"]["storage_mb"]
+    # Stage 1 is shared: the textured run started from the 2DGS run's end-of-stage-1 checkpoint and
+    # carries its training time.
+    summary = json.loads((out / "runs" / scene / "patexgs" / "summary.json").read_text())
+    assert summary["stage1_from"] is not None and "/2dgs/checkpoints/" in summary["stage1_from"]
+    assert entries["patexgs"]["train_seconds"] > entries["2dgs"]["train_seconds"]
+
+
+@pytest.mark.slow
+def test_tables_plots_and_renders_are_written(study):
+    out, data = study
+    (scene,) = data["results"]
+    md = (out / "tables.md").read_text()
+    assert "## Table 1" in md and "## Table 2" in md and "## Cost" in md
+    for key in METHODS:
+        row = next(line for line in md.splitlines() if line.startswith(f"| {key} |"))
+        assert f"{data['results'][scene][key]['1']['psnr']:.2f}" in row
+    for name in ("psnr_vs_scale.png", "accuracy_vs_time.png"):
+        assert (out / "plots" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    from PIL import Image
+
+    for key in METHODS:
+        for s in (1, 8):
+            im = Image.open(out / "renders" / scene / f"{key}_x{s}.png")
+            # one view, ground truth | gap | render: (H + gap) x (2 W + gap)
+            w, h = 64 // s, 48 // s
+            assert im.size == (2 * w + 4, h + 4)
+
+
+@pytest.mark.slow
+def test_resume_skips_finished_entries(study, scene_dir, monkeypatch):
+    out, data = study
+
+    def no_training(*a, **k):
+        raise AssertionError("a finished entry was trained again")
+
+    monkeypatch.setattr(T, "train", no_training)
+    again = mn.run(str(scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False, **STUDY)
+    assert again["results"] == data["results"]
+
+
+@pytest.mark.slow
+def test_entry_lost_after_training_is_re_evaluated_without_training(study, scene_dir, tmp_path):
+    """An interruption between a run's end and its results entry: the run is finished on disk, so
+    the entry comes back from it (no training step taken) with the same metrics."""
+    out, data = study
+    path = out / "results.json"
+    saved = json.loads(path.read_text())
+    (scene,) = saved["results"]
+    lost = saved["results"][scene].pop("patexgs")
+    path.write_text(json.dumps(saved))
+    again = mn.run(str(scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False, **STUDY)
+    back = again["results"][scene]["patexgs"]
+    for s in ("1", "2", "4", "8"):
+        assert back[s]["psnr"] == pytest.approx(lost[s]["psnr"], abs=1e-6)
+    assert back["train_seconds"] == pytest.approx(lost["train_seconds"], rel=1e-9)
+
+
+@pytest.mark.slow
+def test_changed_protocol_is_refused(study, scene_dir):
+    out, _ = study
+    with pytest.raises(mn.StudyError, match="iters_2dgs"):
+        mn.run(str(scene_dir), methods=METHODS, out=str(out), use_lpips=False, verbose=False,
+               **dict(STUDY, iters_2dgs=13))
+
+
+def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
+    cfg = T.TrainConfig(method="patexgs", iters_2dgs=5, iters_tex=3)
+    other = T.TrainConfig(method="2dgs", iters_2dgs=5, lambda_normal=0.5)
+    assert T.stage1_key(cfg) == T.stage1_key(T.TrainConfig(method="2dgs", iters_2dgs=5, iters_tex=99))
+    assert T.stage1_key(cfg) != T.stage1_key(other)
+    from patexgs_jax import checkpoint as ckpt
+
+    path = ckpt.save_checkpoint(ckpt.checkpoint_path(tmp_path / "checkpoints", 5), {"x": 1},
+                                dict(config=T._config_dict(other), step=5))
+    assert T.stage1_checkpoint(tmp_path, cfg) is None
+    run = T._Run.__new__(T._Run)
+    with pytest.raises(ValueError, match="lambda_normal"):
+        T._load_stage1(run, path, cfg)
+
+
+def test_tables_follow_the_paper_layouts():
+    e = lambda p: {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "2": dict(psnr=p + 1, ssim=0.85, lpips=None),  # noqa: E731
+                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1), "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
+                   "storage_mb": 1.5, "num_gaussians": 100, "texels": 10, "train_seconds": 3.0, "render_ms": 4.0}
+    keys = ["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-rgb-mip", "textured-fixed-8", "patexgs(10%)"]
+    data = {"config": {"preset": "tiny"},
+            "results": {"a": {k: e(20.0 + i) for i, k in enumerate(keys)},
+                        "b": {k: e(22.0 + i) for i, k in enumerate(keys[:2])}}}
+    md = mn.tables_markdown(data)
+    lines = md.splitlines()
+    # Table 1: per scene and the mean over scenes that have the entry.
+    row = next(line for line in lines if line.startswith("| patexgs |"))
+    assert "| 21.00 | 0.800 | 0.200 | 23.00 | 0.800 | 0.200 | 22.00 | 0.800 | 0.200 |" in row
+    assert next(line for line in lines if line.startswith("| patexgs-no-mip |")).count(" - ") == 3  # absent in b
+    t3 = md.split("## Table 3")[1].split("##")[0]
+    assert "| Full |" in t3 and "| w/o mip. |" in t3 and "| w/o RGB mip. |" in t3 and "| Full(10%) |" in t3
+    assert "2dgs" not in t3
+    t4 = md.split("## Table 4")[1].split("##")[0]
+    assert "| 8 x 8 |" in t4 and "1.50 |" in t4
+    # an LPIPS missing at one scale shows as "-", not as a number
+    t2 = md.split("## Table 2")[1].split("##")[0]
+    assert "| 2dgs | 21.00 | 0.800 | 0.200 | 22.00 | 0.850 | - |" in t2
+
+
+def test_arguments_are_checked(tmp_path):
+    assert mn.parse_budget("10%") == ("fraction", 0.1) and mn.parse_budget("5000") == ("count", 5000)
+    assert mn.parse_budget(None) is None and mn.label("patexgs", "1%") == "patexgs(1%)"
+    for bad in ("0%", "150%", "-3", "ten"):
+        with pytest.raises(mn.StudyError, match="--budget"):
+            mn.parse_budget(bad)
+    with pytest.raises(mn.StudyError, match="no scene"):
+        mn.find_scenes(tmp_path)
+    with pytest.raises(mn.StudyError, match="does not exist"):
+        mn.find_scenes(tmp_path / "nope")
+    assert mn.main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--no-compile-cache"]) == 2
+    with pytest.raises(ValueError, match="unknown method"):
+        mn.run(str(tmp_path), methods=["patexgs", "nerf"], out=str(tmp_path / "o"), verbose=False)
