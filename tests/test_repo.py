@@ -13,7 +13,7 @@ def _readme_commands():
 def test_readme_has_two_setup_commands():
     cmds = _readme_commands()
     assert len(cmds) == 2, cmds
-    assert "python -m patexgs_jax.train" in cmds[0]
+    assert "python -m experiments.mipnerf360" in cmds[0]
     assert "pytest" in cmds[1]
 
 
