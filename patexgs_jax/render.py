@@ -36,6 +36,12 @@ Structure
   (``jax.custom_vjp``) that re-walks the chunks and stores nothing per pair: backward memory is
   the inputs plus a few per-pixel accumulators.
 
+  Textures: a bilinear lookup is one gather of a 2 x 2 texel block (a quad row, see
+  :mod:`patexgs_jax.textures`) per bank and mip level read; the backward adds each lookup's texel
+  cotangents to two rows of a paired (texel r, texel r + 1) accumulator. The per-lookup address
+  and weight arithmetic is computed once per chunk and pixel (:func:`_barrier`), not re-derived
+  inside every per-texel and per-channel consumer.
+
   The one static capacity (``Capacity.pairs``, the length of the sorted pair list) is checked
   against the exact need (counted before binning) and the need is returned, so callers grow the
   capacity and render again; :func:`render` does this itself and never returns a truncated image.
@@ -144,6 +150,8 @@ class RenderOutput:
         depth mapped to [0, 1) by m = f/(f-n) (1 - n/z) with n = 0.2, f = 1000 (as 2DGS).
       max_contrib_count: (C,) int32, pixels at which each splat has the largest weight
         alpha_i T_i (paper Eq. 6); no gradient.
+      dominant: (H, W) int32, the splat with the largest weight at each pixel (-1: none); no
+        gradient (e.g. to look up per-pixel texture sizes or mip levels).
       radius_px: (C,) float, screen-space half-extent of each splat's footprint (0: not visible).
       visible: (C,) bool, binned into at least one tile.
       pairs_needed: () float32, (splat, tile) pairs the view needs.
@@ -157,6 +165,7 @@ class RenderOutput:
     normal: jax.Array
     distortion: jax.Array
     max_contrib_count: jax.Array
+    dominant: jax.Array
     radius_px: jax.Array
     visible: jax.Array
     pairs_needed: jax.Array
@@ -335,26 +344,94 @@ def _meta(atlas: tex.Atlas | None):
     return _Meta(atlas.base, atlas.bucket_side, atlas.size, atlas.max_level, atlas.has)
 
 
-def _tex_corners(meta: _Meta, gid, u, v, footprint, config: RenderConfig, use_mip: bool):
-    """Texel addresses and weights of the lookups of splats ``gid`` (c,) at (u, v) (P, c).
+class _Lookup(NamedTuple):
+    """A chunk's texture lookups in one bank, one entry per mip level read (1, or 2 for trilinear).
 
-    Returns (idx (P, c, K/2) int32 paired-atlas rows, w (P, c, K)), K = 4 (one level) or 8 (trilinear).
+    base: (c,) int32 the splats' blocks in the atlas; row: (P, c) float rows within the blocks
+    (exact integers, no gradient); stride: (P, c) int32 row strides of the levels read; fa, fb:
+    (P, c) bilinear fractions; lw: level blend weights (P, c) for trilinear, else None.
     """
+
+    base: jax.Array
+    row: tuple
+    stride: tuple
+    fa: tuple
+    fb: tuple
+    lw: tuple | None
+
+    def rows(self):
+        """(atlas rows (P, c) int32 of each level read, their strides)."""
+        return tuple(self.base + lax.stop_gradient(r).astype(jnp.int32) for r in self.row), self.stride
+
+
+def _barrier(tree, flag):
+    """``tree`` unchanged, computed once: XLA cannot fuse across a conditional, so the arithmetic
+    behind ``tree`` is not duplicated into consumers that read its elements many times (per channel
+    and texel: the gathers of 4 ch-wide rows and the per-channel products, forward and, through the
+    transposed conditional, backward), where XLA's CPU fusion otherwise recomputes all of it.
+    ``lax.optimization_barrier`` does not reach XLA's CPU fusion. ``flag`` is a traced True
+    (unbatched, so the conditional stays one)."""
+    return lax.cond(flag, lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
+
+
+def _tex_lookups(meta: _Meta, gid, u, v, footprint, config: RenderConfig, use_mip: bool) -> _Lookup:
+    """Texture lookups of splats ``gid`` (c,) at (u, v) (P, c); ``footprint`` (P, c) for mipmaps."""
     base, side_p, n = meta.base[gid], meta.bucket_side[gid], meta.size[gid]
     ni = n.astype(jnp.int32)
+
+    def at_level(lev):
+        off, stride, side = tex.level_address(side_p, ni, lev)
+        return tex.corners(off, stride, side, u, v), jnp.broadcast_to(stride, u.shape)
+
     if not use_mip or config.mip == "none":
-        return tex.corners(base, side_p, ni, u, v)
+        (r, fa, fb), stride = at_level(jnp.int32(0))
+        return _Lookup(base, (r,), (stride,), (fa,), (fb,), None)
     L = meta.max_level[gid]
     if config.mip == "nearest":
         lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear=False)
-        return tex.corners(*tex.level_address(base, side_p, ni, lev), u, v)
+        (r, fa, fb), stride = at_level(lev)
+        return _Lookup(base, (r,), (stride,), (fa,), (fb,), None)
     lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear=True)
     l0 = jnp.floor(lev)
-    frac = (lev - l0)[..., None]
+    frac = lev - l0
     l0i = l0.astype(jnp.int32)
-    i0, w0 = tex.corners(*tex.level_address(base, side_p, ni, l0i), u, v)
-    i1, w1 = tex.corners(*tex.level_address(base, side_p, ni, jnp.minimum(l0i + 1, L)), u, v)
-    return jnp.concatenate([i0, i1], axis=-1), jnp.concatenate([w0 * (1 - frac), w1 * frac], axis=-1)
+    (r0, fa0, fb0), s0 = at_level(l0i)
+    (r1, fa1, fb1), s1 = at_level(jnp.minimum(l0i + 1, L))
+    return _Lookup(base, (r0, r1), (s0, s1), (fa0, fa1), (fb0, fb1), (1.0 - frac, frac))
+
+
+def _tex_value(vals, fa, fb, lw):
+    """Texture values, a list of ch arrays (P, c), from the gathered texels ``vals`` (per level read, the
+    4 ch arrays (P, c) of :func:`textures.split_quads`) and a :class:`_Lookup`'s fractions and level
+    weights."""
+    out = [tex.bilinear(t, a, b) for t, a, b in zip(vals, fa, fb)]
+    if lw is not None:
+        out = [[lw[0] * a + lw[1] * b for a, b in zip(*out)]]
+    return out[0]
+
+
+def _gather(quads, rows):
+    """Texels of the lookups at ``rows`` (from :meth:`_Lookup.rows`): per level read, 4 ch arrays (P, c)."""
+    return None if rows is None else tuple(tex.split_quads(tex.gather_rows(quads, i)) for i in rows[0])
+
+
+def _scatter(g_pairs, rows, g_vals):
+    """Adds the cotangents ``g_vals`` of :func:`_gather` values to ``g_pairs`` (M, 2 ch), the
+    cotangent of the flat atlas in pairs: row r holds that of texel r (first ch) and of texel r + 1
+    (last ch; see :func:`_unpair`). A lookup adds to two rows, r and r + stride."""
+    ch = g_pairs.shape[-1] // 2
+    for i, stride, g in zip(*rows, g_vals):
+        idx = jnp.concatenate([i.reshape(-1), (i + stride).reshape(-1)])
+        upd = jnp.concatenate([jnp.stack(g[2 * j * ch:2 * (j + 1) * ch], axis=-1).reshape(-1, 2 * ch)
+                               for j in range(2)])
+        g_pairs = g_pairs.at[idx].add(upd, mode="promise_in_bounds")
+    return g_pairs
+
+
+def _unpair(g_pairs):
+    """(M, 2 ch) paired cotangents (:func:`_scatter`) -> (M, ch) cotangents of the flat atlas."""
+    ch = g_pairs.shape[-1] // 2
+    return g_pairs[:, :ch] + jnp.pad(g_pairs[:-1, ch:], ((1, 0), (0, 0)))
 
 
 def _geometry(pk, x, y, need_footprint: bool):
@@ -421,38 +498,50 @@ def _chunk_slots(st: _Static, ctx, t, k):
     return gid, valid
 
 
-def _chunk_addresses(st: _Static, ctx, pk, gid, x, y):
-    """Texel addresses (no gradient) of a chunk's lookups: (rgb idx or None, alpha idx or None)."""
-    if not (st.rgb or st.alpha):
-        return None, None
-    u, v, _, _, fp = _geometry(lax.stop_gradient(pk), x, y, st.need_footprint)
-    cfg = st.config
-    ir = _tex_corners(ctx["rgb_meta"], gid, u, v, fp, cfg, st.rgb_mip)[0] if st.rgb else None
-    ia = _tex_corners(ctx["alpha_meta"], gid, u, v, fp, cfg, st.alpha_mip)[0] if st.alpha else None
-    return ir, ia
-
-
-def _chunk_contrib(st: _Static, ctx, pk, vals_rgb, vals_a, gid, valid, x, y, log_t_in, done_in,
-                   texels=(None, None)):
-    """One chunk's contribution, differentiable in (pk, vals_rgb, vals_a).
+def _chunk_lookups(st: _Static, ctx, pk, gid, x, y):
+    """First stage of a chunk: its ray-splat geometry and texture lookups.
 
     Args:
-      pk: (c, F) packed splats; vals_rgb (P, c, K, 3) / vals_a (P, c, K, 1) the texels at the
-        chunk's lookup addresses, or None to gather them here from ``texels`` (paired atlases);
-        gid, valid (c,); x, y (P, 1); log_t_in (P,) log transmittance before the chunk; done_in
-        (P,) compositing already stopped.
+      pk: (c, F) packed splats; gid (c,); x, y (P, 1) pixel centres.
+    Returns:
+      (G, z, rgb weights, alpha weights), differentiable in pk: G, z (P, c) and, per bank, None or
+      (fa, fb, lw) of its :class:`_Lookup`; and (rgb rows, alpha rows), None or :meth:`_Lookup.rows`.
+    """
+    u, v, G, z, fp = _geometry(pk, x, y, st.need_footprint)
+    if not (st.rgb or st.alpha):
+        return (G, z, None, None), (None, None)
+    # Each per-lookup quantity is computed once (see _barrier): (u, v) and the footprint, which every
+    # lookup reads, then the lookups' rows and weights, which the gathers and products read per texel.
+    u, v, fp = _barrier((u, v, fp), ctx["flag"])
+    cfg = st.config
+    lr = _tex_lookups(ctx["rgb_meta"], gid, u, v, fp, cfg, st.rgb_mip) if st.rgb else None
+    la = _tex_lookups(ctx["alpha_meta"], gid, u, v, fp, cfg, st.alpha_mip) if st.alpha else None
+    lr, la = _barrier((lr, la), ctx["flag"])
+    weights = lambda lk: None if lk is None else (lk.fa, lk.fb, lk.lw)
+    rows = lambda lk: None if lk is None else lk.rows()
+    return (G, z, weights(lr), weights(la)), (rows(lr), rows(la))
+
+
+def _chunk_contrib(st: _Static, ctx, pk, geo, vals_rgb, vals_a, gid, valid, log_t_in, done_in):
+    """Second stage of a chunk: its contribution, differentiable in (pk, geo, vals_rgb, vals_a).
+
+    Args:
+      pk: (c, F) packed splats; geo: the first output of :func:`_chunk_lookups`; vals_rgb / vals_a:
+        None or the :func:`_gather` texels at the rows it returned; gid, valid (c,); log_t_in (P,)
+        log transmittance before the chunk; done_in (P,) compositing already stopped.
     Returns:
       ((dacc (P, 9), log_t_out (P,)), (done_out (P,), w (P, c)))
     """
     cfg = st.config
-    u, v, G, z, fp = _geometry(pk, x, y, st.need_footprint)
+    G, z, wr, wa = geo
+    # Texture values through _barrier: their cotangents are then computed once, not per texel.
+    offs = a_tex = None
+    if st.rgb or st.alpha:
+        offs, a_tex = _barrier((None if wr is None else _tex_value(vals_rgb, *wr),
+                                None if wa is None else _tex_value(vals_a, *wa)[0]), ctx["flag"])
     a = pk[:, _OP] * G
     if st.alpha:
-        meta = ctx["alpha_meta"]
-        ia, wa = _tex_corners(meta, gid, u, v, fp, cfg, st.alpha_mip)
-        if vals_a is None:
-            vals_a = _gather(texels[1], lax.stop_gradient(ia))
-        a = a * jnp.where(meta.has[gid], jnp.sum(wa * vals_a[..., 0], axis=-1), 1.0)
+        a = a * jnp.where(ctx["alpha_meta"].has[gid], a_tex, 1.0)
     a = jnp.clip(a, 0.0, ALPHA_MAX)
     keep = valid & (a >= ALPHA_MIN) & (z > cfg.near)
     a = jnp.where(keep, a, 0.0)
@@ -462,12 +551,8 @@ def _chunk_contrib(st: _Static, ctx, pk, vals_rgb, vals_a, gid, valid, x, y, log
     w = jnp.where(include, a * jnp.exp(log_t_in[:, None] + cum - log1m), 0.0)     # (P, c)
     rgb = w @ pk[:, _COL]
     if st.rgb:
-        meta = ctx["rgb_meta"]
-        ir, wr = _tex_corners(meta, gid, u, v, fp, cfg, st.rgb_mip)
-        if vals_rgb is None:
-            vals_rgb = _gather(texels[0], lax.stop_gradient(ir))
-        offs = jnp.where(meta.has[gid][:, None], jnp.sum(wr[..., None] * vals_rgb, axis=-2), 0.0)
-        rgb = rgb + jnp.einsum("pc,pcj->pj", w, offs)
+        has = ctx["rgb_meta"].has[gid]
+        rgb = rgb + jnp.stack([jnp.sum(jnp.where(has, w * o, 0.0), axis=1) for o in offs], axis=1)
     m = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * (1.0 - _DIST_NEAR / jnp.where(keep, z, 1.0))
     wm = w * m
     dacc = jnp.concatenate([rgb, jnp.sum(w * z, axis=1, keepdims=True), w @ pk[:, _NRM],
@@ -476,15 +561,6 @@ def _chunk_contrib(st: _Static, ctx, pk, vals_rgb, vals_a, gid, valid, x, y, log
     log_t_out = log_t_in + jnp.sum(jnp.where(include, log1m, 0.0), axis=1)
     done_out = done_in | (log_t_in + cum[:, -1] < _LOG_T_MIN)
     return (dacc, log_t_out), (done_out, w)
-
-
-def _gather(texels2, idx):
-    return None if idx is None else tex.gather_pairs(texels2, idx)
-
-
-def _unpair(g):
-    """Cotangents of :func:`patexgs_jax.textures.gather_pairs` values (..., 2K, ch) -> (..., K, 2 ch)."""
-    return g.reshape(g.shape[:-2] + (g.shape[-2] // 2, 2 * g.shape[-1]))
 
 
 def _num_chunks(st: _Static, ctx, t):
@@ -519,8 +595,11 @@ def _composite_fwd_impl(st: _Static, packed, rgb_texels, alpha_texels, ctx):
 
         def one(t, k, x, y, log_t, done):
             gid, valid = _chunk_slots(st, ctx, t, k)
+            pk = packed[gid]
+            geo, (ir, ia) = _chunk_lookups(st, ctx, pk, gid, x, y)
             (dacc, log_t2), (done2, w) = _chunk_contrib(
-                st, ctx, packed[gid], None, None, gid, valid, x, y, log_t, done, (rgb_texels, alpha_texels))
+                st, ctx, pk, geo, _gather(ctx["rgb_quads"], ir), _gather(ctx["alpha_quads"], ia), gid, valid,
+                log_t, done)
             return dacc, log_t2, done2, jnp.max(w, axis=1), gid[jnp.argmax(w, axis=1)]
 
         def body(state):
@@ -555,9 +634,9 @@ def _composite(st: _Static, packed, rgb_texels, alpha_texels, ctx):
     Args:
       st: static settings.
       packed: (C, F) per-splat quantities (differentiable).
-      rgb_texels, alpha_texels: (M, 6) / (M, 2) paired atlases (:func:`textures.paired`) or None
+      rgb_texels, alpha_texels: (M, 3) / (M, 1) flat atlases (:class:`textures.Atlas`) or None
         (differentiable).
-      ctx: dict of int/bool arrays (tile lists, texture addressing); no gradient.
+      ctx: dict of arrays without gradient (tile lists, texture addressing, the atlases' quads).
     Returns:
       acc (T, P, 9) accumulators, t_final (T, P), best (T, P) int32 id of the largest-weight splat.
 
@@ -585,15 +664,17 @@ def _composite_bwd(st, res, cts):
         """One tile's chunk k: its cotangents for the packed splats and the texels it read."""
         gid, valid = _chunk_slots(st, ctx, t, k)
         pk = packed[gid]
-        ir, ia = _chunk_addresses(st, ctx, pk, gid, x, y)
-        vr, va = _gather(rgb_texels, ir), _gather(alpha_texels, ia)
+        geo, vjp_geo, (ir, ia) = jax.vjp(lambda pk_: _chunk_lookups(st, ctx, pk_, gid, x, y), pk,
+                                         has_aux=True)
+        vr, va = _gather(ctx["rgb_quads"], ir), _gather(ctx["alpha_quads"], ia)
 
-        def f(pk_, vr_, va_):
-            return _chunk_contrib(st, ctx, pk_, vr_, va_, gid, valid, x, y, log_t, done)
+        def f(pk_, geo_, vr_, va_):
+            return _chunk_contrib(st, ctx, pk_, geo_, vr_, va_, gid, valid, log_t, done)
 
-        (dacc, log_t2), vjp, (done2, _) = jax.vjp(f, pk, vr, va, has_aux=True)
+        (dacc, log_t2), vjp, (done2, _) = jax.vjp(f, pk, geo, vr, va, has_aux=True)
         dot_through = dot_through + jnp.sum(ct_acc * dacc, axis=1)
-        g_pkc, g_vr, g_va = vjp((ct_acc, base_term - dot_through))
+        g_pkc, g_geo, g_vr, g_va = vjp((ct_acc, base_term - dot_through))
+        g_pkc = g_pkc + vjp_geo(g_geo)[0]
         return log_t2, done2, dot_through, gid, jnp.where(valid[:, None], g_pkc, 0.0), ir, g_vr, ia, g_va
 
     def batch(carry, inp):
@@ -613,9 +694,9 @@ def _composite_bwd(st, res, cts):
                 one, (0, None, 0, 0, 0, 0, 0, 0, 0))(tb, k, x, y, log_t, done, dot_through, ct_acc, base_term)
             g_pk = g_pk.at[gid.reshape(-1)].add(g_pkc.reshape(-1, g_pkc.shape[-1]))
             if ir is not None:
-                g_rt = g_rt.at[ir].add(_unpair(g_vr), mode="promise_in_bounds")
+                g_rt = _scatter(g_rt, ir, g_vr)
             if ia is not None:
-                g_at = g_at.at[ia].add(_unpair(g_va), mode="promise_in_bounds")
+                g_at = _scatter(g_at, ia, g_va)
             return k + 1, log_t, done, dot_through, (g_pk, g_rt, g_at)
 
         init = (jnp.int32(0), jnp.zeros((B, npx), dt), jnp.zeros((B, npx), bool), jnp.zeros((B, npx), dt),
@@ -624,10 +705,11 @@ def _composite_bwd(st, res, cts):
 
     batches = _tile_batches(st, ctx)
     pad = (jnp.arange(batches.size) >= st.num_tiles).reshape(batches.shape)
-    zeros = (jnp.zeros_like(packed), None if rgb_texels is None else jnp.zeros_like(rgb_texels),
-             None if alpha_texels is None else jnp.zeros_like(alpha_texels))
+    pairs = lambda t: None if t is None else jnp.zeros(t.shape[:-1] + (2 * t.shape[-1],), t.dtype)
+    zeros = (jnp.zeros_like(packed), pairs(rgb_texels), pairs(alpha_texels))
     (g_pk, g_rt, g_at), _ = lax.scan(batch, zeros, (batches, pad))
-    return g_pk, g_rt, g_at, jax.tree_util.tree_map(lambda _: None, ctx)
+    unpair = lambda g: None if g is None else _unpair(g)
+    return g_pk, unpair(g_rt), unpair(g_at), jax.tree_util.tree_map(lambda _: None, ctx)
 
 
 _composite.defvjp(_composite_fwd, _composite_bwd)
@@ -680,9 +762,12 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     st = _Static(config=config, tiles_x=tiles_x, num_tiles=num_tiles, rgb=rgb_atlas is not None,
                  alpha=alpha_atlas is not None)
     ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
-               rgb_meta=_meta(rgb_atlas), alpha_meta=_meta(alpha_atlas))
-    acc, t_final, best = _composite(st, proj["packed"], None if rgb_atlas is None else tex.paired(rgb_atlas.texels),
-                                    None if alpha_atlas is None else tex.paired(alpha_atlas.texels), ctx)
+               rgb_meta=_meta(rgb_atlas), alpha_meta=_meta(alpha_atlas),
+               rgb_quads=None if rgb_atlas is None else rgb_atlas.quads,
+               alpha_quads=None if alpha_atlas is None else alpha_atlas.quads,
+               flag=binned[0] >= 0)  # a True XLA cannot prove (see _barrier)
+    acc, t_final, best = _composite(st, proj["packed"], None if rgb_atlas is None else rgb_atlas.texels,
+                                    None if alpha_atlas is None else alpha_atlas.texels, ctx)
     bg = jnp.asarray(config.background, acc.dtype)
     rgb = acc[..., 0:3] + t_final[..., None] * bg
     depth, normal = acc[..., 3], acc[..., 4:7]
@@ -693,12 +778,13 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     depth = jnp.where(alpha > 1e-6, depth / jnp.maximum(alpha, 1e-6), 0.0)
     normal = _untile(normal, tiles_x, tiles_y, ts, H, W)
     distortion = _untile(distortion, tiles_x, tiles_y, ts, H, W)
-    best = _untile(best, tiles_x, tiles_y, ts, H, W).reshape(-1)
+    dominant = _untile(best, tiles_x, tiles_y, ts, H, W)
+    best = dominant.reshape(-1)
     C = scene.capacity
     counts = jnp.zeros((C,), jnp.int32).at[jnp.where(best >= 0, best, C)].add(1, mode="drop")
     overflow = pairs_needed > capacity.pairs
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, normal=normal, distortion=distortion,
-                        max_contrib_count=counts,
+                        max_contrib_count=counts, dominant=dominant,
                         radius_px=jnp.where(ok, proj["radius"], 0.0), visible=ok,
                         pairs_needed=pairs_needed, max_tile_count=max_tile, overflow=overflow)
 

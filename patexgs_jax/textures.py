@@ -17,10 +17,14 @@ Mip pyramid (paper Eqs. 11-13)
   exactly, and for power-of-two n each level is a low-pass of the previous one.
 
 Atlas
-  Rendering gathers every texel, of every bucket and level, from one flat ``(M, channels)`` array
-  in which each Gaussian's pyramid is one contiguous block; a level's offset, row stride and side
-  are computed from the block's base, the bucket side and the level (:func:`level_address`), so
-  a lookup needs no per-level tables. Pyramids are built only when a configuration uses them.
+  Every texel, of every bucket and level, sits in one flat ``(M, channels)`` array (the
+  differentiable one) in which each Gaussian's pyramid is one contiguous block; a level's offset in
+  the block, row stride and side are computed from the bucket side and the level
+  (:func:`level_address`), so a lookup needs no per-level tables. Rendering reads the same texels as
+  *quads*, an ``(M, 4 channels)`` array whose row for texel (a, b) of a level holds the 2 x 2 block
+  (a, b), (a, b + 1), (a + 1, b), (a + 1, b + 1) (zeros past the level's edge): a bilinear lookup is
+  one gather of one row (XLA's CPU gathers cost per index, far more than per element). Pyramids are
+  built only when a configuration uses them.
 """
 
 from __future__ import annotations
@@ -185,7 +189,11 @@ class Atlas:
     Level l >= 1 starts at ``(4/3) (P^2 - (P >> l)^2)`` within the block (see :func:`level_address`).
 
     Attributes:
-      texels: (M, channels) float; row 0 is a dummy for texture-less Gaussians.
+      texels: (M + pad, channels) float, the flat pyramids (differentiable); row 0 is a dummy (zeros)
+        for texture-less Gaussians, and ``pad`` zero rows at the end keep every neighbour row of a
+        lookup (r + 1, r + stride, r + stride + 1, weight 0 past a level's edge) in bounds.
+      quads: (M, 4 channels) the same texels as quads (see the module docstring; no gradient): row r
+        holds rows r, r + 1, r + stride, r + stride + 1 of ``texels`` (zeros past a level's edge).
       base: (C,) int32 flat offset of each Gaussian's block.
       bucket_side: (C,) int32 P, the bucket's slot side.
       size: (C,) float32 true n (0: no texture).
@@ -194,6 +202,7 @@ class Atlas:
     """
 
     texels: jax.Array
+    quads: jax.Array
     base: jax.Array
     bucket_side: jax.Array
     size: jax.Array
@@ -218,6 +227,15 @@ def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:
     return levels
 
 
+def _quads(level: jax.Array) -> jax.Array:
+    """(cap, s, s, ch) level -> (cap, s, s, 4 ch): texel (a, b) with its +b, +a and +a+b neighbours
+    (zeros past the edge)."""
+    def shifted(da, db):  # texel (a + da, b + db), zero past the edge
+        return jnp.pad(level[:, da:, db:], ((0, 0), (0, da), (0, db), (0, 0)))
+
+    return jnp.concatenate([level, shifted(0, 1), shifted(1, 0), shifted(1, 1)], axis=-1)
+
+
 def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
     """Flattens a bank (with its mip pyramids when ``use_mip``) into one texel array."""
     ch = bank.channels
@@ -228,6 +246,7 @@ def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
     has = bucket >= 0
     dtype = bank.buckets[0].dtype if bank.buckets else jnp.float32
     chunks = [jnp.zeros((1, ch), dtype)]
+    quads = [jnp.zeros((1, 4 * ch), dtype)]
     offset = 1
     base = jnp.zeros(bucket.shape, jnp.int32)
     for b, data in enumerate(bank.buckets):
@@ -243,65 +262,78 @@ def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
             levels = [data]
         block = jnp.concatenate([lev.reshape(cap, -1, ch) for lev in levels], axis=1)
         chunks.append(block.reshape(-1, ch))
+        quads.append(jnp.concatenate([_quads(jax.lax.stop_gradient(lev)).reshape(cap, -1, 4 * ch)
+                                      for lev in levels], axis=1).reshape(-1, 4 * ch))
         base = jnp.where(mine, offset + jnp.clip(slot, 0, cap - 1) * block.shape[1], base)
         offset += block.shape[0] * block.shape[1]
     bucket_side = jnp.where(has, jnp.left_shift(1, jnp.maximum(bucket, 0)), 1)
     max_level = jnp.where(has, bucket, 0) if use_mip else jnp.zeros_like(bucket)
-    return Atlas(texels=jnp.concatenate(chunks, axis=0), base=base, bucket_side=bucket_side,
-                 size=size_f, max_level=max_level, has=has)
+    chunks.append(jnp.zeros(((1 << max(len(bank.buckets) - 1, 0)) + 2, ch), dtype))
+    return Atlas(texels=jnp.concatenate(chunks, axis=0), quads=jnp.concatenate(quads, axis=0), base=base,
+                 bucket_side=bucket_side, size=size_f, max_level=max_level, has=has)
 
 
-def level_address(base, bucket_side, size, level):
-    """(offset, row stride, side) of pyramid ``level`` of blocks at ``base``; int32, broadcasting.
+def level_address(bucket_side, size, level):
+    """(offset within the block, row stride, side) of pyramid ``level``; int32, broadcasting.
 
-    Level 0: (base, P, n); level l >= 1: (base + (4/3)(P^2 - s^2), s, s) with s = P >> l.
+    Level 0: (0, P, n); level l >= 1: ((4/3)(P^2 - s^2), s, s) with s = P >> l.
     """
     s = jnp.right_shift(bucket_side, level)
     zero = level == 0
     off = jnp.where(zero, 0, (bucket_side * bucket_side - s * s) * 4 // 3)
-    return base + off, jnp.where(zero, bucket_side, s), jnp.where(zero, size, s)
+    return off, jnp.where(zero, bucket_side, s), jnp.where(zero, size, s)
 
 
-def corners(base, stride, side, u, v):
-    """Addresses and weights of the bilinear, edge-clamped lookup of one level (align-corners).
+def corners(offset, stride, side, u, v):
+    """Row and fractions of the bilinear, edge-clamped lookup of one level (align-corners).
 
-    Lookups read texel *pairs* from a :func:`paired` atlas: row ``i`` holds texels ``i`` and
-    ``i + 1``, i.e. columns b0 and b0 + 1 of a texture row, so a bilinear lookup is two gathers.
-    Column b0 is at most side - 2 (for side >= 2) and, for side 1, the second column has weight 0.
+    Lookups read the quad atlas (:class:`Atlas`): the row ``offset + a0 * stride + b0`` of a
+    Gaussian's block holds texels (a0, b0), (a0, b0 + 1), (a0 + 1, b0), (a0 + 1, b0 + 1). a0 and b0
+    are at most side - 2 (for side >= 2); for side 1 the neighbours (past the edge) get weight
+    exactly 0.
 
     Args:
-      base, stride, side: int32 arrays broadcastable with u (per lookup): the level's flat offset,
-        row stride and side.
+      offset, stride, side: int32 arrays broadcastable with u (per lookup): the level's offset in the
+        block, row stride and side (:func:`level_address`).
       u, v: float splat-plane coordinates in units of the scales (texture spans [-3, 3]^2).
     Returns:
-      (idx (..., 2) int32 paired-atlas rows of texture rows a0 and a1, w (..., 4) float weights of
-      texels (a0, b0), (a0, b0+1), (a1, b0), (a1, b0+1), summing to one); the weights are
-      differentiable in (u, v), the addresses piecewise constant.
+      (row (...) the row within the block, as a float holding an exact integer (blocks have fewer
+      than 2**24 rows), fa (...), fb (...) the fractional positions along a and b); the fractions
+      are differentiable in (u, v), the row piecewise constant.
     """
-    sidef = side.astype(u.dtype)
-    last = jnp.maximum(sidef - 1.0, 0.0)
+    dt = u.dtype
+    last = jnp.maximum(side.astype(dt) - 1.0, 0.0)
+    top = jnp.maximum(last - 1.0, 0.0)
     ta = jnp.clip((u + 3.0) * (1.0 / 6.0) * last, 0.0, last)
     tb = jnp.clip((v + 3.0) * (1.0 / 6.0) * last, 0.0, last)
-    a0 = jnp.minimum(jnp.floor(ta), jnp.maximum(last - 1.0, 0.0))
-    b0 = jnp.minimum(jnp.floor(tb), jnp.maximum(last - 1.0, 0.0))
-    fa, fb = ta - a0, tb - b0
-    a0i, b0i = a0.astype(jnp.int32), b0.astype(jnp.int32)
-    a1i = jnp.minimum(a0i + 1, side - 1)
-    idx = jnp.stack([base + a0i * stride + b0i, base + a1i * stride + b0i], axis=-1)
-    w = jnp.stack([(1 - fa) * (1 - fb), (1 - fa) * fb, fa * (1 - fb), fa * fb], axis=-1)
-    return idx, w
+    a0 = jnp.minimum(jnp.floor(ta), top)
+    b0 = jnp.minimum(jnp.floor(tb), top)
+    row = offset.astype(dt) + a0 * stride.astype(dt) + b0
+    return row, ta - a0, tb - b0
 
 
-def paired(texels):
-    """(M, ch) atlas -> (M, 2 ch) whose row i is texels i and i + 1 (the last paired with zeros)."""
-    nxt = jnp.concatenate([texels[1:], jnp.zeros_like(texels[:1])], axis=0)
-    return jnp.concatenate([texels, nxt], axis=1)
+def split_quads(quad):
+    """Quad rows (..., 4 ch) -> list of 4 ch arrays (...): texel (a0, b0) channels, then (a0, b0 + 1),
+    (a0 + 1, b0), (a0 + 1, b0 + 1)."""
+    return [x[..., 0] for x in jnp.split(quad, quad.shape[-1], axis=-1)]
 
 
-def gather_pairs(texels2, idx):
-    """Texel values at :func:`corners` addresses: (..., K) rows -> (..., 2K, ch)."""
-    vals = texels2.at[idx].get(mode="promise_in_bounds")          # (..., K, 2 ch)
-    return vals.reshape(vals.shape[:-2] + (2 * vals.shape[-2], vals.shape[-1] // 2))
+def bilinear(t, fa, fb):
+    """Bilinear values from :func:`split_quads` texels ``t`` (4 ch arrays) and fractions fa, fb ->
+    list of ch arrays.
+
+    Per-channel arrays (not an (..., ch) array): the callers combine channels with per-lookup
+    scalars, and per-channel arrays keep those products elementwise, forward and backward.
+    """
+    ch = len(t) // 4
+    ga, gb = 1.0 - fa, 1.0 - fb
+    return [ga * (gb * t[k] + fb * t[ch + k]) + fa * (gb * t[2 * ch + k] + fb * t[3 * ch + k])
+            for k in range(ch)]
+
+
+def gather_rows(quads, idx):
+    """Quad rows ``idx`` (block base plus :func:`corners` row, int32): (...) -> (..., 4 ch)."""
+    return quads.at[idx].get(mode="promise_in_bounds")
 
 
 def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):

@@ -119,6 +119,13 @@ def test_output_invariants():
     assert np.all(out.rgb <= max(0.0, cols.max() + offs.max()) + 1e-6)
     assert out.max_contrib_count.sum() <= W * H
     assert np.all(out.radius_px[out.visible] > 0)
+    # The per-pixel dominant splat: -1 where nothing was drawn, else a visible splat; its counts are
+    # max_contrib_count.
+    dom = np.asarray(out.dominant)
+    assert dom.shape == (H, W) and dom.min() >= -1
+    assert np.all(np.asarray(out.visible)[dom[dom >= 0]])
+    np.testing.assert_array_equal(np.bincount(dom[dom >= 0], minlength=C), out.max_contrib_count)
+    assert np.all(np.asarray(out.alpha)[dom < 0] < 1e-6)
 
 
 def test_scaled_camera_is_pixel_consistent():
