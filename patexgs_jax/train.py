@@ -448,8 +448,9 @@ class _Run:
 
         mesh = self.data_mesh()
         self.scene, self.opt_state, self.stats = parallel.replicate((self.scene, self.opt_state, self.stats), mesh)
-        cams = parallel.stack_cameras([v.camera for v in views])
-        return parallel.shard_batch((cams, np.stack([np.asarray(im, np.float32) for im in images])), mesh)
+        local = parallel.process_slice(len(views))  # all B views with one process
+        cams = parallel.stack_cameras([v.camera for v in views[local]])
+        return parallel.shard_batch((cams, np.stack([np.asarray(im, np.float32) for im in images[local]])), mesh)
 
     def fit_capacity(self, camera):
         needed, _ = count_pairs(self.scene, camera, self.render_cfg)
