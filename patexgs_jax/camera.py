@@ -52,7 +52,8 @@ class Camera:
             K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         if K.shape != (3, 3):
             raise ValueError(f"Camera intrinsics K must have shape (3, 3) or (4,), got {K.shape}.")
-        if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        # (finite as float32 too: values beyond 3.4e38 would be stored as inf)
+        if not np.all(np.abs(K) < np.finfo(np.float32).max) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"Camera intrinsics must be finite with positive focal lengths, got K={K.tolist()}.")
         w2c = np.asarray(world_to_camera, dtype=np.float64)
         if w2c.shape == (3, 4):
@@ -61,7 +62,7 @@ class Camera:
             raise ValueError(
                 f"world_to_camera must have shape (4, 4) or (3, 4), got {w2c.shape}."
             )
-        if not np.all(np.isfinite(w2c)):
+        if not np.all(np.abs(w2c) < np.finfo(np.float32).max):
             raise ValueError("world_to_camera has non-finite entries; check the pose source.")
         R = w2c[:3, :3]
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:

@@ -60,7 +60,8 @@ def scale_by_group_lr(lr: LearningRates, scene_radius: float, step_offset: int =
     radius = float(scene_radius)
 
     def means_lr(count):
-        t = jnp.clip((count + step_offset) / max(lr.means_steps, 1), 0.0, 1.0)
+        # (in float: count + step_offset in int32 wraps to negative near 2^31, restarting the decay)
+        t = jnp.clip((count.astype(jnp.float32) + step_offset) / max(lr.means_steps, 1), 0.0, 1.0)
         return radius * jnp.exp((1 - t) * np.log(lr.means_init) + t * np.log(lr.means_final))
 
     def init_fn(params):

@@ -636,9 +636,26 @@ STAGE2_FIELDS = frozenset({"method", "iters_tex", "warmup_tex", "growth_interval
                            "log_every", "max_bad_steps"})
 
 
+#: Fields that change how a run executes, not what it computes: a run may resume (or take its stage 1
+#: from a run) with other values of these.
+RUNTIME_FIELDS = frozenset({"devices", "checkpoint_every", "log_every"})
+
+
+def _comparable(saved: dict) -> dict:
+    """A saved config as compared on resume: fields added since it was written take their defaults
+    (which reproduce the older behaviour), and :data:`RUNTIME_FIELDS` are left out."""
+    full = {**_config_dict(TrainConfig()), **saved}
+    return {k: v for k, v in full.items() if k not in RUNTIME_FIELDS}
+
+
+def _stage1_part(saved: dict) -> dict:
+    """The part of a saved config that determines stage 1."""
+    return {k: v for k, v in _comparable(saved).items() if k not in STAGE2_FIELDS}
+
+
 def stage1_key(cfg: TrainConfig) -> dict:
     """The part of a config that determines stage 1 (JSON-able; equal keys, equal 2DGS stages)."""
-    return {k: v for k, v in _config_dict(cfg).items() if k not in STAGE2_FIELDS}
+    return _stage1_part(_config_dict(cfg))
 
 
 def stage1_checkpoint(run_dir, config: TrainConfig) -> Path | None:
@@ -650,8 +667,7 @@ def stage1_checkpoint(run_dir, config: TrainConfig) -> Path | None:
         except ckpt.CheckpointError:
             continue
         cfg = meta.get("config") or {}
-        if meta.get("step") == config.iters_2dgs and {k: v for k, v in cfg.items()
-                                                       if k not in STAGE2_FIELDS} == stage1_key(config):
+        if meta.get("step") == config.iters_2dgs and _stage1_part(cfg) == stage1_key(config):
             return path
     return None
 
@@ -711,9 +727,11 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     latest = ckpt.latest_checkpoint(out / "checkpoints") if (out is not None and resume) else None
     if latest is not None:
         tree, meta = ckpt.load_checkpoint(latest)
-        if meta.get("config") != _config_dict(config):
-            raise ValueError(f"checkpoint {latest} was written with a different configuration; resume with "
-                             "the same settings or choose a new output directory.")
+        saved, wanted = _comparable(meta.get("config") or {}), _comparable(_config_dict(config))
+        if saved != wanted:
+            differ = sorted(k for k in wanted if saved.get(k) != wanted[k])
+            raise ValueError(f"checkpoint {latest} was written with a different configuration ({', '.join(differ)} "
+                             "differ); resume with the same settings or choose a new output directory.")
         run.load_state(tree)
         if run.tex_state is not None:
             run.texel_budget = (sched.mb_to_texels(config.texture_budget_mb)
@@ -727,6 +745,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
             _load_stage1(run, Path(stage1), config)
         else:
             run.fresh()
+    if out is not None:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
+        ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
+            np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
     run.run()
     scene = run.scene
     texels = scene.texel_count()
@@ -757,7 +778,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
 
 def _load_stage1(run: _Run, path: Path, config: TrainConfig) -> None:
     meta = ckpt.read_metadata(path)
-    cfg = {k: v for k, v in (meta.get("config") or {}).items() if k not in STAGE2_FIELDS}
+    cfg = _stage1_part(meta.get("config") or {})
     want = stage1_key(config)
     if cfg != want:
         diff = sorted(k for k in set(cfg) | set(want) if cfg.get(k) != want.get(k))

@@ -355,30 +355,40 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
             problems.append((f if f is not None else base / str(fr["file_path"]), why))
             continue
         get = lambda k, d=None: fr.get(k, top.get(k, d))  # noqa: E731
-        w, h = get("w"), get("h")
+
+        def num(k, d=None):  # a number, or d when absent / null; a clear error for anything else
+            v = get(k)
+            if v is None:
+                return d
+            try:
+                return float(v)
+            except (TypeError, ValueError):
+                raise DatasetError(f"{where}: {k} must be a number, got {v!r}.") from None
+
+        w, h = num("w"), num("h")
         if w is not None and h is not None:
-            check_size_against_camera(f, size, (float(w), float(h)), 1, f"w/h in {jpath}")
+            check_size_against_camera(f, size, (w, h), 1, f"w/h in {jpath}")
         w, h = size
-        if get("fl_x") is not None:
-            fx = float(get("fl_x"))
-        elif get("camera_angle_x") is not None:
-            fx = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
+        if num("fl_x") is not None:
+            fx = num("fl_x")
+        elif num("camera_angle_x") is not None:
+            fx = 0.5 * w / math.tan(0.5 * num("camera_angle_x"))
         else:
             raise DatasetError(f"{where}: no focal length (need fl_x or camera_angle_x).")
-        if get("fl_y") is not None:
-            fy = float(get("fl_y"))
-        elif get("camera_angle_y") is not None:
-            fy = 0.5 * h / math.tan(0.5 * float(get("camera_angle_y")))
+        if num("fl_y") is not None:
+            fy = num("fl_y")
+        elif num("camera_angle_y") is not None:
+            fy = 0.5 * h / math.tan(0.5 * num("camera_angle_y"))
         else:
             fy = fx
-        cx = float(get("cx", 0.5 * w))
-        cy = float(get("cy", 0.5 * h))
+        cx = num("cx", 0.5 * w)
+        cy = num("cy", 0.5 * h)
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         fisheye = bool(get("is_fisheye", False)) or str(get("camera_model", "OPENCV")).upper() == "OPENCV_FISHEYE"
         model = str(get("camera_model", "OPENCV")).upper()
         if model not in ("OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_PINHOLE"):
             raise DatasetError(f"{jpath}: camera_model {model!r} is not supported (use OPENCV or OPENCV_FISHEYE).")
-        dist = {k: float(get(k, 0.0) or 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")}
+        dist = {k: num(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")}
         if not fisheye and dist["k4"] != 0.0:
             raise DatasetError(f"{where}: k4 is set but the camera is not fisheye; k4 of the OpenCV rational "
                                "model is not supported.")
