@@ -23,7 +23,7 @@ from pathlib import Path
 
 import PIL.Image  # import PIL before pycolmap: the reverse order was seen to corrupt the heap
 import numpy as np
-import pycolmap
+from ._pycolmap import pycolmap
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG")
 DOWNSAMPLE_FACTORS = (2, 4, 8)

@@ -46,6 +46,7 @@ import numpy as np
 import optax
 
 from . import checkpoint as ckpt
+from . import compiled
 from . import densify as dens
 from . import losses
 from . import schedule as sched
@@ -719,6 +720,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     Returns:
       :class:`TrainResult`.
     """
+    # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
+    # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
+    compiled.release_compiled_code()
     out = None if out_dir is None else Path(out_dir)
     if out is not None:
         ckpt.check_writable(out)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import PIL.Image
-import pycolmap
+from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 
 from patexgs_jax.camera import look_at
 

@@ -22,7 +22,7 @@ from patexgs_jax.data import DatasetError, DatasetWarning
 from patexgs_jax.data.colmap import validate_binary_model
 from patexgs_jax.data.nerf import distort_normalized, read_ply_points
 
-import pycolmap  # noqa: E402  (after patexgs_jax.data on purpose: the package makes the order safe)
+from patexgs_jax._pycolmap import pycolmap  # noqa: E402  (keeps the fatal-signal handlers, see there)
 
 from data_builders import (  # noqa: E402
     camera_params,

@@ -3,7 +3,7 @@
 
 import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
 import numpy as np
-import pycolmap
+from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 import pytest
 
 from patexgs_jax import prepare as prep

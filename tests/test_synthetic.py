@@ -5,7 +5,7 @@ from pathlib import Path
 
 import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
 import numpy as np
-import pycolmap
+from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 import pytest
 
 from patexgs_jax.camera import Camera

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import PIL.Image  # noqa: F401  -- must be loaded before pycolmap (see data/__init__)
-import pycolmap
+from .._pycolmap import pycolmap
 
 from .dataset import (
     image_loader,

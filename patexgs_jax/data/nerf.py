@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import PIL.Image
-import pycolmap
+from .._pycolmap import pycolmap
 
 from .colmap import default_factor
 from .dataset import (

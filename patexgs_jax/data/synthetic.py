@@ -37,7 +37,7 @@ from pathlib import Path
 
 import PIL.Image  # noqa: F401  (import PIL before pycolmap: the reverse order was seen to corrupt the heap)
 import numpy as np
-import pycolmap
+from .._pycolmap import pycolmap
 
 from patexgs_jax.camera import Camera, look_at
 from patexgs_jax.prepare import box_downsample, save_image
