@@ -1,0 +1,683 @@
+"""Accuracy against time: which settings trade how much quality for how much speed.
+
+    python -m experiments.tradeoffs [--data SCENE] [--preset tiny|small|paper] [--out DIR]
+        [--knobs mip,texture,budget,iters,sh] [--iters-2dgs N] [--iters-tex N] [--max-gaussians N]
+    python -m experiments.tradeoffs --effects --run RUN_DIR [--data SCENE] [--out DIR]
+        [--drop-effects-below DB] [--export PATH]
+
+Study (the first form)
+  Every knob that trades quality for speed is varied on its own around one base configuration (the
+  preset's, method ``patexgs``), on the same machine in one process:
+
+  * ``mip``: mip mode none / nearest / trilinear (methods ``patexgs-no-mip``, ``patexgs``,
+    ``patexgs-trilinear``), trained and rendered with that mode;
+  * ``texture``: no textures (``2dgs``), a fixed N x N texture per Gaussian (``textured-fixed-N``,
+    N = 1 ... 32, no mipmaps, as Textured Gaussians) and the adaptive sizes (``patexgs``);
+  * ``budget``: ``max_gaussians`` at 100 / 10 / 1 % of the Gaussian count the base run reached
+    (100 % is the base run itself);
+  * ``iters``: 25 / 50 / 100 % of both stages' iterations, the step-based schedule (densification
+    window and interval, normal-loss start, SH band interval, texture warm-up and growth interval)
+    compressed by the same factor;
+  * ``sh``: the final SH degree 0 ... 3.
+
+  Variants that differ only in stage-2 settings (``patexgs_jax.train.STAGE2_FIELDS``: mip, texture
+  kind) share one 2DGS stage: each distinct stage 1 is trained once, as a ``2dgs`` run, and the
+  textured runs start from its final checkpoint. ``train_seconds`` of a run counts both stages (the
+  shared stage 1 included; compilation included, as the trainer reports it).
+
+  Each run is evaluated on the test views at zoom-out scales 1, 2, 4, 8 (PSNR, SSIM) and its render
+  time measured at each scale (per view the fastest of 3 renders, the median over views;
+  compilation excluded). The Pareto
+  fronts of PSNR against training time and against render time are drawn per scale.
+
+  Outputs in DIR (default ``runs/tradeoffs``): ``tradeoffs.json`` (written after every run),
+  ``tradeoffs.md`` (one table per knob), ``tradeoffs.png`` (PSNR against time, Pareto fronts) and
+  ``runs/<method>-<hash>/`` (each training run). An interrupted study resumes: finished runs are
+  skipped and an interrupted training run continues from its last checkpoint.
+
+  Without ``--data`` the study runs on the embedded synthetic scene with the ``tiny`` preset, whose
+  texture stage it shortens to 60 steps (``--iters-tex`` to change).
+
+Effects (the second form)
+  For one trained run (its ``checkpoints/`` or ``scene.ply``; the render configuration of its method
+  from ``summary.json``), each effect - SH bands above 0, RGB textures, alpha textures, mipmaps - is
+  switched off on its own; the PSNR it contributes (on minus off) at each scale is set against the
+  render time it costs. ``--drop-effects-below DB`` writes the scene without every effect that
+  contributes less than DB dB at every scale (PLY + texture sidecar; the render settings to use in
+  ``<PLY stem>.render.json``) and reports the render time (and the XLA flop estimate) of the reduced
+  scene against the full one: switched-off features are compiled out of the renderer.
+
+``tradeoffs.json`` schema::
+
+    {"schema": 1, "data": str, "preset": str, "scales": [1, 2, 4, 8], "machine": str,
+     "base": {TrainConfig as JSON}, "study_seconds": float,
+     "runs": {run_id: {"run": run_id, "method": str, "config": {...}, "stage1_run": run_id | null,
+                       "train_seconds": float, "stage1_seconds": float | null, "num_gaussians": int,
+                       "texels": int, "storage_mb": float, "psnr": {scale: float},
+                       "ssim": {scale: float}, "render_ms": {scale: float}, "wall_seconds": float}},
+     "knobs": {knob: [{"label": str, "value": ..., "run": run_id}, ...]},
+     "pareto": {"train_seconds" | "render_ms": {scale: [run_id, ...]}}}
+
+Scale keys are strings ("1", "2", ...). Pareto lists are sorted by increasing cost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+KNOBS = ("mip", "texture", "budget", "iters", "sh")
+SCALES = (1, 2, 4, 8)
+MIP_METHODS = {"none": "patexgs-no-mip", "nearest": "patexgs", "trilinear": "patexgs-trilinear"}
+FIXED_SIZES = (1, 2, 4, 8, 16, 32)
+BUDGET_FRACTIONS = (1.0, 0.1, 0.01)
+ITER_FRACTIONS = (0.25, 0.5, 1.0)
+SH_DEGREES = (0, 1, 2, 3)
+#: The study's own defaults per preset (applied unless overridden on the command line).
+STUDY_DEFAULTS = {"tiny": dict(iters_tex=60)}
+EFFECTS = ("sh_bands", "rgb_textures", "alpha_textures", "mipmaps")
+SCHEMA = 1
+
+
+# ------------------------------------------------------------------------------------------------
+# Planning
+# ------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    """One point of one knob: the setting's label and value, and the run's configuration."""
+
+    knob: str
+    label: str
+    value: object
+    config: object  # patexgs_jax.train.TrainConfig
+
+
+def config_json(cfg) -> dict:
+    """A TrainConfig as plain JSON (nested dataclasses as dicts)."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
+
+
+def run_id(cfg) -> str:
+    """``<method>-<10 hex digits>``: equal configurations, equal ids (and run directories)."""
+    digest = hashlib.sha1(json.dumps(config_json(cfg), sort_keys=True).encode()).hexdigest()[:10]
+    return f"{cfg.method}-{digest}"
+
+
+def scaled_iterations(cfg, fraction: float):
+    """``cfg`` with both stages' iterations and the step-based schedule scaled by ``fraction``."""
+    if fraction == 1.0:
+        return cfg
+
+    def s(n):
+        return max(1, int(round(n * fraction)))
+
+    d = cfg.densify
+    return dataclasses.replace(
+        cfg, iters_2dgs=s(cfg.iters_2dgs), iters_tex=int(round(cfg.iters_tex * fraction)),
+        warmup_tex=s(cfg.warmup_tex), growth_interval=s(cfg.growth_interval), normal_from=s(cfg.normal_from),
+        sh_interval=s(cfg.sh_interval),
+        densify=dataclasses.replace(d, start=s(d.start), stop=s(d.stop), interval=s(d.interval),
+                                    opacity_reset_interval=s(d.opacity_reset_interval)))
+
+
+def stage1_config(cfg, base):
+    """The ``2dgs`` run whose final checkpoint is ``cfg``'s stage 1 (stage-2 fields from ``base``)."""
+    from patexgs_jax.train import STAGE2_FIELDS
+
+    fields = {f: getattr(base, f) for f in STAGE2_FIELDS if f != "method"}
+    return dataclasses.replace(cfg, method="2dgs", **fields)
+
+
+def plan(base, knobs: Sequence[str], *, base_gaussians: int | None = None, fixed_sizes=FIXED_SIZES,
+         budget_fractions=BUDGET_FRACTIONS, iter_fractions=ITER_FRACTIONS, sh_degrees=SH_DEGREES,
+         base_first: bool = True) -> list[Entry]:
+    """The study's entries by knob and setting (with ``base_first``, the base run's entries moved to
+    the front: the other knobs need its Gaussian count). Budget entries other than 100 % need
+    ``base_gaussians`` (the base run's Gaussian count) and are left out without it."""
+    unknown = set(knobs) - set(KNOBS)
+    if unknown:
+        raise ValueError(f"unknown knob(s) {sorted(unknown)}; choose from {', '.join(KNOBS)}.")
+    rep = dataclasses.replace
+    out = []
+    for knob in KNOBS:
+        if knob not in knobs:
+            continue
+        if knob == "mip":
+            out += [Entry(knob, m, m, rep(base, method=meth)) for m, meth in MIP_METHODS.items()]
+        elif knob == "texture":
+            out.append(Entry(knob, "none (2DGS)", 0, stage1_config(base, base)))
+            out += [Entry(knob, f"fixed {n}x{n}", n, rep(base, method=f"textured-fixed-{n}")) for n in fixed_sizes]
+            out.append(Entry(knob, "adaptive", "adaptive", base))
+        elif knob == "budget":
+            for f in budget_fractions:
+                if f == 1.0:
+                    out.append(Entry(knob, "100%", f, base))
+                elif base_gaussians is not None:
+                    out.append(Entry(knob, f"{100 * f:g}%", f, rep(base, max_gaussians=max(1, int(round(f * base_gaussians))))))
+        elif knob == "iters":
+            out += [Entry(knob, f"{100 * f:g}%", f, scaled_iterations(base, f)) for f in iter_fractions]
+        elif knob == "sh":
+            out += [Entry(knob, f"degree {d}", d, rep(base, sh_degree=d)) for d in sh_degrees]
+    if base_first:
+        base_id = run_id(base)
+        out.sort(key=lambda e: run_id(e.config) != base_id)  # stable
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Pareto fronts, tables, plots
+# ------------------------------------------------------------------------------------------------
+def pareto_front(costs: Sequence[float], qualities: Sequence[float]) -> list[int]:
+    """Indices of the points no other point dominates (lower-or-equal cost and higher-or-equal
+    quality, one of them strictly), sorted by increasing cost. None / NaN points are ignored; of
+    identical points the first is kept."""
+    pts = [(float(c), float(q), i) for i, (c, q) in enumerate(zip(costs, qualities))
+           if c is not None and q is not None and np.isfinite(c) and np.isfinite(q)]
+    pts.sort(key=lambda p: (p[0], -p[1], p[2]))
+    front, best = [], -np.inf
+    for c, q, i in pts:
+        if q > best:
+            front.append(i)
+            best = q
+    return front
+
+
+def pareto_sets(runs: dict, scales: Sequence[int]) -> dict:
+    """``{"train_seconds" | "render_ms": {scale: [run ids on the front]}}`` over evaluated runs."""
+    ids = [r for r in runs if runs[r].get("psnr")]
+    out = {}
+    for cost in ("train_seconds", "render_ms"):
+        out[cost] = {}
+        for s in scales:
+            s = str(s)
+            c = [runs[r][cost] if cost == "train_seconds" else runs[r]["render_ms"].get(s) for r in ids]
+            q = [runs[r]["psnr"].get(s) for r in ids]
+            out[cost][s] = [ids[i] for i in pareto_front(c, q)]
+    return out
+
+
+def _fmt(x, digits=2):
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def markdown(study: dict) -> str:
+    """The study as Markdown: one table per knob (PSNR per scale, times, size, Pareto marks)."""
+    scales = [str(s) for s in study["scales"]]
+    runs, pareto = study["runs"], study.get("pareto") or pareto_sets(study["runs"], study["scales"])
+    lines = [f"# Accuracy vs time ({Path(str(study['data'])).name}, preset {study['preset']})", "",
+             f"Machine: {study.get('machine', '?')}. Test views at zoom-out scales {', '.join(scales)}; "
+             "train s = both stages' training steps (a shared 2DGS stage counted in full); render ms = "
+             "per frame (per view the fastest of 3 renders, median over views; no compilation). Pareto: T = on the PSNR-vs-training-time front and "
+             "R = on the PSNR-vs-render-time front at that scale (over all runs of the study).", ""]
+    head = (["setting", "method", "train s"] + [f"render ms x{s}" for s in scales[:1]]
+            + [f"PSNR x{s}" for s in scales] + ["Gaussians", "MB", "Pareto"])
+    for knob, entries in study["knobs"].items():
+        lines += [f"## {knob}", "", "| " + " | ".join(head) + " |",
+                  "| " + " | ".join(["---"] * 2 + ["---:"] * (len(head) - 3) + ["---"]) + " |"]
+        for e in entries:
+            r = runs.get(e["run"])
+            if r is None or not r.get("psnr"):
+                lines.append("| " + " | ".join([e["label"], "(not run yet)"] + [""] * (len(head) - 2)) + " |")
+                continue
+            marks = ",".join(f"{tag}x{s}" for s in scales for tag, cost in (("T", "train_seconds"), ("R", "render_ms"))
+                             if e["run"] in pareto[cost][s])
+            lines.append("| " + " | ".join(
+                [e["label"], r["method"], _fmt(r["train_seconds"], 0), _fmt(r["render_ms"].get(scales[0]), 1)]
+                + [_fmt(r["psnr"].get(s)) for s in scales]
+                + [str(r["num_gaussians"]), _fmt(r["storage_mb"]), marks or "-"]) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot(study: dict, path) -> Path:
+    """PSNR against training time (top row) and render time (bottom row) per scale, with the
+    Pareto fronts; one colour per knob."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker  # noqa: F401  (matplotlib.ticker.NullFormatter below)
+
+    scales = [str(s) for s in study["scales"]]
+    runs, pareto = study["runs"], study["pareto"]
+    knob_of = {}
+    for knob, entries in study["knobs"].items():
+        for e in entries:
+            knob_of.setdefault(e["run"], (knob, e["label"]))
+    colours = dict(zip(KNOBS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    fig, axes = plt.subplots(2, len(scales), figsize=(4.2 * len(scales), 7.5), squeeze=False)
+    for row, cost in enumerate(("train_seconds", "render_ms")):
+        for col, s in enumerate(scales):
+            ax = axes[row, col]
+            seen = set()
+            for rid, r in runs.items():
+                if not r.get("psnr") or rid not in knob_of:
+                    continue
+                x = r["train_seconds"] if cost == "train_seconds" else r["render_ms"].get(s)
+                y = r["psnr"].get(s)
+                if x is None or y is None:
+                    continue
+                knob, label = knob_of[rid]
+                ax.scatter([x], [y], color=colours.get(knob, "k"), s=18,
+                           label=None if knob in seen else knob, zorder=3)
+                seen.add(knob)
+                ax.annotate(label, (x, y), fontsize=6, xytext=(2, 2), textcoords="offset points")
+            front = pareto[cost][s]
+            fx = [runs[r]["train_seconds"] if cost == "train_seconds" else runs[r]["render_ms"][s] for r in front]
+            fy = [runs[r]["psnr"][s] for r in front]
+            if fx:
+                ax.step(fx, fy, where="post", color="k", lw=1, alpha=0.6)
+                ax.scatter(fx, fy, facecolors="none", edgecolors="k", s=70, label="Pareto front", zorder=4)
+            ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.set_xlabel("training time (s)" if cost == "train_seconds" else "render time per frame (ms)")
+            ax.set_ylabel(f"PSNR (dB), zoom-out x{s}")
+            ax.grid(alpha=0.3)
+            if row == 0 and col == 0:
+                ax.legend(fontsize=7)
+    fig.suptitle(f"Accuracy vs time: {Path(str(study['data'])).name}, preset {study['preset']}")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+# ------------------------------------------------------------------------------------------------
+# The study
+# ------------------------------------------------------------------------------------------------
+def _write_json(path: Path, obj) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    tmp.replace(path)
+
+
+def machine() -> str:
+    import jax
+
+    return (f"{platform.machine()} {platform.system()}, {len(jax.devices())} {jax.default_backend()} "
+            f"device(s), jax {jax.__version__}")
+
+
+def _latest_scene(run_dir: Path):
+    from patexgs_jax import checkpoint as ckpt
+
+    latest = ckpt.latest_checkpoint(run_dir / "checkpoints")
+    if latest is None:
+        raise FileNotFoundError(f"{run_dir} has no checkpoint.")
+    tree, _ = ckpt.load_checkpoint(latest)
+    return tree["scene"]
+
+
+def _scaled(views, s):
+    return list(views) if int(s) == 1 else [v.scaled(int(s)) for v in views]
+
+
+def render_ms_min(scene, views, render_config, *, max_views=8, repeats=3, active_sh_degree=None) -> float | None:
+    """Milliseconds per frame: per view the fastest of ``repeats`` timed renders (compilation and
+    capacity counting excluded; the minimum is robust to other processes on the machine), the
+    median over up to ``max_views`` usable views."""
+    import jax
+
+    from experiments.evaluation import usable
+    from patexgs_jax.render import Capacity, count_pairs, render_jit
+
+    ts = []
+    for v in [v for v in views if usable(v)][:max_views]:
+        needed, _ = count_pairs(scene, v.camera, render_config)
+        cap = Capacity.fit(float(needed))
+        jax.block_until_ready(render_jit(scene, v.camera, config=render_config, capacity=cap,
+                                         active_sh_degree=active_sh_degree).rgb)
+        best = np.inf
+        for _ in range(repeats):
+            t = time.perf_counter()
+            jax.block_until_ready(render_jit(scene, v.camera, config=render_config, capacity=cap,
+                                             active_sh_degree=active_sh_degree).rgb)
+            best = min(best, time.perf_counter() - t)
+        ts.append(best)
+    return 1e3 * float(np.median(ts)) if ts else None
+
+
+def measure(scene, views, render_config, scales=SCALES, *, active_sh_degree=None, max_views=8) -> dict:
+    """``{"psnr", "ssim", "render_ms": {scale: value}}`` of a scene on ``views`` (full resolution;
+    render time by :func:`render_ms_min`)."""
+    from experiments.evaluation import evaluate_scales
+
+    ev = evaluate_scales(scene, views, render_config, scales=scales, active_sh_degree=active_sh_degree)
+    ms = {str(s): render_ms_min(scene, _scaled(views, s), render_config, max_views=max_views,
+                                active_sh_degree=active_sh_degree) for s in scales}
+    return dict(psnr={str(s): ev[str(s)]["psnr"] for s in scales}, ssim={str(s): ev[str(s)]["ssim"] for s in scales},
+                render_ms=ms)
+
+
+class Study:
+    """The state of one study directory (``tradeoffs.json`` and the run directories)."""
+
+    def __init__(self, dataset, base, out_dir, *, data_name: str, preset: str, scales=SCALES,
+                 verbose: bool = True, render_views: int = 8):
+        self.ds, self.base, self.out = dataset, base, Path(out_dir)
+        self.scales, self.verbose, self.render_views = tuple(int(s) for s in scales), verbose, render_views
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.path = self.out / "tradeoffs.json"
+        state = json.loads(self.path.read_text()) if self.path.exists() else None
+        if state is not None and (state.get("base") != config_json(base) or state.get("scales") != list(self.scales)):
+            raise ValueError(f"{self.path} holds a study with another base configuration or scales; choose "
+                             "another --out or the same settings.")
+        self.state = state or dict(schema=SCHEMA, data=data_name, preset=preset, scales=list(self.scales),
+                                   machine=machine(), base=config_json(base), study_seconds=0.0,
+                                   runs={}, knobs={}, pareto={})
+
+    def say(self, msg):
+        if self.verbose:
+            print(msg, flush=True)
+
+    def run_dir(self, cfg) -> Path:
+        return self.out / "runs" / run_id(cfg)
+
+    def _train(self, cfg, stage1=None):
+        """Trains (or resumes) ``cfg`` into its run directory; returns (scene, summary)."""
+        from patexgs_jax.train import train
+
+        d = self.run_dir(cfg)
+        if (d / "summary.json").exists():
+            return _latest_scene(d), json.loads((d / "summary.json").read_text())
+        self.say(f"--- training {run_id(cfg)}" + (f" from stage 1 {stage1}" if stage1 else ""))
+        res = train(self.ds, cfg, d, resume=True, verbose=self.verbose, stage1=stage1)
+        return res.scene, res.summary
+
+    def ensure(self, cfg) -> dict:
+        """The evaluated record of ``cfg``'s run (trained and evaluated unless already recorded)."""
+        from patexgs_jax.train import stage1_checkpoint
+
+        rid = run_id(cfg)
+        rec = self.state["runs"].get(rid)
+        if rec is not None and rec.get("psnr"):
+            return rec
+        t0 = time.perf_counter()
+        s1_id, s1_seconds, stage1 = None, None, None
+        if cfg.method != "2dgs":
+            s1 = stage1_config(cfg, self.base)
+            _, s1_summary = self._train(s1)
+            s1_id, s1_seconds = run_id(s1), float(s1_summary["train_seconds"])
+            stage1 = stage1_checkpoint(self.run_dir(s1), cfg)
+            if stage1 is None and not (self.run_dir(cfg) / "checkpoints").is_dir():
+                raise RuntimeError(f"no end-of-stage-1 checkpoint in {self.run_dir(s1)} for {rid}.")
+        scene, summary = self._train(cfg, stage1)
+        self.say(f"--- evaluating {rid} at scales {self.scales}")
+        m = measure(scene, self.ds.test_views, cfg.render_config(), self.scales, max_views=self.render_views)
+        rec = dict(run=rid, method=cfg.method, config=config_json(cfg), stage1_run=s1_id,
+                   train_seconds=float(summary["train_seconds"]), stage1_seconds=s1_seconds,
+                   num_gaussians=int(summary["num_gaussians"]), texels=int(summary["texels"]),
+                   storage_mb=float(summary["storage_mb"]), wall_seconds=time.perf_counter() - t0, **m)
+        self.state["runs"][rid] = rec
+        self.state["study_seconds"] += rec["wall_seconds"]
+        self.save()
+        self.say(f"    {rid}: PSNR " + " / ".join(_fmt(m["psnr"][str(s)]) for s in self.scales)
+                 + f" dB, {rec['train_seconds']:.0f} s training, {_fmt(m['render_ms']['1'], 1)} ms/frame")
+        return rec
+
+    def add(self, entry: Entry) -> dict:
+        rec = self.ensure(entry.config)
+        entries = self.state["knobs"].setdefault(entry.knob, [])
+        item = dict(label=entry.label, value=entry.value, run=rec["run"])
+        if item not in entries:
+            entries.append(item)
+            self.save()
+        return rec
+
+    def save(self) -> None:
+        self.state["pareto"] = pareto_sets(self.state["runs"], self.scales)
+        _write_json(self.path, self.state)
+        (self.out / "tradeoffs.md").write_text(markdown(self.state))
+
+    def run(self, knobs=KNOBS, **plan_kw) -> dict:
+        entries = plan(self.base, knobs, **plan_kw)
+        for e in entries:
+            self.add(e)
+        if "budget" in knobs:
+            n = self.ensure(self.base)["num_gaussians"]
+            entries = plan(self.base, knobs, base_gaussians=n, **plan_kw)
+            for e in entries:
+                self.add(e)
+        # Each knob's table in the order of its settings (runs were trained base first).
+        n = self.state["runs"].get(run_id(self.base), {}).get("num_gaussians")
+        order = {(e.knob, e.label): i for i, e in enumerate(plan(self.base, knobs, base_gaussians=n, base_first=False,
+                                                                 **plan_kw))}
+        for knob, items in self.state["knobs"].items():
+            items.sort(key=lambda it: order.get((knob, it["label"]), len(order)))
+        self.save()
+        plot(self.state, self.out / "tradeoffs.png")
+        return self.state
+
+
+# ------------------------------------------------------------------------------------------------
+# Effects of one trained scene
+# ------------------------------------------------------------------------------------------------
+def load_trained(run_dir):
+    """(scene, render config, summary or None) of a training run directory: the newest checkpoint's
+    scene (or ``scene.ply`` + sidecar without checkpoints) and its method's render configuration."""
+    from patexgs_jax import checkpoint as ckpt
+    from patexgs_jax.export import load_ply
+    from patexgs_jax.render import RenderConfig
+    from patexgs_jax.train import method_spec
+
+    run_dir = Path(run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else None
+    latest = ckpt.latest_checkpoint(run_dir / "checkpoints") if (run_dir / "checkpoints").is_dir() else None
+    if latest is not None:
+        tree, meta = ckpt.load_checkpoint(latest)
+        scene, cfg = tree["scene"], meta.get("config") or {}
+    elif (run_dir / "scene.ply").exists():
+        scene, cfg = load_ply(run_dir / "scene.ply"), (summary or {}).get("config") or {}
+    else:
+        raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply.")
+    spec = method_spec(cfg.get("method", "patexgs"))
+    rc = RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"],
+                      lambda_mip=float(cfg.get("lambda_mip", 0.4)), background=tuple(cfg.get("background", (0, 0, 0))))
+    return scene, rc, summary
+
+
+def present_effects(scene, rc) -> list[str]:
+    """The effects this scene and configuration use (of :data:`EFFECTS`)."""
+    out = []
+    if scene.sh.shape[1] > 1:
+        out.append("sh_bands")
+    if scene.rgb is not None:
+        out.append("rgb_textures")
+    if scene.alpha is not None:
+        out.append("alpha_textures")
+    if rc.mip != "none" and (scene.rgb is not None or scene.alpha is not None):
+        out.append("mipmaps")
+    return out
+
+
+def without(scene, rc, effects: Sequence[str]):
+    """(scene, render config) with ``effects`` switched off - removed from the scene (SH truncated to
+    the DC band, texture banks dropped) or the render configuration (mip "none"), so the renderer
+    compiles them out."""
+    for e in effects:
+        if e == "sh_bands":
+            scene = scene.replace(sh=scene.sh[:, :1])
+        elif e == "rgb_textures":
+            scene = scene.replace(rgb=None)
+        elif e == "alpha_textures":
+            scene = scene.replace(alpha=None)
+        elif e == "mipmaps":
+            rc = dataclasses.replace(rc, mip="none")
+        else:
+            raise ValueError(f"unknown effect {e!r}; choose from {', '.join(EFFECTS)}.")
+    return scene, rc
+
+
+def render_flops(scene, camera, rc) -> float | None:
+    """XLA's flop estimate of one render (compiled separately; None where XLA gives none)."""
+    from patexgs_jax.render import Capacity, count_pairs, render_jit
+
+    needed, _ = count_pairs(scene, camera, rc)
+    compiled = render_jit.lower(scene, camera, config=rc, capacity=Capacity.fit(float(needed))).compile()
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return None if not cost or "flops" not in cost else float(cost["flops"])
+
+
+def effect_study(scene, rc, views, scales=SCALES, *, verbose=True, max_views=8) -> dict:
+    """Per effect, the PSNR it contributes and the render time it costs, at each scale.
+
+    Returns ``{"full": measure(...), "effects": {name: {"off": measure(...), "gain_db": {scale},
+    "ms_cost": {scale}}}}`` with gain = PSNR(full) - PSNR(effect off) and cost = ms(full) - ms(off).
+    """
+    full = measure(scene, views, rc, scales, max_views=max_views)
+    out = dict(full=full, effects={})
+    for e in present_effects(scene, rc):
+        sc, r = without(scene, rc, [e])
+        off = measure(sc, views, r, scales, max_views=max_views)
+        gain = {s: full["psnr"][s] - off["psnr"][s] for s in full["psnr"]}
+        cost = {s: full["render_ms"][s] - off["render_ms"][s] for s in full["render_ms"]}
+        out["effects"][e] = dict(off=off, gain_db=gain, ms_cost=cost)
+        if verbose:
+            print(f"{e:15s} PSNR gain " + " / ".join(f"{gain[s]:+.2f}" for s in gain) + " dB; render cost "
+                  + " / ".join(f"{cost[s]:+.1f}" for s in cost) + " ms (scales " + ", ".join(gain) + ")", flush=True)
+    return out
+
+
+def droppable(study: dict, threshold_db: float) -> list[str]:
+    """Effects contributing less than ``threshold_db`` at every scale."""
+    return [e for e, v in study["effects"].items() if all(g < threshold_db for g in v["gain_db"].values())]
+
+
+def export_reduced(scene, rc, effects, path) -> Path:
+    """Writes the scene without ``effects`` (PLY + sidecar) and ``<stem>.render.json`` (the render
+    configuration to use with it). Returns the PLY path."""
+    from patexgs_jax.export import export_ply
+
+    sc, r = without(scene, rc, effects)
+    path = export_ply(sc, path)
+    _write_json(path.with_suffix(".render.json"), dict(dataclasses.asdict(r), dropped_effects=list(effects)))
+    return path
+
+
+def load_render_config(ply_path):
+    """The RenderConfig stored next to a reduced export (``<stem>.render.json``)."""
+    from patexgs_jax.render import RenderConfig
+
+    d = json.loads(Path(ply_path).with_suffix(".render.json").read_text())
+    d.pop("dropped_effects", None)
+    return RenderConfig(**{k: tuple(v) if k == "background" else v for k, v in d.items()})
+
+
+def run_effects(run_dir, dataset, out_dir, *, scales=SCALES, drop_below=None, export_path=None,
+                verbose=True, max_views=8) -> dict:
+    """The effect study of one run, written to ``out_dir/effects.json``; with ``drop_below``, the
+    reduced export and its measured speed-up (also in the JSON, under ``"reduced"``)."""
+    scene, rc, _ = load_trained(run_dir)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    views = list(dataset.test_views)
+    res = effect_study(scene, rc, views, scales, verbose=verbose, max_views=max_views)
+    res.update(run=str(run_dir), scales=[int(s) for s in scales], machine=machine())
+    if drop_below is not None:
+        from patexgs_jax.export import load_ply
+
+        drop = droppable(res, drop_below)
+        path = export_reduced(scene, rc, drop, Path(export_path) if export_path else out_dir / "scene_reduced.ply")
+        red_scene, red_rc = load_ply(path), load_render_config(path)
+        red = measure(red_scene, views, red_rc, scales, max_views=max_views)
+        cam = views[0].camera
+        flops = dict(full=render_flops(scene, cam, rc), reduced=render_flops(red_scene, cam, red_rc))
+        res["reduced"] = dict(threshold_db=drop_below, dropped=drop, path=str(path), measure=red, flops=flops)
+        if verbose:
+            s = str(scales[0])
+            print(f"dropped (< {drop_below} dB at every scale): {', '.join(drop) or 'nothing'} -> {path}\n"
+                  f"render x{s}: {res['full']['render_ms'][s]:.1f} ms -> {red['render_ms'][s]:.1f} ms per frame; "
+                  f"XLA flops {_fmt(flops['full'], 0)} -> {_fmt(flops['reduced'], 0)}; PSNR "
+                  + " / ".join(f"{res['full']['psnr'][k]:.2f}->{red['psnr'][k]:.2f}" for k in red["psnr"]), flush=True)
+    _write_json(out_dir / "effects.json", res)
+    return res
+
+
+# ------------------------------------------------------------------------------------------------
+# Command line
+# ------------------------------------------------------------------------------------------------
+def _ints(s):
+    return tuple(int(x) for x in s.split(",") if x)
+
+
+def _floats(s):
+    return tuple(float(x) for x in s.split(",") if x)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.tradeoffs", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=None, help="scene folder; default: the embedded synthetic scene")
+    ap.add_argument("--factor", type=int, default=None)
+    ap.add_argument("--out", default=None, help="output folder (default runs/tradeoffs; with --effects RUN/effects)")
+    ap.add_argument("--scales", type=_ints, default=SCALES)
+    ap.add_argument("--render-views", type=int, default=8, help="test views timed per scale")
+    ap.add_argument("--quiet", action="store_true")
+    g = ap.add_argument_group("study")
+    g.add_argument("--preset", default=None, help="tiny (default without --data), small or paper (default with --data)")
+    g.add_argument("--knobs", default=",".join(KNOBS))
+    g.add_argument("--iters-2dgs", type=int, default=None)
+    g.add_argument("--iters-tex", type=int, default=None)
+    g.add_argument("--max-gaussians", type=int, default=None)
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--fixed-sizes", type=_ints, default=FIXED_SIZES)
+    g.add_argument("--budget-fractions", type=_floats, default=BUDGET_FRACTIONS)
+    g.add_argument("--iter-fractions", type=_floats, default=ITER_FRACTIONS)
+    g.add_argument("--sh-degrees", type=_ints, default=SH_DEGREES)
+    e = ap.add_argument_group("effects")
+    e.add_argument("--effects", action="store_true", help="the effect study of one trained run (--run)")
+    e.add_argument("--run", default=None, help="a training run directory (checkpoints/ or scene.ply)")
+    e.add_argument("--drop-effects-below", type=float, default=None, metavar="DB")
+    e.add_argument("--export", default=None, help="reduced PLY path (default OUT/scene_reduced.ply)")
+    args = ap.parse_args(argv)
+
+    from patexgs_jax.data import load
+
+    synthetic = args.data is None
+    if synthetic:
+        from patexgs_jax.data.synthetic import ensure_default_scene
+
+        args.data = str(ensure_default_scene())
+    try:
+        ds = load(args.data, factor=args.factor)
+        if args.effects:
+            if args.run is None:
+                ap.error("--effects needs --run RUN_DIR")
+            run_effects(args.run, ds, args.out or Path(args.run) / "effects", scales=args.scales,
+                        drop_below=args.drop_effects_below, export_path=args.export, verbose=not args.quiet,
+                        max_views=args.render_views)
+            return 0
+        from patexgs_jax.train import preset_config
+
+        preset = args.preset or ("tiny" if synthetic else "paper")
+        over = dict(STUDY_DEFAULTS.get(preset, {}))
+        over.update({k: v for k, v in dict(iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
+                                           max_gaussians=args.max_gaussians).items() if v is not None})
+        base = preset_config(preset, method="patexgs", seed=args.seed, **over)
+        knobs = [k for k in args.knobs.split(",") if k]
+        study = Study(ds, base, args.out or "runs/tradeoffs", data_name=args.data, preset=preset,
+                      scales=args.scales, verbose=not args.quiet, render_views=args.render_views)
+        t0 = time.perf_counter()
+        study.run(knobs, fixed_sizes=args.fixed_sizes, budget_fractions=args.budget_fractions,
+                  iter_fractions=args.iter_fractions, sh_degrees=args.sh_degrees)
+        print(f"study done in {time.perf_counter() - t0:.0f} s (this invocation): {study.out / 'tradeoffs.md'}, "
+              f"{study.out / 'tradeoffs.png'}")
+    except (ValueError, FileNotFoundError, OSError) as ex:
+        print(f"error: {ex}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
