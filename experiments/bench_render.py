@@ -1,20 +1,36 @@
 """Renderer benchmark: forward and forward+backward time, throughput, memory, compile time.
 
-    python -m experiments.bench_render [--gaussians 50000] [--width 640 --height 480] [--repeats 3]
+    python -m experiments.bench_render [--gaussians 50000 ...] [--sizes 640x480 ...] [--repeats 3]
                                        [--configs 2dgs,tex8,tex8-mip,tex8-trilinear] [--json out.json]
 
-A fixed random scene (seeded) seen by a fixed camera. For each configuration it prints:
-forward ms, forward+backward ms (gradient of a photometric-style loss w.r.t. the whole scene),
-(pixel, splat) pairs listed per second in the forward pass (binned (splat, tile) pairs x pixels per
-tile: the work a renderer without early termination would do; ours stops saturated tiles early),
-binned (splat, tile) pairs, the longest tile list, compile time of each function,
-and XLA's temporary-buffer size of the backward (its peak working memory beyond inputs/outputs).
+A fixed random scene (seeded) seen by a fixed camera, for every Gaussian count and image size
+given. For each configuration it prints: forward ms; forward+backward ms (gradient of a
+photometric-style loss w.r.t. the whole scene); the projection + binning + sort time on its own
+(``bin ms``, inside the forward); (pixel, splat) pairs listed per second in the forward pass
+(binned (splat, tile) pairs x pixels per tile: the work a renderer without early termination would
+do; ours stops saturated tiles early); binned (splat, tile) pairs; the longest tile list; compile
+time; recompiles during the timed calls (must be 0); XLA's temporary-buffer size of the backward
+(its peak working memory beyond inputs/outputs); and the share of the machine's arithmetic peak
+the forward reaches, ``pairs/s x FLOPs per pair / peak``.
+
+FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.render`` (adds, multiplies,
+divisions, comparisons feeding arithmetic, exp/log/sqrt each 1; selects and integer address
+arithmetic not counted): the homogeneous intersection (3 plane equations 12, the division and its
+parallel-ray test 6), rho3d 3, the low-pass rho2d 6, G 3, depth 4, alpha 3, transmittance and
+weight 8, colour 6, depth/normal/distortion accumulators 16, the transmittance sum 1: about 70 for
+2DGS. An RGB + alpha bilinear lookup adds 2 x 21 (coordinates, clamping, fractions) + 4 x 9 (per
+channel) + 7 (applying them): about 85. Mip selection adds the two footprint rays and Eq. 11:
+about 60. Trilinear reads a second level in both banks and blends them: about 90 more. The peak
+is measured (``--peak``): the float32 throughput of a large ``jnp.dot`` on all cores, the best
+this machine's XLA does on dense arithmetic.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
+import os
 import platform
 import time
 
@@ -25,12 +41,26 @@ import numpy as np
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
 from patexgs_jax.render import count_pairs, render_jit
 
+R = importlib.import_module("patexgs_jax.render")  # the module (``patexgs_jax.render`` is the function)
+
 CONFIGS = {
     "2dgs": (None, RenderConfig(mip="none")),
     "tex8": (8, RenderConfig(mip="none")),
     "tex8-mip": (8, RenderConfig(mip="nearest")),
     "tex8-trilinear": (8, RenderConfig(mip="trilinear")),
 }
+
+
+#: Hand-counted FLOPs per (pixel, splat) pair (see the module docstring).
+FLOPS_PER_PAIR = {"2dgs": 70, "tex8": 155, "tex8-mip": 215, "tex8-trilinear": 305}
+
+
+def peak_gflops(n=2048, repeats=5) -> float:
+    """Measured float32 matmul throughput of the default device, GFLOP/s."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
+    f = jax.jit(lambda x: x @ x)
+    jax.block_until_ready(f(a))
+    return 2.0 * n ** 3 / (timeit(lambda: f(a), repeats) / 1e3) / 1e9
 
 
 def make_scene(n, tex, seed=0):
@@ -60,6 +90,16 @@ def bench(name, n, width, height, repeats):
 
     fwd = jax.jit(lambda s, c: render_jit(s, c, config=cfg, capacity=cap).rgb)
 
+    def binning(s, c):  # the renderer's projection, tile ranges, one sort and per-tile starts
+        proj = R._project(s, c, cfg, None, None, R._alpha_peak(s))
+        ts = cfg.tile_size
+        tx, ty = -(-c.width // ts), -(-c.height // ts)
+        tx0, tx1, ty0, ty1, ok = R._tile_ranges(proj["bounds"], proj["visible"], ts, tx, ty)
+        return R._bin(proj["depth"], tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs)
+
+    bin_c = jax.jit(binning).lower(scene, cam).compile()
+    jax.block_until_ready(bin_c(scene, cam))
+
     def loss(s, c):
         out = render_jit(s, c, config=cfg, capacity=cap)
         return jnp.mean(jnp.abs(out.rgb - 0.5))
@@ -79,43 +119,73 @@ def bench(name, n, width, height, repeats):
     jax.block_until_ready(bwd_c(scene, cam))
     f_ms = timeit(lambda: fwd_c(scene, cam), repeats)
     b_ms = timeit(lambda: bwd_c(scene, cam), repeats)
+    bin_ms = timeit(lambda: bin_c(scene, cam), repeats)
+    # The public entry point in steady state: same shapes, no new trace.
+    jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
+    before = sum(R.TRACE_COUNTS.values())
+    for _ in range(2):
+        jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
+    recompiles = sum(R.TRACE_COUNTS.values()) - before
     listed = float(needed) * cfg.tile_size ** 2  # (pixel, splat) pairs in the tile lists
     return dict(config=name, gaussians=n, width=width, height=height, forward_ms=f_ms,
-                forward_backward_ms=b_ms, backward_over_forward=b_ms / f_ms,
+                forward_backward_ms=b_ms, backward_over_forward=b_ms / f_ms, bin_ms=bin_ms,
+                recompiles=recompiles, flops_per_pair=FLOPS_PER_PAIR[name],
                 binned_pairs=float(needed), max_tile=int(max_tile),
                 listed_pixel_pairs_per_s=listed / (f_ms / 1e3),
                 compile_forward_s=compile_fwd, compile_backward_s=compile_bwd,
                 temp_forward_mib=temp_fwd / 2**20, temp_backward_mib=temp_bwd / 2**20)
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 640x480, got {text!r}") from None
+    return w, h
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--gaussians", type=int, nargs="+", default=[50_000])
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(640, 480)], help="WxH, e.g. 160x120 1920x1080")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--no-peak", action="store_true", help="skip measuring the matmul peak")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
+    names = args.configs.split(",")
+    unknown = [n for n in names if n not in CONFIGS]
+    if unknown:
+        ap.error(f"unknown config(s) {unknown}; choose from {', '.join(CONFIGS)}")
     rows = []
     print(f"jax {jax.__version__} on {platform.processor() or platform.machine()}, "
           f"{jax.device_count()} {jax.devices()[0].platform} device(s)")
-    hdr = (f"{'config':16s} {'N':>7s} {'size':>9s} {'fwd ms':>8s} {'f+b ms':>8s} {'b/f':>5s} "
-           f"{'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'compile s':>10s} {'bwd tmp MiB':>11s}")
+    peak = None if args.no_peak else peak_gflops()
+    if peak is not None:
+        print(f"peak (float32 2048^2 matmul): {peak:.1f} GFLOP/s")
+    hdr = (f"{'config':15s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'f+b ms':>8s} {'b/f':>5s} {'bin ms':>7s} "
+           f"{'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'%peak':>6s} {'compile s':>9s} {'recomp':>6s} "
+           f"{'bwd tmp MiB':>11s}")
     print(hdr)
-    for n in args.gaussians:
-        for name in args.configs.split(","):
-            r = bench(name, n, args.width, args.height, args.repeats)
-            rows.append(r)
-            print(f"{name:16s} {n:7d} {args.width}x{args.height:<4d} {r['forward_ms']:8.1f} "
-                  f"{r['forward_backward_ms']:8.1f} {r['backward_over_forward']:5.2f} "
-                  f"{r['binned_pairs']:9.0f} {r['max_tile']:7d} "
-                  f"{r['listed_pixel_pairs_per_s'] / 1e6:8.1f} "
-                  f"{r['compile_forward_s'] + r['compile_backward_s']:10.1f} {r['temp_backward_mib']:11.1f}",
-                  flush=True)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(dict(machine=platform.platform(), jax=jax.__version__, results=rows), f, indent=1)
+    for (w, h) in args.sizes:
+        for n in args.gaussians:
+            for name in names:
+                r = bench(name, n, w, h, args.repeats)
+                r["peak_gflops"] = peak
+                r["fraction_of_peak"] = (None if peak is None else
+                                         r["listed_pixel_pairs_per_s"] * r["flops_per_pair"] / (peak * 1e9))
+                rows.append(r)
+                frac = "-" if peak is None else f"{100 * r['fraction_of_peak']:.1f}"
+                print(f"{name:15s} {n:8d} {f'{w}x{h}':>9s} {r['forward_ms']:8.1f} "
+                      f"{r['forward_backward_ms']:8.1f} {r['backward_over_forward']:5.2f} {r['bin_ms']:7.1f} "
+                      f"{r['binned_pairs']:9.0f} {r['max_tile']:7d} "
+                      f"{r['listed_pixel_pairs_per_s'] / 1e6:8.1f} {frac:>6s} "
+                      f"{r['compile_forward_s'] + r['compile_backward_s']:9.1f} {r['recompiles']:6d} "
+                      f"{r['temp_backward_mib']:11.1f}", flush=True)
+                if args.json:  # after every case: a long sweep keeps what it measured
+                    with open(args.json, "w") as f:
+                        json.dump(dict(machine=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
+                                       peak_gflops=peak, results=rows), f, indent=1)
 
 
 if __name__ == "__main__":
