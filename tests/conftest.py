@@ -1,15 +1,29 @@
 """Shared test settings: tests import helpers from this folder; hypothesis keeps examples few
 (each new shape costs a JAX compile on CPU) and has no deadline (compiles are slow)."""
 
+import atexit
 import os
+import shutil
 import sys
+import tempfile
 
+import jax
 import pytest
 from hypothesis import settings
 
 from patexgs_jax import compiled
 
 sys.path.insert(0, os.path.dirname(__file__))
+
+# One persistent XLA compilation cache for the whole session: training runs build new jitted steps
+# with the same programs (test_train, the studies), which then load instead of compiling again. Set
+# before anything compiles (JAX decides once whether the cache is used). It was once switched off
+# after "a hang in the compile-and-write-cache path"; that hang was the memory-map cap (see
+# patexgs_jax.compiled), which _release_compiled_code below now keeps the session away from.
+_XLA_CACHE = tempfile.mkdtemp(prefix="patexgs_xla_cache_")
+atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
+jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 settings.register_profile("default", deadline=None, max_examples=10, derandomize=False)
 settings.register_profile("ci", deadline=None, max_examples=10, derandomize=True)

@@ -128,12 +128,10 @@ def alignment_problems(scene, opt_state) -> list[str]:
 # Shared data and the main run
 # ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def compile_cache(tmp_path_factory):
-    """A persistent compilation cache folder for the CLI subprocesses of this module (they reuse each
-    other's compiles through it). Not enabled in this process: in a long test session, the first
-    compile with a persistent cache enabled after many others was seen to hang inside jax's
-    compile-and-write-cache path."""
-    return tmp_path_factory.mktemp("jax_cache")
+def compile_cache():
+    """The session's persistent compilation cache folder (tests/conftest.py), for this module's CLI
+    subprocesses: they load the programs this process already compiled."""
+    return Path(jax.config.jax_compilation_cache_dir)
 
 
 @pytest.fixture(scope="module")
