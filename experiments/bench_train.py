@@ -30,20 +30,14 @@ import sys
 import time
 import types
 
+from experiments.bench_render import parse_size
+
 CONFIGS = {  # name: (texture side or None, mip mode)
     "2dgs": (None, "none"),
     "tex8": (8, "none"),
     "tex8-mip": (8, "nearest"),
 }
 NUM_VIEWS = 8
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must look like 128x96, got {text!r}") from None
-    return w, h
 
 
 def make_views(width, height, seed=0):
