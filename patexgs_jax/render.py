@@ -62,7 +62,7 @@ from jax import lax
 
 from . import textures as tex
 from .camera import Camera
-from .math import quat_to_rotmat, safe_div, safe_normalize, safe_sqrt, sh_basis
+from .math import quat_to_rotmat, safe_div, safe_log2, safe_normalize, sh_basis
 from .scene import Scene
 
 MIP_MODES = ("none", "nearest", "trilinear")
@@ -374,8 +374,9 @@ def _barrier(tree, flag):
     return lax.cond(flag, lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
-def _tex_lookups(meta: _Meta, gid, u, v, footprint, config: RenderConfig, use_mip: bool) -> _Lookup:
-    """Texture lookups of splats ``gid`` (c,) at (u, v) (P, c); ``footprint`` (P, c) for mipmaps."""
+def _tex_lookups(meta: _Meta, gid, u, v, log2_fp, config: RenderConfig, use_mip: bool) -> _Lookup:
+    """Texture lookups of splats ``gid`` (c,) at (u, v) (P, c); ``log2_fp`` (P, c), log2 of the mip
+    footprint (see :func:`_geometry`), for mipmaps."""
     base, side_p, n = meta.base[gid], meta.bucket_side[gid], meta.size[gid]
     ni = n.astype(jnp.int32)
 
@@ -388,10 +389,10 @@ def _tex_lookups(meta: _Meta, gid, u, v, footprint, config: RenderConfig, use_mi
         return _Lookup(base, (r,), (stride,), (fa,), (fb,), None)
     L = meta.max_level[gid]
     if config.mip == "nearest":
-        lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear=False)
+        lev = tex.mip_level_log2(log2_fp, n, L, config.lambda_mip, trilinear=False)
         (r, fa, fb), stride = at_level(lev)
         return _Lookup(base, (r,), (stride,), (fa,), (fb,), None)
-    lev = tex.mip_level(footprint, n, L, config.lambda_mip, trilinear=True)
+    lev = tex.mip_level_log2(log2_fp, n, L, config.lambda_mip, trilinear=True)
     l0 = jnp.floor(lev)
     frac = lev - l0
     l0i = l0.astype(jnp.int32)
@@ -437,7 +438,8 @@ def _unpair(g_pairs):
 def _geometry(pk, x, y, need_footprint: bool):
     """Ray-splat quantities of a chunk: pk (c, F) splats, x, y (P, 1) pixel centres.
 
-    Returns u, v, G, z (P, c) and the mip footprint (P, c) or None.
+    Returns u, v, G, z (P, c) and log2 of the mip footprint max(D12, D13) (P, c; log2 1e4 where
+    a ray misses the plane, the coarsest level) or None.
     """
     A, B, Cc = pk[:, _A], pk[:, _B], pk[:, _C]
     s = [x * A[:, i] + y * B[:, i] + Cc[:, i] for i in range(3)]
@@ -448,14 +450,14 @@ def _geometry(pk, x, y, need_footprint: bool):
     G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
     M2 = pk[:, _M2]
     z = jnp.where(rho3d <= rho2d, M2[:, 0] * u + M2[:, 1] * v + M2[:, 2], pk[:, _DEP])
-    footprint = None
+    log2_fp = None
     if need_footprint:
         ux, vx, okx = _uv(*(s[i] + A[:, i] for i in range(3)))
         uy, vy, oky = _uv(*(s[i] + B[:, i] for i in range(3)))
-        d12 = safe_sqrt((ux - u) ** 2 + (vx - v) ** 2)
-        d13 = safe_sqrt((uy - u) ** 2 + (vy - v) ** 2)
-        footprint = jnp.where(ok & okx & oky, jnp.maximum(d12, d13), _UV_LIMIT)
-    return u, v, G, z, footprint
+        # log2 max(D12, D13) = 0.5 log2 max(D12^2, D13^2): no square roots, and the banks share it.
+        d2 = jnp.maximum((ux - u) ** 2 + (vx - v) ** 2, (uy - u) ** 2 + (vy - v) ** 2)
+        log2_fp = jnp.where(ok & okx & oky, 0.5 * safe_log2(d2), math.log2(_UV_LIMIT))
+    return u, v, G, z, log2_fp
 
 
 class _Static(NamedTuple):
@@ -546,7 +548,7 @@ def _chunk_contrib(st: _Static, ctx, pk, geo, vals_rgb, vals_a, gid, valid, log_
     keep = valid & (a >= ALPHA_MIN) & (z > cfg.near)
     a = jnp.where(keep, a, 0.0)
     log1m = jnp.log1p(-a)
-    cum = jnp.cumsum(log1m, axis=1)
+    cum = _prefix_sum(log1m)
     include = ~done_in[:, None] & (log_t_in[:, None] + cum >= _LOG_T_MIN)
     w = jnp.where(include, a * jnp.exp(log_t_in[:, None] + cum - log1m), 0.0)     # (P, c)
     rgb = w @ pk[:, _COL]
@@ -561,6 +563,15 @@ def _chunk_contrib(st: _Static, ctx, pk, geo, vals_rgb, vals_a, gid, valid, log_
     log_t_out = log_t_in + jnp.sum(jnp.where(include, log1m, 0.0), axis=1)
     done_out = done_in | (log_t_in + cum[:, -1] < _LOG_T_MIN)
     return (dacc, log_t_out), (done_out, w)
+
+
+def _prefix_sum(x):
+    """Inclusive prefix sum along the last axis (c, small) as a product with the (c, c) upper
+    triangle of ones: one small matmul, where XLA's CPU cumsum is a reduce-window of c^2 adds that
+    it runs several times slower, forward and backward."""
+    c = x.shape[-1]
+    upper = jnp.triu(jnp.ones((c, c), x.dtype))
+    return jnp.matmul(x, upper, precision=lax.Precision.HIGHEST)
 
 
 def _num_chunks(st: _Static, ctx, t):
