@@ -19,7 +19,8 @@ arithmetic not counted): the homogeneous intersection (3 plane equations 12, the
 parallel-ray test 6), rho3d 3, the low-pass rho2d 6, G 3, depth 4, alpha 3, transmittance and
 weight 8, colour 6, depth/normal/distortion accumulators 16, the transmittance sum 1: about 70 for
 2DGS. An RGB + alpha bilinear lookup adds 2 x 21 (coordinates, clamping, fractions) + 4 x 9 (per
-channel) + 7 (applying them): about 85. Mip selection adds the two footprint rays and Eq. 11:
+channel) + 7 (applying them): about 85 (RGB alone 54, alpha alone 31: configurations ``tex8-rgb``
+and ``tex8-alpha`` report each bank's cost on its own). Mip selection adds the two footprint rays and Eq. 11:
 about 60. Trilinear reads a second level in both banks and blends them: about 90 more. The peak
 is measured (``--peak``): the float32 throughput of a large ``jnp.dot`` on all cores, the best
 this machine's XLA does on dense arithmetic.
@@ -43,16 +44,22 @@ from patexgs_jax.render import count_pairs, render_jit
 
 R = importlib.import_module("patexgs_jax.render")  # the module (``patexgs_jax.render`` is the function)
 
+#: name -> (texture side or None, banks textured, render configuration). ``tex8-rgb`` and
+#: ``tex8-alpha`` texture one bank only, so each effect's cost is reported on its own.
 CONFIGS = {
-    "2dgs": (None, RenderConfig(mip="none")),
-    "tex8": (8, RenderConfig(mip="none")),
-    "tex8-mip": (8, RenderConfig(mip="nearest")),
-    "tex8-trilinear": (8, RenderConfig(mip="trilinear")),
+    "2dgs": (None, (), RenderConfig(mip="none")),
+    "tex8-rgb": (8, ("rgb",), RenderConfig(mip="none")),
+    "tex8-alpha": (8, ("alpha",), RenderConfig(mip="none")),
+    "tex8": (8, ("rgb", "alpha"), RenderConfig(mip="none")),
+    "tex8-mip": (8, ("rgb", "alpha"), RenderConfig(mip="nearest")),
+    "tex8-trilinear": (8, ("rgb", "alpha"), RenderConfig(mip="trilinear")),
 }
+DEFAULT_CONFIGS = ("2dgs", "tex8", "tex8-mip", "tex8-trilinear")
 
 
 #: Hand-counted FLOPs per (pixel, splat) pair (see the module docstring).
-FLOPS_PER_PAIR = {"2dgs": 70, "tex8": 155, "tex8-mip": 215, "tex8-trilinear": 305}
+FLOPS_PER_PAIR = {"2dgs": 70, "tex8-rgb": 124, "tex8-alpha": 101, "tex8": 155, "tex8-mip": 215,
+                  "tex8-trilinear": 305}
 
 
 def peak_gflops(n=2048, repeats=5) -> float:
@@ -63,12 +70,13 @@ def peak_gflops(n=2048, repeats=5) -> float:
     return 2.0 * n ** 3 / (timeit(lambda: f(a), repeats) / 1e3) / 1e9
 
 
-def make_scene(n, tex, seed=0):
+def make_scene(n, tex, seed=0, banks=("rgb", "alpha")):
     sizes = None if tex is None else [tex] * n
     # Splats spread through a 4x4x4 box in front of the camera, sized so a view has a realistic
     # ~ 10-40 splats per pixel of overlap for 50k splats at 640x480.
     return random_scene(seed, n, sh_degree=3, extent=2.0, scale_range=(0.005, 0.04),
-                        center=(0.0, 0.0, 0.0), rgb_sizes=sizes, alpha_sizes=sizes)
+                        center=(0.0, 0.0, 0.0), rgb_sizes=sizes if "rgb" in banks else None,
+                        alpha_sizes=sizes if "alpha" in banks else None)
 
 
 def timeit(fn, repeats):
@@ -81,8 +89,8 @@ def timeit(fn, repeats):
 
 
 def bench(name, n, width, height, repeats):
-    tex, cfg = CONFIGS[name]
-    scene = make_scene(n, tex)
+    tex, banks, cfg = CONFIGS[name]
+    scene = make_scene(n, tex, banks=banks)
     cam = Camera.from_intrinsics([0.9 * width, 0.9 * width, width / 2, height / 2],
                                  look_at((0.0, 0.0, -5.0), (0.0, 0.0, 0.0)), width, height)
     needed, max_tile = count_pairs(scene, cam, cfg)
@@ -149,7 +157,8 @@ def main(argv=None):
     ap.add_argument("--gaussians", type=int, nargs="+", default=[50_000])
     ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(640, 480)], help="WxH, e.g. 160x120 1920x1080")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--configs", default=",".join(DEFAULT_CONFIGS),
+                    help=f"comma-separated, from {', '.join(CONFIGS)}")
     ap.add_argument("--no-peak", action="store_true", help="skip measuring the matmul peak")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)

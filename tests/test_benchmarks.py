@@ -1,0 +1,32 @@
+"""The benchmark scripts run and report what they promise (tiny sizes: behaviour, not speed)."""
+
+import json
+import math
+
+import pytest
+
+from experiments import bench_render
+
+
+def test_bench_render_reports_each_effect(tmp_path, capsys):
+    out = tmp_path / "render.json"
+    bench_render.main(["--gaussians", "300", "--sizes", "48x32", "--repeats", "1", "--no-peak",
+                       "--configs", "2dgs,tex8-rgb,tex8-alpha,tex8-mip", "--json", str(out)])
+    rows = json.loads(out.read_text())["results"]
+    assert [r["config"] for r in rows] == ["2dgs", "tex8-rgb", "tex8-alpha", "tex8-mip"]
+    for r in rows:
+        assert (r["gaussians"], r["width"], r["height"]) == (300, 48, 32)
+        assert r["recompiles"] == 0
+        assert r["binned_pairs"] > 0 and r["max_tile"] > 0
+        for key in ("forward_ms", "forward_backward_ms", "bin_ms", "listed_pixel_pairs_per_s",
+                    "temp_backward_mib"):
+            assert math.isfinite(r[key]) and r[key] > 0, (r["config"], key)
+        assert r["fraction_of_peak"] is None  # --no-peak
+    printed = capsys.readouterr().out
+    assert all(name in printed for name in ("tex8-rgb", "tex8-alpha", "tex8-mip"))
+
+
+def test_bench_render_rejects_unknown_config(capsys):
+    with pytest.raises(SystemExit):
+        bench_render.main(["--configs", "2dgs,tex9", "--no-peak"])
+    assert "tex9" in capsys.readouterr().err
