@@ -91,7 +91,8 @@ class RenderConfig:
       tile_size: tile side in pixels.
       chunk: splats evaluated together per tile step; a tile stops after the chunk in which all its
         pixels saturated (transmittance < 1e-4) or its list ended.
-      tile_batch: tiles advanced together (sorted by list length, so they finish at similar steps).
+      tile_batch: at most this many tiles advanced together (sorted by list length, so they finish
+        at similar steps; fewer when that spreads the tiles more evenly over the batches).
     """
 
     mip: str = "nearest"
@@ -481,6 +482,14 @@ class _Static(NamedTuple):
     def need_footprint(self):
         return self.rgb_mip or self.alpha_mip
 
+    @property
+    def batch(self):
+        """Tiles advanced together: at most ``config.tile_batch``, spread evenly over the fewest
+        batches, so that small images do not repeat a tile to fill a batch (every lane of a batch
+        is computed, padding included: a one-tile image with batches of 8 did its work 8 times)."""
+        nb = -(-self.num_tiles // self.config.tile_batch)
+        return -(-self.num_tiles // nb)
+
 
 def _pixel_coords(st: _Static, t, dtype):
     ts = st.config.tile_size
@@ -580,8 +589,9 @@ def _num_chunks(st: _Static, ctx, t):
 
 def _tile_batches(st: _Static, ctx):
     """(num_batches, B) tile ids, longest lists first so a batch's tiles need similar numbers of
-    chunks (a batch loops until its slowest tile is done). Padding repeats the last tile."""
-    B = st.config.tile_batch
+    chunks (a batch loops until its slowest tile is done). Padding (fewer than num_batches
+    entries, see :attr:`_Static.batch`) repeats the last tile."""
+    B = st.batch
     nb = -(-st.num_tiles // B)
     order = jnp.argsort(-ctx["binned"], stable=True).astype(jnp.int32)
     order = jnp.concatenate([order, jnp.full((nb * B - st.num_tiles,), order[-1], jnp.int32)])
@@ -596,7 +606,7 @@ def _batch_state(st, ctx, tb, dt):
 def _composite_fwd_impl(st: _Static, packed, rgb_texels, alpha_texels, ctx):
     npx = st.config.tile_size ** 2
     dt = packed.dtype
-    B = st.config.tile_batch
+    B = st.batch
 
     def batch(tb):
         (x, y), nch = _batch_state(st, ctx, tb, dt)
@@ -669,7 +679,7 @@ def _composite_bwd(st, res, cts):
     ct_acc_all, ct_t_all, _ = cts
     npx = st.config.tile_size ** 2
     dt = packed.dtype
-    B = st.config.tile_batch
+    B = st.batch
 
     def one(t, k, x, y, log_t, done, dot_through, ct_acc, base_term):
         """One tile's chunk k: its cotangents for the packed splats and the texels it read."""

@@ -357,3 +357,19 @@ def test_random_views_match_reference(seed, eye_x, eye_y):
     ref = ref_render(sc, cam, cfg)
     out = tile_render(sc, cam, cfg, jnp.float64)
     np.testing.assert_allclose(out.rgb, ref["rgb"], atol=1e-7)
+
+
+@pytest.mark.parametrize("num_tiles, tile_batch, batch", [(1, 8, 1), (6, 8, 6), (12, 8, 6), (17, 8, 6),
+                                                          (300, 8, 8), (301, 8, 8), (5, 1, 1)])
+def test_tile_batches_do_not_repeat_tiles_needlessly(num_tiles, tile_batch, batch):
+    """Every lane of a tile batch is computed, padding included: the batch is the smallest size that
+    keeps the fewest batches, so a one-tile image (a zoom-out by 8) is not rendered 8 times over."""
+    st_ = render_mod._Static(config=RenderConfig(tile_batch=tile_batch), tiles_x=1, num_tiles=num_tiles,
+                             rgb=False, alpha=False)
+    assert st_.batch == batch
+    num_batches = -(-num_tiles // tile_batch)
+    assert num_batches * st_.batch - num_tiles < num_batches  # less than one padding lane per batch
+    ctx = dict(binned=jnp.arange(num_tiles, dtype=jnp.int32))
+    tiles = np.asarray(render_mod._tile_batches(st_, ctx))
+    assert tiles.shape == (num_batches, batch)
+    assert set(tiles.reshape(-1).tolist()) == set(range(num_tiles))
