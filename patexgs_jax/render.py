@@ -453,8 +453,17 @@ def _geometry(pk, x, y, need_footprint: bool):
     z = jnp.where(rho3d <= rho2d, M2[:, 0] * u + M2[:, 1] * v + M2[:, 2], pk[:, _DEP])
     log2_fp = None
     if need_footprint:
-        ux, vx, okx = _uv(*(s[i] + A[:, i] for i in range(3)))
-        uy, vy, oky = _uv(*(s[i] + B[:, i] for i in range(3)))
+        def neighbour(d):
+            """(u, v) of the ray one pixel over ((0, 0) where it misses the plane) and whether it
+            meets the plane. The miss is folded into one reciprocal, not a select per coordinate:
+            fewer selects let XLA fuse more of this."""
+            t = [s[i] + d[:, i] for i in range(3)]
+            hit = jnp.abs(t[2]) * _UV_LIMIT > jnp.maximum(jnp.abs(t[0]), jnp.abs(t[1]))
+            inv = jnp.where(hit, 1.0 / jnp.where(hit, t[2], 1.0), 0.0)
+            return t[0] * inv, t[1] * inv, hit
+
+        ux, vx, okx = neighbour(A)
+        uy, vy, oky = neighbour(B)
         # log2 max(D12, D13) = 0.5 log2 max(D12^2, D13^2): no square roots, and the banks share it.
         d2 = jnp.maximum((ux - u) ** 2 + (vx - v) ** 2, (uy - u) ** 2 + (vy - v) ** 2)
         log2_fp = jnp.where(ok & okx & oky, 0.5 * safe_log2(d2), math.log2(_UV_LIMIT))
