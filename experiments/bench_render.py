@@ -19,9 +19,9 @@ arithmetic not counted): the homogeneous intersection (3 plane equations 12, the
 parallel-ray test 6), rho3d 3, the low-pass rho2d 6, G 3, depth 4, alpha 3, transmittance and
 weight 8, colour 6, depth/normal/distortion accumulators 16, the transmittance sum 1: about 70 for
 2DGS. An RGB + alpha bilinear lookup adds 2 x 21 (coordinates, clamping, fractions) + 4 x 9 (per
-channel) + 7 (applying them): about 85 (RGB alone 54, alpha alone 31: configurations ``tex8-rgb``
-and ``tex8-alpha`` report each bank's cost on its own). Mip selection adds the two footprint rays and Eq. 11:
-about 60. Trilinear reads a second level in both banks and blends them: about 90 more. The peak
+channel) + 7 (applying them): about 85 (RGB alone 54, alpha alone 31: configurations
+``tex8-rgb`` and ``tex8-alpha`` report each bank's cost on its own). Mip selection adds the two
+footprint rays and Eq. 11: about 60. Trilinear reads a second level in both banks and blends them: about 90 more. The peak
 is measured (``--peak``): the float32 throughput of a large ``jnp.dot`` on all cores, the best
 this machine's XLA does on dense arithmetic.
 """

@@ -355,8 +355,8 @@ def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):
 
 def mip_level_log2(log2_footprint, n, max_level, lambda_mip: float, trilinear: bool):
     """:func:`mip_level` from ``log2(footprint)``: ``log2(lambda n D) = log2(D) + log2(lambda n)``,
-    so the renderer takes one logarithm per pixel and splat for every bank and level it reads, and
-    one per splat for the texture side."""
+    so the renderer takes one logarithm per pixel and splat, shared by every bank and level it reads,
+    and one per splat for the texture side."""
     from .math import safe_log2
 
     lf = log2_footprint + safe_log2(lambda_mip * n)
