@@ -36,11 +36,15 @@ Structure
   (``jax.custom_vjp``) that re-walks the chunks and stores nothing per pair: backward memory is
   the inputs plus a few per-pixel accumulators.
 
-  Textures: a bilinear lookup is one gather of a 2 x 2 texel block (a quad row, see
-  :mod:`patexgs_jax.textures`) per bank and mip level read; the backward adds each lookup's texel
-  cotangents to two rows of a paired (texel r, texel r + 1) accumulator. The per-lookup address
-  and weight arithmetic is computed once per chunk and pixel (:func:`_barrier`), not re-derived
-  inside every per-texel and per-channel consumer.
+  Textures: only the (pixel, splat) pairs of a chunk step that can reach alpha 1/255 (bounded by
+  ``opacity * G * max(alpha texels)``) at pixels still compositing are looked up, gathered into
+  passes of ``RenderConfig.texture_pairs`` of the step's pairs (usually one pass); their texture
+  values are spread back into the dense (pixels x splats) block, zero for the pairs skipped, which
+  are not composited anyway. A bilinear lookup is one gather of the four texels of a 2 x 2 block
+  (see :mod:`patexgs_jax.textures`) per bank and mip level read; the backward adds each lookup's
+  texel cotangents to two rows of a paired (texel r, texel r + 1) accumulator. The per-lookup
+  address and weight arithmetic is computed once (:func:`_barrier`), not re-derived inside every
+  per-texel and per-channel consumer.
 
   The one static capacity (``Capacity.pairs``, the length of the sorted pair list) is checked
   against the exact need (counted before binning) and the need is returned, so callers grow the
@@ -93,6 +97,11 @@ class RenderConfig:
         pixels saturated (transmittance < 1e-4) or its list ended.
       tile_batch: at most this many tiles advanced together (sorted by list length, so they finish
         at similar steps; fewer when that spreads the tiles more evenly over the batches).
+      texture_pairs: texture lookups per pass, as a share of a chunk step's (tile, pixel, splat)
+        pairs. Only the pairs that can reach alpha 1/255 are looked up, gathered into as many
+        passes of this size as they need (usually one: a few percent to a few tens of percent of
+        the pairs contribute). Any value gives the same image; 1.0 looks up every pair without
+        gathering them (the dense path).
     """
 
     mip: str = "nearest"
@@ -104,6 +113,7 @@ class RenderConfig:
     tile_size: int = 16
     chunk: int = 32
     tile_batch: int = 8
+    texture_pairs: float = 1 / 32
 
     def __post_init__(self):
         if self.mip not in MIP_MODES:
@@ -117,6 +127,8 @@ class RenderConfig:
             raise ValueError("tile_size, chunk and tile_batch must be positive.")
         if not self.near > 0:
             raise ValueError(f"near must be positive, got {self.near}.")
+        if not 0 < self.texture_pairs <= 1:
+            raise ValueError(f"texture_pairs must be in (0, 1], got {self.texture_pairs}.")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -404,7 +416,7 @@ def _tex_lookups(meta: _Meta, gid, u, v, log2_fp, config: RenderConfig, use_mip:
 
 def _tex_value(vals, fa, fb, lw):
     """Texture values, a list of ch arrays (P, c), from the gathered texels ``vals`` (per level read, the
-    4 ch arrays (P, c) of :func:`textures.split_quads`) and a :class:`_Lookup`'s fractions and level
+    4 ch arrays of :func:`textures.gather_corners`) and a :class:`_Lookup`'s fractions and level
     weights."""
     out = [tex.bilinear(t, a, b) for t, a, b in zip(vals, fa, fb)]
     if lw is not None:
@@ -412,9 +424,10 @@ def _tex_value(vals, fa, fb, lw):
     return out[0]
 
 
-def _gather(quads, rows):
-    """Texels of the lookups at ``rows`` (from :meth:`_Lookup.rows`): per level read, 4 ch arrays (P, c)."""
-    return None if rows is None else tuple(tex.split_quads(tex.gather_rows(quads, i)) for i in rows[0])
+def _gather(texels, rows):
+    """Texels of the lookups at ``rows`` (from :meth:`_Lookup.rows`) in the flat atlas ``texels``
+    (M, ch): per level read, the 4 ch arrays of :func:`textures.gather_corners`."""
+    return None if rows is None else tuple(tex.gather_corners(texels, i, s) for i, s in zip(*rows))
 
 
 def _scatter(g_pairs, rows, g_vals):
@@ -437,27 +450,29 @@ def _unpair(g_pairs):
 
 
 def _geometry(pk, x, y, need_footprint: bool):
-    """Ray-splat quantities of a chunk: pk (c, F) splats, x, y (P, 1) pixel centres.
+    """Ray-splat quantities of (pixel, splat) pairs: pk (..., F) packed splats, x, y pixel centres,
+    broadcast against each other (a chunk: pk (c, F), x, y (P, 1) give (P, c); compacted pairs:
+    pk (K, F), x, y (K,) give (K,)).
 
-    Returns u, v, G, z (P, c) and log2 of the mip footprint max(D12, D13) (P, c; log2 1e4 where
-    a ray misses the plane, the coarsest level) or None.
+    Returns u, v, G, z and log2 of the mip footprint max(D12, D13) (log2 1e4 where a ray misses
+    the plane, the coarsest level) or None, all of the broadcast shape.
     """
-    A, B, Cc = pk[:, _A], pk[:, _B], pk[:, _C]
-    s = [x * A[:, i] + y * B[:, i] + Cc[:, i] for i in range(3)]
+    A, B, Cc = pk[..., _A], pk[..., _B], pk[..., _C]
+    s = [x * A[..., i] + y * B[..., i] + Cc[..., i] for i in range(3)]
     u, v, ok = _uv(*s)
     rho3d = jnp.where(ok, u * u + v * v, 1e8)
-    dx, dy = x - pk[:, 12], y - pk[:, 13]
+    dx, dy = x - pk[..., 12], y - pk[..., 13]
     rho2d = 2.0 * (dx * dx + dy * dy)
     G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
-    M2 = pk[:, _M2]
-    z = jnp.where(rho3d <= rho2d, M2[:, 0] * u + M2[:, 1] * v + M2[:, 2], pk[:, _DEP])
+    M2 = pk[..., _M2]
+    z = jnp.where(rho3d <= rho2d, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
     log2_fp = None
     if need_footprint:
         def neighbour(d):
             """(u, v) of the ray one pixel over ((0, 0) where it misses the plane) and whether it
             meets the plane. The miss is folded into one reciprocal, not a select per coordinate:
             fewer selects let XLA fuse more of this."""
-            t = [s[i] + d[:, i] for i in range(3)]
+            t = [s[i] + d[..., i] for i in range(3)]
             hit = jnp.abs(t[2]) * _UV_LIMIT > jnp.maximum(jnp.abs(t[0]), jnp.abs(t[1]))
             inv = jnp.where(hit, 1.0 / jnp.where(hit, t[2], 1.0), 0.0)
             return t[0] * inv, t[1] * inv, hit
@@ -518,18 +533,90 @@ def _chunk_slots(st: _Static, ctx, t, k):
     return gid, valid
 
 
-def _chunk_lookups(st: _Static, ctx, pk, gid, x, y):
-    """First stage of a chunk: its ray-splat geometry and texture lookups.
+def _chunk_geometry(st: _Static, pk, x, y):
+    """G, z (B, P, c) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P, 1) pixel centres."""
+    _, _, G, z, _ = _geometry(pk[:, None], x, y, False)
+    return G, z
+
+
+class _Passes(NamedTuple):
+    """Which (tile, pixel, splat) pairs of a batch's chunk get texture lookups, and in how many passes.
+
+    order: (N + K,) int32 flat indices into the (B, P, c) block (N = B P c) of the pairs that may
+    reach alpha 1/255 at a pixel still compositing, in block order, then N (none) up to the end;
+    count: () int32 how many; K: static pass size. Pass j looks up ``order[j K:(j + 1) K]``.
+    """
+
+    order: jax.Array
+    count: jax.Array
+    K: int
+
+
+def _exclusive_count(mask):
+    """(R, c) float32 0/1 -> ((R, c) int32 number of ones before each entry in row-major order, () int32
+    total): within a row by a product with a triangle of ones (exact in float32 for c < 2^24), the
+    rows' totals by an int32 cumulative sum over R; XLA's CPU cumsum over all R c entries is several
+    times slower."""
+    c = mask.shape[-1]
+    within = jnp.matmul(mask, jnp.triu(jnp.ones((c, c), mask.dtype), 1), precision=lax.Precision.HIGHEST)
+    tot = (within[:, -1] + mask[:, -1]).astype(jnp.int32)
+    before = jnp.cumsum(tot) - tot
+    return within.astype(jnp.int32) + before[:, None], before[-1] + tot[-1]
+
+
+def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
+    """The :class:`_Passes` of a batch's chunk, or None when every pair is looked up
+    (``config.texture_pairs >= 1``).
+
+    A pair whose bound ``opacity * G * max(alpha texels)`` is below 1/255 (with a 1e-3 margin for
+    rounding) has alpha < 1/255 whatever its texture holds, and a pixel that stopped compositing
+    takes nothing more: neither needs a lookup, and their texture values are never read (the pair
+    is skipped). Textures then cost in proportion to the pairs that contribute (a few percent to a
+    few tens of percent of a chunk's pairs), not to the whole (pixels x splats) block.
+    """
+    B, P, c = G.shape
+    N = B * P * c
+    K = min(N, max(1, math.ceil(st.config.texture_pairs * N)))
+    if K >= N:
+        return None
+    bound = (pk[:, :, _OP] * ctx["peak"][gid])[:, None, :] * G
+    take = valid[:, None, :] & ~done[:, :, None] & (bound >= ALPHA_MIN * (1.0 - 1e-3))
+    pos, count = _exclusive_count(jnp.where(take, 1.0, 0.0).astype(jnp.float32).reshape(B * P, c))
+    order = jnp.full((N + K,), N, jnp.int32).at[jnp.where(take.reshape(-1), pos.reshape(-1), N + K)].set(
+        jnp.arange(N, dtype=jnp.int32), mode="drop")
+    return _Passes(order, count, K)
+
+
+def _pass_pairs(passes: _Passes, j):
+    """(K,) int32 flat indices into the (B, P, c) block of the pairs of pass j; N for unused slots."""
+    return lax.dynamic_slice(passes.order, (j * passes.K,), (passes.K,))
+
+
+def _select(pk, gid, x, y, idx, shape):
+    """Splat rows, splat ids and pixel centres of the looked-up pairs: with ``idx`` None the whole
+    block, broadcasting ((B, 1, c, F), (B, 1, c), (B, P, 1), (B, P, 1)); else of the pairs ``idx``
+    (K,) (flat into ``shape`` = (B, P, c), N for none): (K, F), (K,), (K,), (K,)."""
+    if idx is None:
+        return pk[:, None], gid[:, None], x, y
+    B, P, c = shape
+    i = jnp.minimum(idx, B * P * c - 1)
+    b, r = i // (P * c), i % (P * c)
+    p, s = r // c, r % c
+    return pk[b, s], gid[b, s], x[b, p, 0], y[b, p, 0]
+
+
+def _lookups(st: _Static, ctx, pk, gid, x, y, idx, shape):
+    """Texture lookups of a batch's chunk (all pairs, ``idx`` None) or of the pairs ``idx`` (K,).
 
     Args:
-      pk: (c, F) packed splats; gid (c,); x, y (P, 1) pixel centres.
+      pk: (B, c, F) packed splats; gid (B, c); x, y (B, P, 1) pixel centres; idx, shape: see
+        :func:`_select`.
     Returns:
-      (G, z, rgb weights, alpha weights), differentiable in pk: G, z (P, c) and, per bank, None or
-      (fa, fb, lw) of its :class:`_Lookup`; and (rgb rows, alpha rows), None or :meth:`_Lookup.rows`.
+      (rgb weights, alpha weights), differentiable in pk: per bank None or (fa, fb, lw) of its
+      :class:`_Lookup`; and (rgb rows, alpha rows), None or :meth:`_Lookup.rows`.
     """
-    u, v, G, z, fp = _geometry(pk, x, y, st.need_footprint)
-    if not (st.rgb or st.alpha):
-        return (G, z, None, None), (None, None)
+    pk, gid, x, y = _select(pk, gid, x, y, idx, shape)
+    u, v, _, _, fp = _geometry(pk, x, y, st.need_footprint)
     # Each per-lookup quantity is computed once (see _barrier): (u, v) and the footprint, which every
     # lookup reads, then the lookups' rows and weights, which the gathers and products read per texel.
     u, v, fp = _barrier((u, v, fp), ctx["flag"])
@@ -539,26 +626,95 @@ def _chunk_lookups(st: _Static, ctx, pk, gid, x, y):
     lr, la = _barrier((lr, la), ctx["flag"])
     weights = lambda lk: None if lk is None else (lk.fa, lk.fb, lk.lw)
     rows = lambda lk: None if lk is None else lk.rows()
-    return (G, z, weights(lr), weights(la)), (rows(lr), rows(la))
+    return (weights(lr), weights(la)), (rows(lr), rows(la))
 
 
-def _chunk_contrib(st: _Static, ctx, pk, geo, vals_rgb, vals_a, gid, valid, log_t_in, done_in):
-    """Second stage of a chunk: its contribution, differentiable in (pk, geo, vals_rgb, vals_a).
+def _values(ctx, weights, vals):
+    """Texture values of lookups: (RGB offsets, a list of 3, or None; alpha or None), each of the
+    lookups' shape, from their weights (:func:`_lookups`) and gathered texels ``vals`` (per bank None
+    or :func:`_gather`'s). Through :func:`_barrier`, so their cotangents are computed once, not
+    per texel."""
+    (wr, wa), (vr, va) = weights, vals
+    return _barrier((None if wr is None else _tex_value(vr, *wr),
+                     None if wa is None else _tex_value(va, *wa)[0]), ctx["flag"])
+
+
+def _spread(values, idx, shape):
+    """Values of the pairs ``idx`` (K,) -> (B, P, c) arrays, zero elsewhere."""
+    N = shape[0] * shape[1] * shape[2]
+    return jax.tree.map(lambda q: jnp.zeros((N,), q.dtype).at[idx].set(q, mode="drop").reshape(shape),
+                        values)
+
+
+def _pick(dense, idx):
+    """(B, P, c) arrays -> their values at the pairs ``idx`` (K,), zero for unused slots."""
+    return jax.tree.map(lambda q: q.reshape(-1).at[idx].get(mode="fill", fill_value=0), dense)
+
+
+def _texture_fwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape):
+    """Texture values (RGB offsets list of 3 or None, alpha or None), each (B, P, c), of a batch's
+    chunk: every pair (``passes`` None) or the pairs of :func:`_texture_passes`, zero elsewhere."""
+    def look(idx):
+        w, rows = _lookups(st, ctx, pk, gid, x, y, idx, shape)
+        return _values(ctx, w, (_gather(ctx["rgb_texels"], rows[0]), _gather(ctx["alpha_texels"], rows[1])))
+
+    if passes is None:
+        return look(None)
+    N = passes.order.shape[0] - passes.K
+    dt = pk.dtype
+    init = (None if not st.rgb else [jnp.zeros((N,), dt)] * 3, None if not st.alpha else jnp.zeros((N,), dt))
+
+    def body(state):
+        j, dense = state
+        idx = _pass_pairs(passes, j)
+        vals = look(idx)
+        return j + 1, jax.tree.map(lambda d, q: d.at[idx].set(q, mode="drop"), dense, vals)
+
+    _, dense = lax.while_loop(lambda state: state[0] * passes.K < passes.count, body, (jnp.int32(0), init))
+    return jax.tree.map(lambda d: d.reshape(shape), dense)
+
+
+def _texture_bwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape, ct, g_rt, g_at):
+    """The backward of :func:`_texture_fwd` for cotangents ``ct`` of its output.
+
+    Returns (g_pk (B, c, F), g_rt, g_at): the packed-splat cotangent, and the paired texel
+    cotangents ``g_rt``, ``g_at`` (:func:`_scatter`) with this chunk's added.
+    """
+    def one(idx, ct_vals, g_rt, g_at):
+        w, vjp_lk, rows = jax.vjp(lambda p: _lookups(st, ctx, p, gid, x, y, idx, shape), pk, has_aux=True)
+        vals = (_gather(ctx["rgb_texels"], rows[0]), _gather(ctx["alpha_texels"], rows[1]))
+        _, vjp_v = jax.vjp(lambda w_, v_: _values(ctx, w_, v_), w, vals)
+        g_w, (g_vr, g_va) = vjp_v(ct_vals)
+        if rows[0] is not None:
+            g_rt = _scatter(g_rt, rows[0], g_vr)
+        if rows[1] is not None:
+            g_at = _scatter(g_at, rows[1], g_va)
+        return vjp_lk(g_w)[0], g_rt, g_at
+
+    if passes is None:
+        return one(None, ct, g_rt, g_at)
+
+    def body(state):
+        j, g_pk, g_rt, g_at = state
+        idx = _pass_pairs(passes, j)
+        g, g_rt, g_at = one(idx, _pick(ct, idx), g_rt, g_at)
+        return j + 1, g_pk + g, g_rt, g_at
+
+    init = (jnp.int32(0), jnp.zeros_like(pk), g_rt, g_at)
+    return lax.while_loop(lambda state: state[0] * passes.K < passes.count, body, init)[1:]
+
+
+def _chunk_contrib(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in):
+    """A tile's chunk contribution, differentiable in (pk, G, z, offs, a_tex).
 
     Args:
-      pk: (c, F) packed splats; geo: the first output of :func:`_chunk_lookups`; vals_rgb / vals_a:
-        None or the :func:`_gather` texels at the rows it returned; gid, valid (c,); log_t_in (P,)
+      pk: (c, F) packed splats; G, z (P, c); offs: None or the RGB texture offsets, a list of 3
+        (P, c); a_tex: None or the alpha texture values (P, c); gid, valid (c,); log_t_in (P,)
         log transmittance before the chunk; done_in (P,) compositing already stopped.
     Returns:
       ((dacc (P, 9), log_t_out (P,)), (done_out (P,), w (P, c)))
     """
     cfg = st.config
-    G, z, wr, wa = geo
-    # Texture values through _barrier: their cotangents are then computed once, not per texel.
-    offs = a_tex = None
-    if st.rgb or st.alpha:
-        offs, a_tex = _barrier((None if wr is None else _tex_value(vals_rgb, *wr),
-                                None if wa is None else _tex_value(vals_a, *wa)[0]), ctx["flag"])
     a = pk[:, _OP] * G
     if st.alpha:
         a = a * jnp.where(ctx["alpha_meta"].has[gid], a_tex, 1.0)
@@ -612,6 +768,21 @@ def _batch_state(st, ctx, tb, dt):
     return xy, jax.vmap(lambda t: _num_chunks(st, ctx, t))(tb)
 
 
+def _chunk_fwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done):
+    """Chunk k of a batch of tiles ``tb`` (B,), forward: x, y (B, P, 1) pixel centres, log_t, done
+    (B, P) the state before it. Returns ((dacc (B, P, 9), log_t (B, P)), (done (B, P), w (B, P, c)),
+    gid (B, c))."""
+    gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
+    pk = packed[gid]
+    G, z = _chunk_geometry(st, pk, x, y)
+    tvals = (None, None)
+    if st.rgb or st.alpha:
+        passes = _texture_passes(st, ctx, pk, gid, valid, G, done)
+        tvals = _texture_fwd(st, ctx, pk, gid, x, y, passes, G.shape)
+    out = jax.vmap(functools.partial(_chunk_contrib, st, ctx))(pk, G, z, *tvals, gid, valid, log_t, done)
+    return out, gid
+
+
 def _composite_fwd_impl(st: _Static, packed, rgb_texels, alpha_texels, ctx):
     npx = st.config.tile_size ** 2
     dt = packed.dtype
@@ -623,18 +794,11 @@ def _composite_fwd_impl(st: _Static, packed, rgb_texels, alpha_texels, ctx):
         def cond(state):
             return jnp.any((state[0] < nch) & ~jnp.all(state[2], axis=1))
 
-        def one(t, k, x, y, log_t, done):
-            gid, valid = _chunk_slots(st, ctx, t, k)
-            pk = packed[gid]
-            geo, (ir, ia) = _chunk_lookups(st, ctx, pk, gid, x, y)
-            (dacc, log_t2), (done2, w) = _chunk_contrib(
-                st, ctx, pk, geo, _gather(ctx["rgb_quads"], ir), _gather(ctx["alpha_quads"], ia), gid, valid,
-                log_t, done)
-            return dacc, log_t2, done2, jnp.max(w, axis=1), gid[jnp.argmax(w, axis=1)]
-
         def body(state):
             k, log_t, done, acc, best_w, best_id = state
-            dacc, log_t2, done2, wmax, arg = jax.vmap(one, (0, None, 0, 0, 0, 0))(tb, k, x, y, log_t, done)
+            ((dacc, log_t2), (done2, w)), gid = _chunk_fwd(st, ctx, packed, tb, k, x, y, log_t, done)
+            wmax = jnp.max(w, axis=2)
+            arg = jnp.take_along_axis(gid, jnp.argmax(w, axis=2), axis=1)
             better = wmax > best_w
             return (k + 1, log_t2, done2, acc + dacc, jnp.maximum(best_w, wmax),
                     jnp.where(better, arg, best_id))
@@ -666,7 +830,8 @@ def _composite(st: _Static, packed, rgb_texels, alpha_texels, ctx):
       packed: (C, F) per-splat quantities (differentiable).
       rgb_texels, alpha_texels: (M, 3) / (M, 1) flat atlases (:class:`textures.Atlas`) or None
         (differentiable).
-      ctx: dict of arrays without gradient (tile lists, texture addressing, the atlases' quads).
+      ctx: dict of arrays without gradient (tile lists, texture addressing, the atlases' texels
+        to read, the splats' alpha bounds).
     Returns:
       acc (T, P, 9) accumulators, t_final (T, P), best (T, P) int32 id of the largest-weight splat.
 
@@ -683,29 +848,39 @@ def _composite_fwd(st, packed, rgb_texels, alpha_texels, ctx):
     return out, (packed, rgb_texels, alpha_texels, ctx, out[0], out[1])
 
 
+def _chunk_bwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, ct_acc, base_term, g_rt, g_at):
+    """Chunk k of a batch of tiles, backward: its cotangents for the packed splats (returned per
+    chunk slot, (B, c, F), with the slots' ids gid (B, c)) and for the texels it read (added to the
+    paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""
+    gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
+    pk = packed[gid]
+    (G, z), vjp_geo = jax.vjp(lambda p: _chunk_geometry(st, p, x, y), pk)
+    textured = st.rgb or st.alpha
+    passes, tvals = None, (None, None)
+    if textured:
+        passes = _texture_passes(st, ctx, pk, gid, valid, G, done)
+        tvals = _texture_fwd(st, ctx, pk, gid, x, y, passes, G.shape)
+    contrib = jax.vmap(functools.partial(_chunk_contrib, st, ctx))
+
+    def f(pk_, G_, z_, tv_):
+        return contrib(pk_, G_, z_, *tv_, gid, valid, log_t, done)
+
+    (dacc, log_t2), vjp, (done2, _) = jax.vjp(f, pk, G, z, tvals, has_aux=True)
+    dot_through = dot_through + jnp.sum(ct_acc * dacc, axis=-1)
+    g_pk, g_G, g_z, g_tv = vjp((ct_acc, base_term - dot_through))
+    g_pk = g_pk + vjp_geo((g_G, g_z))[0]
+    if textured:
+        g_tex, g_rt, g_at = _texture_bwd(st, ctx, pk, gid, x, y, passes, G.shape, g_tv, g_rt, g_at)
+        g_pk = g_pk + g_tex
+    return log_t2, done2, dot_through, gid, jnp.where(valid[..., None], g_pk, 0.0), g_rt, g_at
+
+
 def _composite_bwd(st, res, cts):
     packed, rgb_texels, alpha_texels, ctx, acc_all, tfin_all = res
     ct_acc_all, ct_t_all, _ = cts
     npx = st.config.tile_size ** 2
     dt = packed.dtype
     B = st.batch
-
-    def one(t, k, x, y, log_t, done, dot_through, ct_acc, base_term):
-        """One tile's chunk k: its cotangents for the packed splats and the texels it read."""
-        gid, valid = _chunk_slots(st, ctx, t, k)
-        pk = packed[gid]
-        geo, vjp_geo, (ir, ia) = jax.vjp(lambda pk_: _chunk_lookups(st, ctx, pk_, gid, x, y), pk,
-                                         has_aux=True)
-        vr, va = _gather(ctx["rgb_quads"], ir), _gather(ctx["alpha_quads"], ia)
-
-        def f(pk_, geo_, vr_, va_):
-            return _chunk_contrib(st, ctx, pk_, geo_, vr_, va_, gid, valid, log_t, done)
-
-        (dacc, log_t2), vjp, (done2, _) = jax.vjp(f, pk, geo, vr, va, has_aux=True)
-        dot_through = dot_through + jnp.sum(ct_acc * dacc, axis=1)
-        g_pkc, g_geo, g_vr, g_va = vjp((ct_acc, base_term - dot_through))
-        g_pkc = g_pkc + vjp_geo(g_geo)[0]
-        return log_t2, done2, dot_through, gid, jnp.where(valid[:, None], g_pkc, 0.0), ir, g_vr, ia, g_va
 
     def batch(carry, inp):
         tb, pad = inp
@@ -720,13 +895,9 @@ def _composite_bwd(st, res, cts):
 
         def body(state):
             k, log_t, done, dot_through, (g_pk, g_rt, g_at) = state
-            log_t, done, dot_through, gid, g_pkc, ir, g_vr, ia, g_va = jax.vmap(
-                one, (0, None, 0, 0, 0, 0, 0, 0, 0))(tb, k, x, y, log_t, done, dot_through, ct_acc, base_term)
+            log_t, done, dot_through, gid, g_pkc, g_rt, g_at = _chunk_bwd(
+                st, ctx, packed, tb, k, x, y, log_t, done, dot_through, ct_acc, base_term, g_rt, g_at)
             g_pk = g_pk.at[gid.reshape(-1)].add(g_pkc.reshape(-1, g_pkc.shape[-1]))
-            if ir is not None:
-                g_rt = _scatter(g_rt, ir, g_vr)
-            if ia is not None:
-                g_at = _scatter(g_at, ia, g_va)
             return k + 1, log_t, done, dot_through, (g_pk, g_rt, g_at)
 
         init = (jnp.int32(0), jnp.zeros((B, npx), dt), jnp.zeros((B, npx), bool), jnp.zeros((B, npx), dt),
@@ -775,7 +946,8 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     H, W, ts = camera.height, camera.width, config.tile_size
     tiles_x, tiles_y = -(-W // ts), -(-H // ts)
     num_tiles = tiles_x * tiles_y
-    proj = _project(scene, camera, config, screen_offset, active_sh_degree, _alpha_peak(scene))
+    peak = _alpha_peak(scene)
+    proj = _project(scene, camera, config, screen_offset, active_sh_degree, peak)
     tx0, tx1, ty0, ty1, ok = _tile_ranges(proj["bounds"], proj["visible"], ts, tiles_x, tiles_y)
     hist = _tile_histogram(tx0, tx1, ty0, ty1, ok, tiles_x, tiles_y)
     pairs_needed = jnp.sum(jnp.where(ok, (tx1 - tx0) * (ty1 - ty0), 0).astype(jnp.float32))
@@ -793,8 +965,8 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
                  alpha=alpha_atlas is not None)
     ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
                rgb_meta=_meta(rgb_atlas), alpha_meta=_meta(alpha_atlas),
-               rgb_quads=None if rgb_atlas is None else rgb_atlas.quads,
-               alpha_quads=None if alpha_atlas is None else alpha_atlas.quads,
+               rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
+               alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,
                flag=binned[0] >= 0)  # a True XLA cannot prove (see _barrier)
     acc, t_final, best = _composite(st, proj["packed"], None if rgb_atlas is None else rgb_atlas.texels,
                                     None if alpha_atlas is None else alpha_atlas.texels, ctx)

@@ -20,11 +20,11 @@ Atlas
   Every texel, of every bucket and level, sits in one flat ``(M, channels)`` array (the
   differentiable one) in which each Gaussian's pyramid is one contiguous block; a level's offset in
   the block, row stride and side are computed from the bucket side and the level
-  (:func:`level_address`), so a lookup needs no per-level tables. Rendering reads the same texels as
-  *quads*, an ``(M, 4 channels)`` array whose row for texel (a, b) of a level holds the 2 x 2 block
-  (a, b), (a, b + 1), (a + 1, b), (a + 1, b + 1) (zeros past the level's edge): a bilinear lookup is
-  one gather of one row (XLA's CPU gathers cost per index, far more than per element). Pyramids are
-  built only when a configuration uses them.
+  (:func:`level_address`), so a lookup needs no per-level tables. A bilinear lookup reads the four
+  texels r, r + 1, r + stride, r + stride + 1 of the atlas in one gather (:func:`gather_corners`);
+  past a level's edge (1 x 1 levels) it reads a neighbour's texel with weight exactly 0, and zero rows
+  at the end of the atlas keep every read in bounds. Pyramids are built only when a configuration
+  uses them.
 """
 
 from __future__ import annotations
@@ -192,8 +192,6 @@ class Atlas:
       texels: (M + pad, channels) float, the flat pyramids (differentiable); row 0 is a dummy (zeros)
         for texture-less Gaussians, and ``pad`` zero rows at the end keep every neighbour row of a
         lookup (r + 1, r + stride, r + stride + 1, weight 0 past a level's edge) in bounds.
-      quads: (M, 4 channels) the same texels as quads (see the module docstring; no gradient): row r
-        holds rows r, r + 1, r + stride, r + stride + 1 of ``texels`` (zeros past a level's edge).
       base: (C,) int32 flat offset of each Gaussian's block.
       bucket_side: (C,) int32 P, the bucket's slot side.
       size: (C,) float32 true n (0: no texture).
@@ -202,7 +200,6 @@ class Atlas:
     """
 
     texels: jax.Array
-    quads: jax.Array
     base: jax.Array
     bucket_side: jax.Array
     size: jax.Array
@@ -227,15 +224,6 @@ def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:
     return levels
 
 
-def _quads(level: jax.Array) -> jax.Array:
-    """(cap, s, s, ch) level -> (cap, s, s, 4 ch): texel (a, b) with its +b, +a and +a+b neighbours
-    (zeros past the edge)."""
-    def shifted(da, db):  # texel (a + da, b + db), zero past the edge
-        return jnp.pad(level[:, da:, db:], ((0, 0), (0, da), (0, db), (0, 0)))
-
-    return jnp.concatenate([level, shifted(0, 1), shifted(1, 0), shifted(1, 1)], axis=-1)
-
-
 def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
     """Flattens a bank (with its mip pyramids when ``use_mip``) into one texel array."""
     ch = bank.channels
@@ -246,7 +234,6 @@ def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
     has = bucket >= 0
     dtype = bank.buckets[0].dtype if bank.buckets else jnp.float32
     chunks = [jnp.zeros((1, ch), dtype)]
-    quads = [jnp.zeros((1, 4 * ch), dtype)]
     offset = 1
     base = jnp.zeros(bucket.shape, jnp.int32)
     for b, data in enumerate(bank.buckets):
@@ -262,14 +249,12 @@ def build_atlas(bank: TextureBank, use_mip: bool) -> Atlas:
             levels = [data]
         block = jnp.concatenate([lev.reshape(cap, -1, ch) for lev in levels], axis=1)
         chunks.append(block.reshape(-1, ch))
-        quads.append(jnp.concatenate([_quads(jax.lax.stop_gradient(lev)).reshape(cap, -1, 4 * ch)
-                                      for lev in levels], axis=1).reshape(-1, 4 * ch))
         base = jnp.where(mine, offset + jnp.clip(slot, 0, cap - 1) * block.shape[1], base)
         offset += block.shape[0] * block.shape[1]
     bucket_side = jnp.where(has, jnp.left_shift(1, jnp.maximum(bucket, 0)), 1)
     max_level = jnp.where(has, bucket, 0) if use_mip else jnp.zeros_like(bucket)
     chunks.append(jnp.zeros(((1 << max(len(bank.buckets) - 1, 0)) + 2, ch), dtype))
-    return Atlas(texels=jnp.concatenate(chunks, axis=0), quads=jnp.concatenate(quads, axis=0), base=base,
+    return Atlas(texels=jnp.concatenate(chunks, axis=0), base=base,
                  bucket_side=bucket_side, size=size_f, max_level=max_level, has=has)
 
 
@@ -287,8 +272,8 @@ def level_address(bucket_side, size, level):
 def corners(offset, stride, side, u, v):
     """Row and fractions of the bilinear, edge-clamped lookup of one level (align-corners).
 
-    Lookups read the quad atlas (:class:`Atlas`): the row ``offset + a0 * stride + b0`` of a
-    Gaussian's block holds texels (a0, b0), (a0, b0 + 1), (a0 + 1, b0), (a0 + 1, b0 + 1). a0 and b0
+    The row ``offset + a0 * stride + b0`` of a Gaussian's block holds texel (a0, b0); the lookup
+    reads it with (a0, b0 + 1), (a0 + 1, b0), (a0 + 1, b0 + 1) (:func:`gather_corners`). a0 and b0
     are at most side - 2 (for side >= 2); for side 1 the neighbours (past the edge) get weight
     exactly 0.
 
@@ -312,14 +297,18 @@ def corners(offset, stride, side, u, v):
     return row, ta - a0, tb - b0
 
 
-def split_quads(quad):
-    """Quad rows (..., 4 ch) -> list of 4 ch arrays (...): texel (a0, b0) channels, then (a0, b0 + 1),
-    (a0 + 1, b0), (a0 + 1, b0 + 1)."""
-    return [x[..., 0] for x in jnp.split(quad, quad.shape[-1], axis=-1)]
+def gather_corners(texels, row, stride):
+    """The 2 x 2 texels of bilinear lookups: ``texels`` (M, ch) the atlas, ``row`` (...) int32 atlas
+    rows (block base plus :func:`corners` row), ``stride`` (...) int32 their levels' row strides ->
+    list of 4 ch arrays (...): texel (a0, b0) channels, then (a0, b0 + 1), (a0 + 1, b0),
+    (a0 + 1, b0 + 1). One gather of four rows per lookup (XLA's CPU gathers cost per index)."""
+    idx = jnp.stack([row, row + 1, row + stride, row + stride + 1], axis=-1)
+    t = texels.at[idx].get(mode="promise_in_bounds")  # (..., 4, ch)
+    return [t[..., q, k] for q in range(4) for k in range(texels.shape[-1])]
 
 
 def bilinear(t, fa, fb):
-    """Bilinear values from :func:`split_quads` texels ``t`` (4 ch arrays) and fractions fa, fb ->
+    """Bilinear values from :func:`gather_corners` texels ``t`` (4 ch arrays) and fractions fa, fb ->
     list of ch arrays.
 
     Per-channel arrays (not an (..., ch) array): the callers combine channels with per-lookup
@@ -329,11 +318,6 @@ def bilinear(t, fa, fb):
     ga, gb = 1.0 - fa, 1.0 - fb
     return [ga * (gb * t[k] + fb * t[ch + k]) + fa * (gb * t[2 * ch + k] + fb * t[3 * ch + k])
             for k in range(ch)]
-
-
-def gather_rows(quads, idx):
-    """Quad rows ``idx`` (block base plus :func:`corners` row, int32): (...) -> (..., 4 ch)."""
-    return quads.at[idx].get(mode="promise_in_bounds")
 
 
 def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):
