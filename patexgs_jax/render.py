@@ -38,7 +38,7 @@ Structure
 
   Textures: only the (pixel, splat) pairs of a chunk step that can reach alpha 1/255 (bounded by
   ``opacity * G * max(alpha texels)``) at pixels still compositing are looked up, gathered into
-  passes of ``RenderConfig.texture_pairs`` of the step's pairs (usually one pass); their texture
+  passes of ``RenderConfig.texture_pairs`` of the step's pairs; their texture
   values are spread back into the dense (pixels x splats) block, zero for the pairs skipped, which
   are not composited anyway. A bilinear lookup is one gather of the four texels of a 2 x 2 block
   (see :mod:`patexgs_jax.textures`) per bank and mip level read; the backward adds each lookup's
@@ -99,9 +99,10 @@ class RenderConfig:
         at similar steps; fewer when that spreads the tiles more evenly over the batches).
       texture_pairs: texture lookups per pass, as a share of a chunk step's (tile, pixel, splat)
         pairs. Only the pairs that can reach alpha 1/255 are looked up, gathered into as many
-        passes of this size as they need (usually one: a few percent to a few tens of percent of
-        the pairs contribute). Any value gives the same image; 1.0 looks up every pair without
-        gathering them (the dense path).
+        passes of this size as they need (a few percent to a few tens of percent of the pairs
+        contribute). Any value gives the same image; 1.0 looks up every pair without gathering
+        them (the dense path, faster only for the forward of cheap lookups: one alpha bank
+        without mipmaps).
     """
 
     mip: str = "nearest"
@@ -566,7 +567,7 @@ def _exclusive_count(mask):
 
 def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
     """The :class:`_Passes` of a batch's chunk, or None when every pair is looked up
-    (``config.texture_pairs >= 1``).
+    (``config.texture_pairs`` 1).
 
     A pair whose bound ``opacity * G * max(alpha texels)`` is below 1/255 (with a 1e-3 margin for
     rounding) has alpha < 1/255 whatever its texture holds, and a pixel that stopped compositing
