@@ -640,13 +640,6 @@ def _values(ctx, weights, vals):
                      None if wa is None else _tex_value(va, *wa)[0]), ctx["flag"])
 
 
-def _spread(values, idx, shape):
-    """Values of the pairs ``idx`` (K,) -> (B, P, c) arrays, zero elsewhere."""
-    N = shape[0] * shape[1] * shape[2]
-    return jax.tree.map(lambda q: jnp.zeros((N,), q.dtype).at[idx].set(q, mode="drop").reshape(shape),
-                        values)
-
-
 def _pick(dense, idx):
     """(B, P, c) arrays -> their values at the pairs ``idx`` (K,), zero for unused slots."""
     return jax.tree.map(lambda q: q.reshape(-1).at[idx].get(mode="fill", fill_value=0), dense)
