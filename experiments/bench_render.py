@@ -25,8 +25,8 @@ footprint rays and Eq. 11: about 60. Trilinear reads a second level in both bank
 about 90 more. These are what a renderer evaluating every pair would spend; ours spends the texture
 part only on the pairs that can reach alpha 1/255 (a few percent of them here), except in
 ``tex8-mip-dense``, so for the other textured configurations the share of the peak is of that
-dense-equivalent work, not of the arithmetic done. The peak is measured (``--peak``): the float32 throughput of a large ``jnp.dot`` on all cores, the best
-this machine's XLA does on dense arithmetic.
+dense-equivalent work, not of the arithmetic done. The peak is measured (``--peak``): the float32
+throughput of a large ``jnp.dot`` on all cores, the best this machine's XLA does on dense arithmetic.
 """
 
 from __future__ import annotations

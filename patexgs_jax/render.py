@@ -534,7 +534,7 @@ def _chunk_slots(st: _Static, ctx, t, k):
     return gid, valid
 
 
-def _chunk_geometry(st: _Static, pk, x, y):
+def _chunk_geometry(pk, x, y):
     """G, z (B, P, c) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P, 1) pixel centres."""
     _, _, G, z, _ = _geometry(pk[:, None], x, y, False)
     return G, z
@@ -586,6 +586,11 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
     order = jnp.full((N + K,), N, jnp.int32).at[jnp.where(take.reshape(-1), pos.reshape(-1), N + K)].set(
         jnp.arange(N, dtype=jnp.int32), mode="drop")
     return _Passes(order, count, K)
+
+
+def _more_passes(passes: _Passes, j):
+    """Whether pass j has pairs (the condition of the pass loops)."""
+    return j * passes.K < passes.count
 
 
 def _pass_pairs(passes: _Passes, j):
@@ -664,12 +669,14 @@ def _texture_fwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape)
         vals = look(idx)
         return j + 1, jax.tree.map(lambda d, q: d.at[idx].set(q, mode="drop"), dense, vals)
 
-    _, dense = lax.while_loop(lambda state: state[0] * passes.K < passes.count, body, (jnp.int32(0), init))
+    _, dense = lax.while_loop(lambda state: _more_passes(passes, state[0]), body, (jnp.int32(0), init))
     return jax.tree.map(lambda d: d.reshape(shape), dense)
 
 
 def _texture_bwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape, ct, g_rt, g_at):
-    """The backward of :func:`_texture_fwd` for cotangents ``ct`` of its output.
+    """The backward of :func:`_texture_fwd` for cotangents ``ct`` of its output. Each pass's lookups
+    are computed again here, under ``jax.vjp``, rather than kept from :func:`_texture_fwd`: the number
+    of passes is known only at run time, and the lookups are pass-sized, cheap next to the chunk.
 
     Returns (g_pk (B, c, F), g_rt, g_at): the packed-splat cotangent, and the paired texel
     cotangents ``g_rt``, ``g_at`` (:func:`_scatter`) with this chunk's added.
@@ -695,7 +702,7 @@ def _texture_bwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape,
         return j + 1, g_pk + g, g_rt, g_at
 
     init = (jnp.int32(0), jnp.zeros_like(pk), g_rt, g_at)
-    return lax.while_loop(lambda state: state[0] * passes.K < passes.count, body, init)[1:]
+    return lax.while_loop(lambda state: _more_passes(passes, state[0]), body, init)[1:]
 
 
 def _chunk_contrib(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in):
@@ -768,7 +775,7 @@ def _chunk_fwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done):
     gid (B, c))."""
     gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    G, z = _chunk_geometry(st, pk, x, y)
+    G, z = _chunk_geometry(pk, x, y)
     tvals = (None, None)
     if st.rgb or st.alpha:
         passes = _texture_passes(st, ctx, pk, gid, valid, G, done)
@@ -848,7 +855,7 @@ def _chunk_bwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, 
     paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""
     gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    (G, z), vjp_geo = jax.vjp(lambda p: _chunk_geometry(st, p, x, y), pk)
+    (G, z), vjp_geo = jax.vjp(lambda p: _chunk_geometry(p, x, y), pk)
     textured = st.rgb or st.alpha
     passes, tvals = None, (None, None)
     if textured:
