@@ -543,26 +543,46 @@ def _chunk_geometry(pk, x, y):
 class _Passes(NamedTuple):
     """Which (tile, pixel, splat) pairs of a batch's chunk get texture lookups, and in how many passes.
 
-    order: (N + K,) int32 flat indices into the (B, P, c) block (N = B P c) of the pairs that may
-    reach alpha 1/255 at a pixel still compositing, in block order, then N (none) up to the end;
-    count: () int32 how many; K: static pass size. Pass j looks up ``order[j K:(j + 1) K]``.
+    The (B, P, c) block is cut into rows of at most 32 slots (per tile and pixel, ``ceil(c / 32)``
+    words of its chunk); ``bits`` (R,) uint32 marks the pairs of each row that may reach alpha 1/255
+    at a pixel still compositing; ``ends`` (R,) int32 is the inclusive running count of marked pairs
+    over the rows; count: () int32 how many in all; K: static pass size; shape: static (B, P, c).
+    Pass j looks up the marked pairs of ranks ``j K`` to ``(j + 1) K - 1`` in block order.
     """
 
-    order: jax.Array
+    bits: jax.Array
+    ends: jax.Array
     count: jax.Array
     K: int
+    shape: tuple
 
 
-def _exclusive_count(mask):
-    """(R, c) float32 0/1 -> ((R, c) int32 number of ones before each entry in row-major order, () int32
-    total): within a row by a product with a triangle of ones (exact in float32 for c < 2^24), the
-    rows' totals by an int32 cumulative sum over R; XLA's CPU cumsum over all R c entries is several
-    times slower."""
-    c = mask.shape[-1]
-    within = jnp.matmul(mask, jnp.triu(jnp.ones((c, c), mask.dtype), 1), precision=lax.Precision.HIGHEST)
-    tot = (within[:, -1] + mask[:, -1]).astype(jnp.int32)
-    before = jnp.cumsum(tot) - tot
-    return within.astype(jnp.int32) + before[:, None], before[-1] + tot[-1]
+_WORD = 32  # slots per row of _Passes: one uint32 bit each
+
+
+def _row_bits(take):
+    """(..., c) bool -> (..., ceil(c / 32)) uint32: the marks of each run of 32 slots as the bits of
+    one word (slot w 32 + i of the last axis is bit i of word w)."""
+    c = take.shape[-1]
+    nw = -(-c // _WORD)
+    take = jnp.pad(take, [(0, 0)] * (take.ndim - 1) + [(0, nw * _WORD - c)])
+    take = take.reshape(take.shape[:-1] + (nw, _WORD))
+    weights = jnp.left_shift(jnp.uint32(1), jnp.arange(_WORD, dtype=jnp.uint32))
+    return jnp.sum(jnp.where(take, weights, jnp.uint32(0)), axis=-1, dtype=jnp.uint32)
+
+
+def _nth_bit(bits, n):
+    """Position (int32) of the bit of rank ``n`` (0-based, from the least significant) set in
+    ``bits`` (uint32), elementwise; ``n`` must be below the number of set bits. A binary search on
+    population counts: 5 halvings of the 32-bit word."""
+    pos = jnp.zeros(bits.shape, jnp.uint32)
+    n = n.astype(jnp.uint32)
+    for width in (16, 8, 4, 2, 1):
+        low = lax.population_count(jnp.right_shift(bits, pos) & jnp.uint32((1 << width) - 1))
+        up = n >= low
+        n = jnp.where(up, n - low, n)
+        pos = jnp.where(up, pos + jnp.uint32(width), pos)
+    return pos.astype(jnp.int32)
 
 
 def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
@@ -574,6 +594,10 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
     takes nothing more: neither needs a lookup, and their texture values are never read (the pair
     is skipped). Textures then cost in proportion to the pairs that contribute (a few percent to a
     few tens of percent of a chunk's pairs), not to the whole (pixels x splats) block.
+
+    The marks are packed into 32-bit words, one per 32-slot row, and counted with a running sum over
+    the rows; each pass finds its pairs by searching those counts (:func:`_pass_pairs`). Nothing of
+    the block's size is written but the words: no scatter, no per-pair index array.
     """
     B, P, c = G.shape
     N = B * P * c
@@ -582,10 +606,9 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
         return None
     bound = (pk[:, :, _OP] * ctx["peak"][gid])[:, None, :] * G
     take = valid[:, None, :] & ~done[:, :, None] & (bound >= ALPHA_MIN * (1.0 - 1e-3))
-    pos, count = _exclusive_count(jnp.where(take, 1.0, 0.0).astype(jnp.float32).reshape(B * P, c))
-    order = jnp.full((N + K,), N, jnp.int32).at[jnp.where(take.reshape(-1), pos.reshape(-1), N + K)].set(
-        jnp.arange(N, dtype=jnp.int32), mode="drop")
-    return _Passes(order, count, K)
+    bits = _row_bits(take).reshape(-1)
+    ends = jnp.cumsum(lax.population_count(bits).astype(jnp.int32))
+    return _Passes(bits, ends, ends[-1], K, (B, P, c))
 
 
 def _more_passes(passes: _Passes, j):
@@ -594,8 +617,17 @@ def _more_passes(passes: _Passes, j):
 
 
 def _pass_pairs(passes: _Passes, j):
-    """(K,) int32 flat indices into the (B, P, c) block of the pairs of pass j; N for unused slots."""
-    return lax.dynamic_slice(passes.order, (j * passes.K,), (passes.K,))
+    """(K,) int32 flat indices into the (B, P, c) block of the pairs of pass j, in block order; N for
+    unused slots."""
+    B, P, c = passes.shape
+    nw = -(-c // _WORD)
+    rank = j * passes.K + jnp.arange(passes.K, dtype=jnp.int32)
+    row = jnp.searchsorted(passes.ends, rank, side="right", method="scan_unrolled").astype(jnp.int32)
+    row = jnp.minimum(row, passes.ends.shape[0] - 1)
+    first = passes.ends[row] - lax.population_count(passes.bits[row]).astype(jnp.int32)
+    bit = _nth_bit(passes.bits[row], rank - first)
+    pair = (row // nw) * c + (row % nw) * _WORD + bit
+    return jnp.where(rank < passes.count, pair, B * P * c)
 
 
 def _select(pk, gid, x, y, idx, shape):
@@ -659,7 +691,7 @@ def _texture_fwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape)
 
     if passes is None:
         return look(None)
-    N = passes.order.shape[0] - passes.K
+    N = math.prod(shape)
     dt = pk.dtype
     init = (None if not st.rgb else [jnp.zeros((N,), dt)] * 3, None if not st.alpha else jnp.zeros((N,), dt))
 

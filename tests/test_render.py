@@ -380,13 +380,32 @@ def test_tile_batches_do_not_repeat_tiles_needlessly(num_tiles, tile_batch, batc
 # ---------------------------------------------------------------------------------------------
 # Texture lookups only where a pair can contribute, in passes
 # ---------------------------------------------------------------------------------------------
-def test_exclusive_count_matches_cumsum():
-    rng = np.random.default_rng(0)
-    mask = (rng.random((300, 32)) < 0.2).astype(np.float32)
-    pos, count = render_mod._exclusive_count(jnp.asarray(mask))
-    flat = mask.reshape(-1).astype(np.int64)
-    np.testing.assert_array_equal(np.asarray(pos).reshape(-1), np.cumsum(flat) - flat)
-    assert int(count) == int(flat.sum())
+@pytest.mark.parametrize("c", [32, 7, 45])
+def test_pass_pairs_list_the_marked_pairs_in_order(c):
+    """The passes' pairs, read in order, are exactly the marked slots of the block in row-major order,
+    then the "none" index: for a chunk of 32 slots (one word per row), fewer (a partial word) and
+    more (two words, the second partial), with passes that end inside a row."""
+    rng = np.random.default_rng(c)
+    B, P = 3, 20
+    take = rng.random((B, P, c)) < 0.2
+    take[1, 5] = True  # a full row
+    take[2] = False    # a tile with no marks
+    N = take.size
+    bits = render_mod._row_bits(jnp.asarray(take)).reshape(-1)
+    ends = jnp.cumsum(jax.lax.population_count(bits).astype(jnp.int32))
+    K = 13
+    passes = render_mod._Passes(bits, ends, ends[-1], K, (B, P, c))
+    want = np.flatnonzero(take.reshape(-1))
+    assert int(passes.count) == want.size
+    got = []
+    j = 0
+    while bool(render_mod._more_passes(passes, j)):
+        got.append(np.asarray(render_mod._pass_pairs(passes, j)))
+        j += 1
+    assert j == -(-want.size // K)
+    got = np.concatenate(got)
+    np.testing.assert_array_equal(got[:want.size], want)
+    assert np.all(got[want.size:] == N)
 
 
 @pytest.mark.parametrize("name", ["nearest", "trilinear"])
