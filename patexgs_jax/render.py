@@ -596,8 +596,8 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
     few tens of percent of a chunk's pairs), not to the whole (pixels x splats) block.
 
     The marks are packed into 32-bit words, one per 32-slot row, and counted with a running sum over
-    the rows; each pass finds its pairs by searching those counts (:func:`_pass_pairs`). Nothing of
-    the block's size is written but the words: no scatter, no per-pair index array.
+    the rows; each pass finds its pairs by searching those counts (:func:`_pass_pairs`). Nothing
+    block-sized is written, only the words (one per 32 pairs): no scatter, no per-pair index array.
     """
     B, P, c = G.shape
     N = B * P * c
@@ -624,8 +624,9 @@ def _pass_pairs(passes: _Passes, j):
     rank = j * passes.K + jnp.arange(passes.K, dtype=jnp.int32)
     row = jnp.searchsorted(passes.ends, rank, side="right", method="scan_unrolled").astype(jnp.int32)
     row = jnp.minimum(row, passes.ends.shape[0] - 1)
-    first = passes.ends[row] - lax.population_count(passes.bits[row]).astype(jnp.int32)
-    bit = _nth_bit(passes.bits[row], rank - first)
+    word = passes.bits[row]
+    first = passes.ends[row] - lax.population_count(word).astype(jnp.int32)
+    bit = _nth_bit(word, rank - first)
     pair = (row // nw) * c + (row % nw) * _WORD + bit
     return jnp.where(rank < passes.count, pair, B * P * c)
 
