@@ -606,9 +606,14 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
         return None
     bound = (pk[:, :, _OP] * ctx["peak"][gid])[:, None, :] * G
     take = valid[:, None, :] & ~done[:, :, None] & (bound >= ALPHA_MIN * (1.0 - 1e-3))
+    return _mark_passes(take, K)
+
+
+def _mark_passes(take, K: int) -> _Passes:
+    """The :class:`_Passes` of passes of K pairs over the pairs marked in ``take`` (B, P, c) bool."""
     bits = _row_bits(take).reshape(-1)
     ends = jnp.cumsum(lax.population_count(bits).astype(jnp.int32))
-    return _Passes(bits, ends, ends[-1], K, (B, P, c))
+    return _Passes(bits, ends, ends[-1], K, take.shape)
 
 
 def _more_passes(passes: _Passes, j):

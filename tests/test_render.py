@@ -391,10 +391,8 @@ def test_pass_pairs_list_the_marked_pairs_in_order(c):
     take[1, 5] = True  # a full row
     take[2] = False    # a tile with no marks
     N = take.size
-    bits = render_mod._row_bits(jnp.asarray(take)).reshape(-1)
-    ends = jnp.cumsum(jax.lax.population_count(bits).astype(jnp.int32))
     K = 13
-    passes = render_mod._Passes(bits, ends, ends[-1], K, (B, P, c))
+    passes = render_mod._mark_passes(jnp.asarray(take), K)
     want = np.flatnonzero(take.reshape(-1))
     assert int(passes.count) == want.size
     got = []
