@@ -621,14 +621,39 @@ def _more_passes(passes: _Passes, j):
     return j * passes.K < passes.count
 
 
+def _rows_of_ranks(ends, start, K: int):
+    """(K,) int32: for the ranks ``start`` .. ``start + K - 1``, the row holding each, i.e. how many
+    of the inclusive running counts ``ends`` (R,) int32 (nondecreasing) are at most the rank
+    (``searchsorted(ends, rank, side="right")``). The ranks are consecutive, so this is the number of
+    rows ending before ``start`` plus a running sum of a histogram of where the others end: one
+    scatter of R ones and two small matmuls (:func:`_running_sum`), where a binary search would
+    gather ``log2 R`` times."""
+    before = jnp.sum((ends < start).astype(jnp.int32))
+    at = ends - start
+    hist = jnp.zeros((K,), jnp.float32).at[jnp.where((at >= 0) & (at < K), at, K)].add(1.0, mode="drop")
+    return before + _running_sum(hist).astype(jnp.int32)
+
+
+def _running_sum(x):
+    """Inclusive running sum of a (K,) float32 vector of small integer counts (exact below 2**24), as
+    a prefix sum within blocks of w (a power of two, about sqrt K) and one over the blocks' totals:
+    two triangular matmuls, where XLA's CPU cumsum is a reduce-window of K^2 adds."""
+    K = x.shape[0]
+    w = 1 << max(0, math.ceil(math.log2(math.sqrt(K))))
+    nb = -(-K // w)
+    blocks = _prefix_sum(jnp.pad(x, (0, nb * w - K)).reshape(nb, w))
+    offsets = _prefix_sum(blocks[:, -1]) - blocks[:, -1]
+    return (blocks + offsets[:, None]).reshape(-1)[:K]
+
+
 def _pass_pairs(passes: _Passes, j):
     """(K,) int32 flat indices into the (B, P, c) block of the pairs of pass j, in block order; N for
     unused slots."""
     B, P, c = passes.shape
     nw = -(-c // _WORD)
-    rank = j * passes.K + jnp.arange(passes.K, dtype=jnp.int32)
-    row = jnp.searchsorted(passes.ends, rank, side="right", method="scan_unrolled").astype(jnp.int32)
-    row = jnp.minimum(row, passes.ends.shape[0] - 1)
+    start = j * passes.K
+    rank = start + jnp.arange(passes.K, dtype=jnp.int32)
+    row = jnp.minimum(_rows_of_ranks(passes.ends, start, passes.K), passes.ends.shape[0] - 1)
     word = passes.bits[row]
     first = passes.ends[row] - lax.population_count(word).astype(jnp.int32)
     bit = _nth_bit(word, rank - first)

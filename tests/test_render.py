@@ -406,6 +406,20 @@ def test_pass_pairs_list_the_marked_pairs_in_order(c):
     assert np.all(got[want.size:] == N)
 
 
+
+@pytest.mark.parametrize("K", [1, 5, 64, 1000])
+def test_rows_of_ranks_match_searchsorted(K):
+    """The rows of a pass's consecutive ranks, from a histogram and running sums, equal
+    ``np.searchsorted(ends, rank, side="right")``: for running counts with empty rows (repeated
+    ends), passes starting before the first end, inside a row, and past the last end."""
+    rng = np.random.default_rng(K)
+    counts = rng.integers(0, 4, 300) * (rng.random(300) < 0.6)
+    ends = np.cumsum(counts).astype(np.int32)
+    for start in [0, 1, int(ends[40]), int(ends[-1]) - K // 2, int(ends[-1]) + 3]:
+        got = np.asarray(render_mod._rows_of_ranks(jnp.asarray(ends), jnp.int32(start), K))
+        want = np.searchsorted(ends, start + np.arange(K), side="right")
+        np.testing.assert_array_equal(got, want, err_msg=f"start {start}")
+
 @pytest.mark.parametrize("name", ["nearest", "trilinear"])
 def test_texture_passes_do_not_change_the_result(name):
     """Looking textures up only for the pairs that can reach alpha 1/255, in many small passes, gives
