@@ -94,7 +94,15 @@ def timeit(fn, repeats):
     return 1e3 * float(np.median(ts))
 
 
-def bench(name, n, width, height, repeats):
+def _time_once(fn):
+    t = time.perf_counter()
+    jax.block_until_ready(fn())
+    return 1e3 * (time.perf_counter() - t)
+
+
+def prepare(name, n, width, height):
+    """Scene, camera and compiled forward / forward+backward / binning of one configuration, with
+    its compile times, memory, recompile count and pair counts (everything but the timings)."""
     tex, banks, cfg = CONFIGS[name]
     scene = make_scene(n, tex, banks=banks)
     cam = Camera.from_intrinsics([0.9 * width, 0.9 * width, width / 2, height / 2],
@@ -131,23 +139,48 @@ def bench(name, n, width, height, repeats):
     temp_fwd = getattr(mem_f, "temp_size_in_bytes", float("nan")) if mem_f is not None else float("nan")
     jax.block_until_ready(fwd_c(scene, cam))
     jax.block_until_ready(bwd_c(scene, cam))
-    f_ms = timeit(lambda: fwd_c(scene, cam), repeats)
-    b_ms = timeit(lambda: bwd_c(scene, cam), repeats)
-    bin_ms = timeit(lambda: bin_c(scene, cam), repeats)
     # The public entry point in steady state: same shapes, no new trace.
     jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
     before = sum(R.TRACE_COUNTS.values())
     for _ in range(2):
         jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
     recompiles = sum(R.TRACE_COUNTS.values()) - before
-    listed = float(needed) * cfg.tile_size ** 2  # (pixel, splat) pairs in the tile lists
-    return dict(config=name, gaussians=n, width=width, height=height, forward_ms=f_ms,
-                forward_backward_ms=b_ms, backward_over_forward=b_ms / f_ms, bin_ms=bin_ms,
-                recompiles=recompiles, flops_per_pair=FLOPS_PER_PAIR[name],
-                binned_pairs=float(needed), max_tile=int(max_tile),
-                listed_pixel_pairs_per_s=listed / (f_ms / 1e3),
-                compile_forward_s=compile_fwd, compile_backward_s=compile_bwd,
-                temp_forward_mib=temp_fwd / 2**20, temp_backward_mib=temp_bwd / 2**20)
+    row = dict(config=name, gaussians=n, width=width, height=height, recompiles=recompiles,
+               flops_per_pair=FLOPS_PER_PAIR[name], binned_pairs=float(needed), max_tile=int(max_tile),
+               compile_forward_s=compile_fwd, compile_backward_s=compile_bwd,
+               temp_forward_mib=temp_fwd / 2**20, temp_backward_mib=temp_bwd / 2**20)
+    calls = dict(fwd=lambda: fwd_c(scene, cam), fb=lambda: bwd_c(scene, cam), bin=lambda: bin_c(scene, cam))
+    return row, calls, float(needed) * cfg.tile_size ** 2
+
+
+def bench_interleaved(names, n, width, height, repeats):
+    """Rows of :func:`prepare` with timings taken round-robin: each of ``repeats`` rounds times every
+    configuration's forward, then every one's forward+backward, then binning, so a drift of the
+    machine's speed (this VM's runs vary by up to 2x) falls on all configurations alike. Times are
+    medians over the rounds; ``forward_over_2dgs`` and ``forward_backward_over_2dgs`` (when "2dgs"
+    is among ``names``) are medians of the per-round ratios."""
+    prepared = [prepare(name, n, width, height) for name in names]
+    times = {key: [[] for _ in names] for key in ("fwd", "fb", "bin")}
+    for _ in range(repeats):
+        for key in times:
+            for i, (_, calls, _) in enumerate(prepared):
+                times[key][i].append(_time_once(calls[key]))
+    ref = names.index("2dgs") if "2dgs" in names else None
+    rows = []
+    for i, (row, _, listed) in enumerate(prepared):
+        f_ms, b_ms = float(np.median(times["fwd"][i])), float(np.median(times["fb"][i]))
+        row.update(forward_ms=f_ms, forward_backward_ms=b_ms, backward_over_forward=b_ms / f_ms,
+                   bin_ms=float(np.median(times["bin"][i])), listed_pixel_pairs_per_s=listed / (f_ms / 1e3))
+        if ref is not None:
+            for key, out in (("fwd", "forward_over_2dgs"), ("fb", "forward_backward_over_2dgs")):
+                row[out] = float(np.median(np.asarray(times[key][i]) / np.asarray(times[key][ref])))
+        rows.append(row)
+    return rows
+
+
+def bench(name, n, width, height, repeats):
+    """One configuration on its own (:func:`bench_interleaved` of one name)."""
+    return bench_interleaved([name], n, width, height, repeats)[0]
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -178,30 +211,30 @@ def main(argv=None):
     peak = None if args.no_peak else peak_gflops()
     if peak is not None:
         print(f"peak (float32 2048^2 matmul): {peak:.1f} GFLOP/s")
-    hdr = (f"{'config':15s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'f+b ms':>8s} {'b/f':>5s} {'bin ms':>7s} "
+    hdr = (f"{'config':15s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'x2DGS':>6s} {'f+b ms':>8s} {'b/f':>5s} {'bin ms':>7s} "
            f"{'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'%peak':>6s} {'compile s':>9s} {'recomp':>6s} "
            f"{'bwd tmp MiB':>11s}")
     print(hdr)
     for (w, h) in args.sizes:
         for n in args.gaussians:
-            for name in names:
-                r = bench(name, n, w, h, args.repeats)
+            for r in bench_interleaved(names, n, w, h, args.repeats):
+                name = r["config"]
                 r["peak_gflops"] = peak
                 r["fraction_of_peak"] = (None if peak is None else
                                          r["listed_pixel_pairs_per_s"] * r["flops_per_pair"] / (peak * 1e9))
                 rows.append(r)
                 frac = "-" if peak is None else f"{100 * r['fraction_of_peak']:.1f}"
-                print(f"{name:15s} {n:8d} {f'{w}x{h}':>9s} {r['forward_ms']:8.1f} "
+                x2 = f"{r['forward_over_2dgs']:.2f}" if "forward_over_2dgs" in r else "-"
+                print(f"{name:15s} {n:8d} {f'{w}x{h}':>9s} {r['forward_ms']:8.1f} {x2:>6s} "
                       f"{r['forward_backward_ms']:8.1f} {r['backward_over_forward']:5.2f} {r['bin_ms']:7.1f} "
                       f"{r['binned_pairs']:9.0f} {r['max_tile']:7d} "
                       f"{r['listed_pixel_pairs_per_s'] / 1e6:8.1f} {frac:>6s} "
                       f"{r['compile_forward_s'] + r['compile_backward_s']:9.1f} {r['recompiles']:6d} "
                       f"{r['temp_backward_mib']:11.1f}", flush=True)
-                if args.json:  # after every case: a long sweep keeps what it measured
-                    with open(args.json, "w") as f:
-                        json.dump(dict(machine=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
-                                       peak_gflops=peak, results=rows), f, indent=1)
-
+            if args.json:  # after every case: a long sweep keeps what it measured
+                with open(args.json, "w") as f:
+                    json.dump(dict(machine=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
+                                   peak_gflops=peak, timing="interleaved", results=rows), f, indent=1)
 
 if __name__ == "__main__":
     main()

@@ -22,6 +22,10 @@ def test_bench_render_reports_each_effect(tmp_path, capsys):
                     "temp_backward_mib"):
             assert math.isfinite(r[key]) and r[key] > 0, (r["config"], key)
         assert r["fraction_of_peak"] is None  # --no-peak
+        # Interleaved timing: each configuration's ratio to 2DGS is a median of per-round ratios.
+        for key in ("forward_over_2dgs", "forward_backward_over_2dgs"):
+            assert math.isfinite(r[key]) and r[key] > 0, (r["config"], key)
+    assert rows[0]["forward_over_2dgs"] == 1.0 and rows[0]["forward_backward_over_2dgs"] == 1.0
     printed = capsys.readouterr().out
     assert all(name in printed for name in ("tex8-rgb", "tex8-alpha", "tex8-mip"))
 
