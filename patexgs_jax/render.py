@@ -596,8 +596,9 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
     few tens of percent of a chunk's pairs), not to the whole (pixels x splats) block.
 
     The marks are packed into 32-bit words, one per 32-slot row, and counted with a running sum over
-    the rows; each pass finds its pairs by searching those counts (:func:`_pass_pairs`). Nothing
-    block-sized is written, only the words (one per 32 pairs): no scatter, no per-pair index array.
+    the rows; each pass finds its pairs from those counts (:func:`_pass_pairs`,
+    :func:`_rows_of_ranks`). Nothing block-sized is written, only the words (one per 32 pairs): no
+    per-pair index array; the one scatter adds the rows' ends into a pass-sized histogram.
     """
     B, P, c = G.shape
     N = B * P * c
