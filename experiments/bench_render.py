@@ -4,9 +4,11 @@
                                        [--configs 2dgs,tex8,tex8-mip,tex8-trilinear] [--json out.json]
 
 A fixed random scene (seeded) seen by a fixed camera, for every Gaussian count and image size
-given. For each configuration it prints: forward ms; forward+backward ms (gradient of a
-photometric-style loss w.r.t. the whole scene); the projection + binning + sort time on its own
-(``bin ms``, inside the forward); (pixel, splat) pairs listed per second in the forward pass
+given. For each configuration it prints: forward ms; its ratio to the 2DGS forward (``x2DGS``,
+when 2dgs is among the configurations; configurations are timed round-robin); forward+backward ms
+(gradient of a photometric-style loss w.r.t. the whole scene); the projection + binning + sort
+time on its own (``bin ms``, inside the forward); (pixel, splat) pairs listed per second in the
+forward pass
 (binned (splat, tile) pairs x pixels per tile: the work a renderer without early termination would
 do; ours stops saturated tiles early); binned (splat, tile) pairs; the longest tile list; compile
 time; recompiles during the timed calls (must be 0); XLA's temporary-buffer size of the backward
@@ -170,17 +172,13 @@ def bench_interleaved(names, n, width, height, repeats):
     for i, (row, _, listed) in enumerate(prepared):
         f_ms, b_ms = float(np.median(times["fwd"][i])), float(np.median(times["fb"][i]))
         row.update(forward_ms=f_ms, forward_backward_ms=b_ms, backward_over_forward=b_ms / f_ms,
-                   bin_ms=float(np.median(times["bin"][i])), listed_pixel_pairs_per_s=listed / (f_ms / 1e3))
+                   bin_ms=float(np.median(times["bin"][i])),
+                   listed_pixel_pairs_per_s=listed / (f_ms / 1e3))
         if ref is not None:
             for key, out in (("fwd", "forward_over_2dgs"), ("fb", "forward_backward_over_2dgs")):
                 row[out] = float(np.median(np.asarray(times[key][i]) / np.asarray(times[key][ref])))
         rows.append(row)
     return rows
-
-
-def bench(name, n, width, height, repeats):
-    """One configuration on its own (:func:`bench_interleaved` of one name)."""
-    return bench_interleaved([name], n, width, height, repeats)[0]
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -211,8 +209,8 @@ def main(argv=None):
     peak = None if args.no_peak else peak_gflops()
     if peak is not None:
         print(f"peak (float32 2048^2 matmul): {peak:.1f} GFLOP/s")
-    hdr = (f"{'config':15s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'x2DGS':>6s} {'f+b ms':>8s} {'b/f':>5s} {'bin ms':>7s} "
-           f"{'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'%peak':>6s} {'compile s':>9s} {'recomp':>6s} "
+    hdr = (f"{'config':15s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'x2DGS':>6s} {'f+b ms':>8s} {'b/f':>5s} "
+           f"{'bin ms':>7s} {'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'%peak':>6s} {'compile s':>9s} {'recomp':>6s} "
            f"{'bwd tmp MiB':>11s}")
     print(hdr)
     for (w, h) in args.sizes:
@@ -235,6 +233,7 @@ def main(argv=None):
                 with open(args.json, "w") as f:
                     json.dump(dict(machine=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
                                    peak_gflops=peak, timing="interleaved", results=rows), f, indent=1)
+
 
 if __name__ == "__main__":
     main()

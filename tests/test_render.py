@@ -406,7 +406,6 @@ def test_pass_pairs_list_the_marked_pairs_in_order(c):
     assert np.all(got[want.size:] == N)
 
 
-
 @pytest.mark.parametrize("K", [1, 5, 64, 1000])
 def test_rows_of_ranks_match_searchsorted(K):
     """The rows of a pass's consecutive ranks, from a histogram and running sums, equal
@@ -419,6 +418,7 @@ def test_rows_of_ranks_match_searchsorted(K):
         got = np.asarray(render_mod._rows_of_ranks(jnp.asarray(ends), jnp.int32(start), K))
         want = np.searchsorted(ends, start + np.arange(K), side="right")
         np.testing.assert_array_equal(got, want, err_msg=f"start {start}")
+
 
 @pytest.mark.parametrize("name", ["nearest", "trilinear"])
 def test_texture_passes_do_not_change_the_result(name):
