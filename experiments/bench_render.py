@@ -210,8 +210,8 @@ def main(argv=None):
     if peak is not None:
         print(f"peak (float32 2048^2 matmul): {peak:.1f} GFLOP/s")
     hdr = (f"{'config':15s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'x2DGS':>6s} {'f+b ms':>8s} {'b/f':>5s} "
-           f"{'bin ms':>7s} {'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'%peak':>6s} {'compile s':>9s} {'recomp':>6s} "
-           f"{'bwd tmp MiB':>11s}")
+           f"{'bin ms':>7s} {'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'%peak':>6s} {'compile s':>9s} "
+           f"{'recomp':>6s} {'bwd tmp MiB':>11s}")
     print(hdr)
     for (w, h) in args.sizes:
         for n in args.gaussians:
