@@ -613,7 +613,11 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
 def _mark_passes(take, K: int) -> _Passes:
     """The :class:`_Passes` of passes of K pairs over the pairs marked in ``take`` (B, P, c) bool."""
     bits = _row_bits(take).reshape(-1)
-    ends = jnp.cumsum(lax.population_count(bits).astype(jnp.int32))
+    counts = lax.population_count(bits).astype(jnp.int32)
+    if take.size < 2 ** 24:  # running counts exact in float32: two small matmuls, not reduce-windows
+        ends = _running_sum(counts.astype(jnp.float32)).astype(jnp.int32)
+    else:
+        ends = jnp.cumsum(counts)
     return _Passes(bits, ends, ends[-1], K, take.shape)
 
 
@@ -662,30 +666,41 @@ def _pass_pairs(passes: _Passes, j):
     return jnp.where(rank < passes.count, pair, B * P * c)
 
 
-def _select(pk, gid, x, y, idx, shape):
-    """Splat rows, splat ids and pixel centres of the looked-up pairs: with ``idx`` None the whole
-    block, broadcasting ((B, 1, c, F), (B, 1, c), (B, P, 1), (B, P, 1)); else of the pairs ``idx``
-    (K,) (flat into ``shape`` = (B, P, c), N for none): (K, F), (K,), (K,), (K,)."""
-    if idx is None:
+def _select(pk, gid, x, y, sel):
+    """Splat rows, splat ids and pixel centres of the looked-up pairs: with ``sel`` None the whole
+    block, broadcasting ((B, 1, c, F), (B, 1, c), (B, P, 1), (B, P, 1)); else of the pairs of
+    :func:`_pair_rows` ``sel``: (K, F), (K,), (K,), (K,)."""
+    if sel is None:
         return pk[:, None], gid[:, None], x, y
+    _, splat, pixel = sel
+    B, c, F = pk.shape
+    return pk.reshape(B * c, F)[splat], gid.reshape(-1)[splat], x.reshape(-1)[pixel], y.reshape(-1)[pixel]
+
+
+def _pair_rows(ctx, idx, shape):
+    """(idx, splat, pixel), each (K,) int32: the pairs ``idx`` (flat into ``shape`` = (B, P, c), N
+    for none), and the rows of their splats in the (B c) chunk slots and of their pixels in the
+    (B P) pixels. Through :func:`_barrier`, so that the pass's pair search is done once, not again
+    in every gather that reads it (XLA fused it into each, once per gathered element: a splat row
+    is 22 of them)."""
     B, P, c = shape
     i = jnp.minimum(idx, B * P * c - 1)
     b, r = i // (P * c), i % (P * c)
-    p, s = r // c, r % c
-    return pk[b, s], gid[b, s], x[b, p, 0], y[b, p, 0]
+    return _barrier((idx, b * c + r % c, b * P + r // c), ctx["flag"])
 
 
-def _lookups(st: _Static, ctx, pk, gid, x, y, idx, shape):
-    """Texture lookups of a batch's chunk (all pairs, ``idx`` None) or of the pairs ``idx`` (K,).
+def _lookups(st: _Static, ctx, pk, gid, x, y, sel):
+    """Texture lookups of a batch's chunk (all pairs, ``sel`` None) or of the pairs ``sel``
+    (:func:`_pair_rows`).
 
     Args:
-      pk: (B, c, F) packed splats; gid (B, c); x, y (B, P, 1) pixel centres; idx, shape: see
+      pk: (B, c, F) packed splats; gid (B, c); x, y (B, P, 1) pixel centres; sel: see
         :func:`_select`.
     Returns:
       (rgb weights, alpha weights), differentiable in pk: per bank None or (fa, fb, lw) of its
       :class:`_Lookup`; and (rgb rows, alpha rows), None or :meth:`_Lookup.rows`.
     """
-    pk, gid, x, y = _select(pk, gid, x, y, idx, shape)
+    pk, gid, x, y = _select(pk, gid, x, y, sel)
     u, v, _, _, fp = _geometry(pk, x, y, st.need_footprint)
     # Each per-lookup quantity is computed once (see _barrier): (u, v) and the footprint, which every
     # lookup reads, then the lookups' rows and weights, which the gathers and products read per texel.
@@ -717,8 +732,8 @@ def _pick(dense, idx):
 def _texture_fwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape):
     """Texture values (RGB offsets list of 3 or None, alpha or None), each (B, P, c), of a batch's
     chunk: every pair (``passes`` None) or the pairs of :func:`_texture_passes`, zero elsewhere."""
-    def look(idx):
-        w, rows = _lookups(st, ctx, pk, gid, x, y, idx, shape)
+    def look(sel):
+        w, rows = _lookups(st, ctx, pk, gid, x, y, sel)
         return _values(ctx, w, (_gather(ctx["rgb_texels"], rows[0]), _gather(ctx["alpha_texels"], rows[1])))
 
     if passes is None:
@@ -729,8 +744,9 @@ def _texture_fwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape)
 
     def body(state):
         j, dense = state
-        idx = _pass_pairs(passes, j)
-        vals = look(idx)
+        sel = _pair_rows(ctx, _pass_pairs(passes, j), shape)
+        idx = sel[0]
+        vals = look(sel)
         return j + 1, jax.tree.map(lambda d, q: d.at[idx].set(q, mode="drop"), dense, vals)
 
     _, dense = lax.while_loop(lambda state: _more_passes(passes, state[0]), body, (jnp.int32(0), init))
@@ -748,8 +764,8 @@ def _texture_bwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape,
     Returns (g_pk (B, c, F), g_rt, g_at): the packed-splat cotangent, and the paired texel
     cotangents ``g_rt``, ``g_at`` (:func:`_scatter`) with this chunk's added.
     """
-    def one(idx, ct_vals, g_rt, g_at):
-        w, vjp_lk, rows = jax.vjp(lambda p: _lookups(st, ctx, p, gid, x, y, idx, shape), pk, has_aux=True)
+    def one(sel, ct_vals, g_rt, g_at):
+        w, vjp_lk, rows = jax.vjp(lambda p: _lookups(st, ctx, p, gid, x, y, sel), pk, has_aux=True)
         vals = (_gather(ctx["rgb_texels"], rows[0]), _gather(ctx["alpha_texels"], rows[1]))
         _, vjp_v = jax.vjp(lambda w_, v_: _values(ctx, w_, v_), w, vals)
         g_w, (g_vr, g_va) = vjp_v(ct_vals)
@@ -764,8 +780,8 @@ def _texture_bwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape,
 
     def body(state):
         j, g_pk, g_rt, g_at = state
-        idx = _pass_pairs(passes, j)
-        g, g_rt, g_at = one(idx, _pick(ct, idx), g_rt, g_at)
+        sel = _pair_rows(ctx, _pass_pairs(passes, j), shape)
+        g, g_rt, g_at = one(sel, _pick(ct, sel[0]), g_rt, g_at)
         return j + 1, g_pk + g, g_rt, g_at
 
     init = (jnp.int32(0), jnp.zeros_like(pk), g_rt, g_at)

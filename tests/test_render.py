@@ -406,6 +406,22 @@ def test_pass_pairs_list_the_marked_pairs_in_order(c):
     assert np.all(got[want.size:] == N)
 
 
+@pytest.mark.parametrize("shape, share", [((1, 4096, 4095), 1.0), ((1, 4096, 4096), 0.3)])
+def test_pass_running_counts_are_exact(shape, share):
+    """The rows' running counts of marks are exact integers: by float32 matmuls while the block has
+    fewer than 2**24 slots (here every slot marked, the last count 16,773,120, just below), by an
+    integer cumsum from 2**24 slots on."""
+    rng = np.random.default_rng(shape[-1])
+    take = rng.random(shape) < share
+    passes = render_mod._mark_passes(jnp.asarray(take), 64)
+    nw = -(-shape[-1] // 32)
+    padded = np.zeros(shape[:-1] + (nw * 32,), bool)
+    padded[..., :shape[-1]] = take
+    want = np.cumsum(padded.reshape(-1, 32).sum(axis=1))
+    np.testing.assert_array_equal(np.asarray(passes.ends), want)
+    assert int(passes.count) == int(take.sum())
+
+
 @pytest.mark.parametrize("K", [1, 5, 64, 1000])
 def test_rows_of_ranks_match_searchsorted(K):
     """The rows of a pass's consecutive ranks, from a histogram and running sums, equal
