@@ -447,16 +447,15 @@ def test_texture_passes_do_not_change_the_result(name):
     cam = camera()
     cfgs = [dataclasses.replace(cfg, texture_pairs=t) for t in (1.0, 1 / 512)]
 
-    def loss(s, c):
+    def loss(s, c):  # the image and the gradient from one compiled function per configuration
         out = render_mod._render(s, cam, c, CAP)
-        return jnp.mean(jnp.abs(out.rgb - 0.3)) + 0.1 * jnp.mean(out.alpha * out.depth)
+        return jnp.mean(jnp.abs(out.rgb - 0.3)) + 0.1 * jnp.mean(out.alpha * out.depth), out
 
     with jax.enable_x64(True):
         sc64 = sc.astype(jnp.float64)
         res = []
         for c in cfgs:
-            out = jax.jit(lambda s, c=c: render_mod._render(s, cam, c, CAP))(sc64)
-            g = jax.jit(jax.grad(lambda s, c=c: loss(s, c)))(sc64)
+            (_, out), g = jax.jit(jax.value_and_grad(lambda s, c=c: loss(s, c), has_aux=True))(sc64)
             res.append(jax.tree_util.tree_map(np.asarray, (out, g)))
     (out_d, g_d) = res[0]
     assert out_d.alpha.mean() > 0.2
