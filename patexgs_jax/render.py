@@ -265,6 +265,7 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
 # Column layout of the packed per-splat array.
 _A, _B, _C, _M2, _MU, _OP, _COL, _NRM, _DEP = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12),
                                                slice(12, 14), 14, slice(15, 18), slice(18, 21), 21)
+_PLANE = 9  # the first columns, A, B and C: all a texture lookup reads (see _plane)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -450,23 +451,17 @@ def _unpair(g_pairs):
     return g_pairs[:, :ch] + jnp.pad(g_pairs[:-1, ch:], ((1, 0), (0, 0)))
 
 
-def _geometry(pk, x, y, need_footprint: bool):
-    """Ray-splat quantities of (pixel, splat) pairs: pk (..., F) packed splats, x, y pixel centres,
-    broadcast against each other (a chunk: pk (c, F), x, y (P, 1) give (P, c); compacted pairs:
-    pk (K, F), x, y (K,) give (K,)).
+def _plane(pk, x, y, need_footprint: bool):
+    """Where the rays of pixel centres x, y meet the splats' planes: pk (..., >= 9) packed splats
+    (only the plane-equation columns A, B, C are read), x, y broadcast against them.
 
-    Returns u, v, G, z and log2 of the mip footprint max(D12, D13) (log2 1e4 where a ray misses
-    the plane, the coarsest level) or None, all of the broadcast shape.
+    Returns the plane equations s (3 arrays), u, v, whether the ray meets the plane, and log2 of the
+    mip footprint max(D12, D13) (log2 1e4 where a ray misses the plane, the coarsest level) or
+    None, all of the broadcast shape.
     """
     A, B, Cc = pk[..., _A], pk[..., _B], pk[..., _C]
     s = [x * A[..., i] + y * B[..., i] + Cc[..., i] for i in range(3)]
     u, v, ok = _uv(*s)
-    rho3d = jnp.where(ok, u * u + v * v, 1e8)
-    dx, dy = x - pk[..., 12], y - pk[..., 13]
-    rho2d = 2.0 * (dx * dx + dy * dy)
-    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
-    M2 = pk[..., _M2]
-    z = jnp.where(rho3d <= rho2d, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
     log2_fp = None
     if need_footprint:
         def neighbour(d):
@@ -483,6 +478,23 @@ def _geometry(pk, x, y, need_footprint: bool):
         # log2 max(D12, D13) = 0.5 log2 max(D12^2, D13^2): no square roots, and the banks share it.
         d2 = jnp.maximum((ux - u) ** 2 + (vx - v) ** 2, (uy - u) ** 2 + (vy - v) ** 2)
         log2_fp = jnp.where(ok & okx & oky, 0.5 * safe_log2(d2), math.log2(_UV_LIMIT))
+    return s, u, v, ok, log2_fp
+
+
+def _geometry(pk, x, y, need_footprint: bool):
+    """Ray-splat quantities of (pixel, splat) pairs: pk (..., F) packed splats, x, y pixel centres,
+    broadcast against each other (a chunk: pk (c, F), x, y (P, 1) give (P, c)).
+
+    Returns u, v, G, z and log2 of the mip footprint (see :func:`_plane`) or None, all of the
+    broadcast shape.
+    """
+    _, u, v, ok, log2_fp = _plane(pk, x, y, need_footprint)
+    rho3d = jnp.where(ok, u * u + v * v, 1e8)
+    dx, dy = x - pk[..., 12], y - pk[..., 13]
+    rho2d = 2.0 * (dx * dx + dy * dy)
+    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
+    M2 = pk[..., _M2]
+    z = jnp.where(rho3d <= rho2d, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
     return u, v, G, z, log2_fp
 
 
@@ -667,9 +679,13 @@ def _pass_pairs(passes: _Passes, j):
 
 
 def _select(pk, gid, x, y, sel):
-    """Splat rows, splat ids and pixel centres of the looked-up pairs: with ``sel`` None the whole
-    block, broadcasting ((B, 1, c, F), (B, 1, c), (B, P, 1), (B, P, 1)); else of the pairs of
-    :func:`_pair_rows` ``sel``: (K, F), (K,), (K,), (K,)."""
+    """Splats' plane equations (the first ``_PLANE`` columns of pk (B, c, F), all a lookup reads),
+    splat ids and pixel centres of the looked-up pairs: with ``sel`` None the whole block,
+    broadcasting ((B, 1, c, 9), (B, 1, c), (B, P, 1), (B, P, 1)); else of the pairs of
+    :func:`_pair_rows` ``sel``: (K, 9), (K,), (K,), (K,). The columns are cut before the gather,
+    so the gather's transpose scatters into (B c, 9); cut from the gathered (K, F) rows, each
+    column read became a (K, F) pad in the backward, summed."""
+    pk = pk[..., :_PLANE]
     if sel is None:
         return pk[:, None], gid[:, None], x, y
     _, splat, pixel = sel
@@ -701,7 +717,7 @@ def _lookups(st: _Static, ctx, pk, gid, x, y, sel):
       :class:`_Lookup`; and (rgb rows, alpha rows), None or :meth:`_Lookup.rows`.
     """
     pk, gid, x, y = _select(pk, gid, x, y, sel)
-    u, v, _, _, fp = _geometry(pk, x, y, st.need_footprint)
+    _, u, v, _, fp = _plane(pk, x, y, st.need_footprint)
     # Each per-lookup quantity is computed once (see _barrier): (u, v) and the footprint, which every
     # lookup reads, then the lookups' rows and weights, which the gathers and products read per texel.
     u, v, fp = _barrier((u, v, fp), ctx["flag"])
