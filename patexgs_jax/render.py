@@ -455,9 +455,8 @@ def _plane(pk, x, y, need_footprint: bool):
     """Where the rays of pixel centres x, y meet the splats' planes: pk (..., >= 9) packed splats
     (only the plane-equation columns A, B, C are read), x, y broadcast against them.
 
-    Returns the plane equations s (3 arrays), u, v, whether the ray meets the plane, and log2 of the
-    mip footprint max(D12, D13) (log2 1e4 where a ray misses the plane, the coarsest level) or
-    None, all of the broadcast shape.
+    Returns u, v, whether the ray meets the plane, and log2 of the mip footprint max(D12, D13)
+    (log2 1e4 where a ray misses the plane, the coarsest level) or None, all of the broadcast shape.
     """
     A, B, Cc = pk[..., _A], pk[..., _B], pk[..., _C]
     s = [x * A[..., i] + y * B[..., i] + Cc[..., i] for i in range(3)]
@@ -478,7 +477,7 @@ def _plane(pk, x, y, need_footprint: bool):
         # log2 max(D12, D13) = 0.5 log2 max(D12^2, D13^2): no square roots, and the banks share it.
         d2 = jnp.maximum((ux - u) ** 2 + (vx - v) ** 2, (uy - u) ** 2 + (vy - v) ** 2)
         log2_fp = jnp.where(ok & okx & oky, 0.5 * safe_log2(d2), math.log2(_UV_LIMIT))
-    return s, u, v, ok, log2_fp
+    return u, v, ok, log2_fp
 
 
 def _geometry(pk, x, y, need_footprint: bool):
@@ -488,7 +487,7 @@ def _geometry(pk, x, y, need_footprint: bool):
     Returns u, v, G, z and log2 of the mip footprint (see :func:`_plane`) or None, all of the
     broadcast shape.
     """
-    _, u, v, ok, log2_fp = _plane(pk, x, y, need_footprint)
+    u, v, ok, log2_fp = _plane(pk, x, y, need_footprint)
     rho3d = jnp.where(ok, u * u + v * v, 1e8)
     dx, dy = x - pk[..., 12], y - pk[..., 13]
     rho2d = 2.0 * (dx * dx + dy * dy)
@@ -697,8 +696,8 @@ def _pair_rows(ctx, idx, shape):
     """(idx, splat, pixel), each (K,) int32: the pairs ``idx`` (flat into ``shape`` = (B, P, c), N
     for none), and the rows of their splats in the (B c) chunk slots and of their pixels in the
     (B P) pixels. Through :func:`_barrier`, so that the pass's pair search is done once, not again
-    in every gather that reads it (XLA fused it into each, once per gathered element: a splat row
-    is 22 of them)."""
+    in every gather that reads it (XLA fused it into each, and redid it for every gathered element,
+    the columns of a splat row included)."""
     B, P, c = shape
     i = jnp.minimum(idx, B * P * c - 1)
     b, r = i // (P * c), i % (P * c)
@@ -717,7 +716,7 @@ def _lookups(st: _Static, ctx, pk, gid, x, y, sel):
       :class:`_Lookup`; and (rgb rows, alpha rows), None or :meth:`_Lookup.rows`.
     """
     pk, gid, x, y = _select(pk, gid, x, y, sel)
-    _, u, v, _, fp = _plane(pk, x, y, st.need_footprint)
+    u, v, _, fp = _plane(pk, x, y, st.need_footprint)
     # Each per-lookup quantity is computed once (see _barrier): (u, v) and the footprint, which every
     # lookup reads, then the lookups' rows and weights, which the gathers and products read per texel.
     u, v, fp = _barrier((u, v, fp), ctx["flag"])
