@@ -343,20 +343,16 @@ _F_ACC = 9  # per-pixel accumulators: rgb (3), depth (1), normal (3), D1 = sum w
 _LOG_T_MIN = math.log(T_MIN)
 
 
-class _Meta(NamedTuple):
-    """Per-splat texture addressing of one bank (see :class:`patexgs_jax.textures.Atlas`)."""
-
-    base: jax.Array
-    bucket_side: jax.Array
-    size: jax.Array
-    max_level: jax.Array
-    has: jax.Array
+_META = 4  # columns per bank of _meta_table
 
 
-def _meta(atlas: tex.Atlas | None):
-    if atlas is None:
-        return None
-    return _Meta(atlas.base, atlas.bucket_side, atlas.size, atlas.max_level, atlas.has)
+def _meta_table(*atlases):
+    """(C, 4 x banks) int32: per splat, for each bank present (RGB first), its block's base row in
+    the atlas, bucket side, texture side and top mip level: what a lookup reads per splat, in one
+    row, so that a pass gathers it once instead of once per field and bank."""
+    cols = [c for a in atlases if a is not None
+            for c in (a.base, a.bucket_side, a.size.astype(jnp.int32), a.max_level)]
+    return jnp.stack([c.astype(jnp.int32) for c in cols], axis=-1)
 
 
 class _Lookup(NamedTuple):
@@ -389,11 +385,12 @@ def _barrier(tree, flag):
     return lax.cond(flag, lambda t: t, lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
-def _tex_lookups(meta: _Meta, gid, u, v, log2_fp, config: RenderConfig, use_mip: bool) -> _Lookup:
-    """Texture lookups of splats ``gid`` (c,) at (u, v) (P, c); ``log2_fp`` (P, c), log2 of the mip
-    footprint (see :func:`_geometry`), for mipmaps."""
-    base, side_p, n = meta.base[gid], meta.bucket_side[gid], meta.size[gid]
-    ni = n.astype(jnp.int32)
+def _tex_lookups(m, u, v, log2_fp, config: RenderConfig, use_mip: bool) -> _Lookup:
+    """Texture lookups of one bank at (u, v): ``m`` (..., 4) int32 the splats' rows of
+    :func:`_meta_table` for the bank, broadcasting against u, v; ``log2_fp``, log2 of the mip
+    footprint (see :func:`_plane`), for mipmaps."""
+    base, side_p, ni, L = m[..., 0], m[..., 1], m[..., 2], m[..., 3]
+    n = ni.astype(u.dtype)
 
     def at_level(lev):
         off, stride, side = tex.level_address(side_p, ni, lev)
@@ -402,7 +399,6 @@ def _tex_lookups(meta: _Meta, gid, u, v, log2_fp, config: RenderConfig, use_mip:
     if not use_mip or config.mip == "none":
         (r, fa, fb), stride = at_level(jnp.int32(0))
         return _Lookup(base, (r,), (stride,), (fa,), (fb,), None)
-    L = meta.max_level[gid]
     if config.mip == "nearest":
         lev = tex.mip_level_log2(log2_fp, n, L, config.lambda_mip, trilinear=False)
         (r, fa, fb), stride = at_level(lev)
@@ -717,12 +713,13 @@ def _lookups(st: _Static, ctx, pk, gid, x, y, sel):
     """
     pk, gid, x, y = _select(pk, gid, x, y, sel)
     u, v, _, fp = _plane(pk, x, y, st.need_footprint)
-    # Each per-lookup quantity is computed once (see _barrier): (u, v) and the footprint, which every
-    # lookup reads, then the lookups' rows and weights, which the gathers and products read per texel.
-    u, v, fp = _barrier((u, v, fp), ctx["flag"])
+    # Each per-lookup quantity is computed once (see _barrier): (u, v), the footprint and the splats'
+    # texture addressing (one row gathered per lookup), which every lookup reads, then the lookups'
+    # rows and weights, which the gathers and products read per texel.
+    u, v, fp, m = _barrier((u, v, fp, ctx["tex_meta"][gid]), ctx["flag"])
     cfg = st.config
-    lr = _tex_lookups(ctx["rgb_meta"], gid, u, v, fp, cfg, st.rgb_mip) if st.rgb else None
-    la = _tex_lookups(ctx["alpha_meta"], gid, u, v, fp, cfg, st.alpha_mip) if st.alpha else None
+    lr = _tex_lookups(m[..., :_META], u, v, fp, cfg, st.rgb_mip) if st.rgb else None
+    la = _tex_lookups(m[..., -_META:], u, v, fp, cfg, st.alpha_mip) if st.alpha else None
     lr, la = _barrier((lr, la), ctx["flag"])
     weights = lambda lk: None if lk is None else (lk.fa, lk.fb, lk.lw)
     rows = lambda lk: None if lk is None else lk.rows()
@@ -816,7 +813,7 @@ def _chunk_contrib(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in
     cfg = st.config
     a = pk[:, _OP] * G
     if st.alpha:
-        a = a * jnp.where(ctx["alpha_meta"].has[gid], a_tex, 1.0)
+        a = a * jnp.where(ctx["alpha_has"][gid], a_tex, 1.0)
     a = jnp.clip(a, 0.0, ALPHA_MAX)
     keep = valid & (a >= ALPHA_MIN) & (z > cfg.near)
     a = jnp.where(keep, a, 0.0)
@@ -826,7 +823,7 @@ def _chunk_contrib(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in
     w = jnp.where(include, a * jnp.exp(log_t_in[:, None] + cum - log1m), 0.0)     # (P, c)
     rgb = w @ pk[:, _COL]
     if st.rgb:
-        has = ctx["rgb_meta"].has[gid]
+        has = ctx["rgb_has"][gid]
         rgb = rgb + jnp.stack([jnp.sum(jnp.where(has, w * o, 0.0), axis=1) for o in offs], axis=1)
     m = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * (1.0 - _DIST_NEAR / jnp.where(keep, z, 1.0))
     wm = w * m
@@ -1063,7 +1060,9 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     st = _Static(config=config, tiles_x=tiles_x, num_tiles=num_tiles, rgb=rgb_atlas is not None,
                  alpha=alpha_atlas is not None)
     ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
-               rgb_meta=_meta(rgb_atlas), alpha_meta=_meta(alpha_atlas),
+               rgb_has=None if rgb_atlas is None else rgb_atlas.has,
+               alpha_has=None if alpha_atlas is None else alpha_atlas.has,
+               tex_meta=_meta_table(rgb_atlas, alpha_atlas) if st.rgb or st.alpha else None,
                rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
                alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,
                flag=binned[0] >= 0)  # a True XLA cannot prove (see _barrier)
