@@ -140,6 +140,8 @@ KEYS = ["fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "k1", "p1", "cam
 @example(key="fl_y", value=[], cut=None)
 @example(key="fl_x", value=3.4028235677973366e38, cut=None)
 @example(key="fl_x", value=False, cut=None)
+@example(key="k1", value=float("nan"), cut=None)  # found by CI: NaN sample positions, an IndexError
+@example(key="p1", value=float("inf"), cut=None)
 def test_transforms_json_junk_values(tmp_path_factory, key, value, cut):
     root = tmp_path_factory.mktemp("nerf")
     doc = _nerf_scene(root)

@@ -356,14 +356,17 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
             continue
         get = lambda k, d=None: fr.get(k, top.get(k, d))  # noqa: E731
 
-        def num(k, d=None):  # a number, or d when absent / null; a clear error for anything else
+        def num(k, d=None):  # a finite number, or d when absent / null; a clear error for anything else
             v = get(k)
             if v is None:
                 return d
             try:
-                return float(v)
+                x = float(v)
             except (TypeError, ValueError):
                 raise DatasetError(f"{where}: {k} must be a number, got {v!r}.") from None
+            if not math.isfinite(x):  # NaN distortion made NaN sample positions and an IndexError
+                raise DatasetError(f"{where}: {k} must be a finite number, got {v!r}; fix or remove it.")
+            return x
 
         w, h = num("w"), num("h")
         if w is not None and h is not None:
