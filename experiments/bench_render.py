@@ -87,19 +87,16 @@ def make_scene(n, tex, seed=0, banks=("rgb", "alpha")):
                         alpha_sizes=sizes if "alpha" in banks else None)
 
 
-def timeit(fn, repeats):
-    ts = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
-    return 1e3 * float(np.median(ts))
-
-
 def _time_once(fn):
+    """ms of one call of ``fn``, to its results' completion."""
     t = time.perf_counter()
     jax.block_until_ready(fn())
     return 1e3 * (time.perf_counter() - t)
+
+
+def timeit(fn, repeats):
+    """Median ms of ``repeats`` calls of ``fn``."""
+    return float(np.median([_time_once(fn) for _ in range(repeats)]))
 
 
 def prepare(name, n, width, height):

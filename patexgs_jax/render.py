@@ -350,8 +350,7 @@ def _meta_table(*atlases):
     """(C, 4 x banks) int32: per splat, for each bank present (RGB first), its block's base row in
     the atlas, bucket side, texture side and top mip level: what a lookup reads per splat, in one
     row, so that a pass gathers it once instead of once per field and bank."""
-    cols = [c for a in atlases if a is not None
-            for c in (a.base, a.bucket_side, a.size.astype(jnp.int32), a.max_level)]
+    cols = [c for a in atlases if a is not None for c in (a.base, a.bucket_side, a.size, a.max_level)]
     return jnp.stack([c.astype(jnp.int32) for c in cols], axis=-1)
 
 
@@ -476,23 +475,6 @@ def _plane(pk, x, y, need_footprint: bool):
     return u, v, ok, log2_fp
 
 
-def _geometry(pk, x, y, need_footprint: bool):
-    """Ray-splat quantities of (pixel, splat) pairs: pk (..., F) packed splats, x, y pixel centres,
-    broadcast against each other (a chunk: pk (c, F), x, y (P, 1) give (P, c)).
-
-    Returns u, v, G, z and log2 of the mip footprint (see :func:`_plane`) or None, all of the
-    broadcast shape.
-    """
-    u, v, ok, log2_fp = _plane(pk, x, y, need_footprint)
-    rho3d = jnp.where(ok, u * u + v * v, 1e8)
-    dx, dy = x - pk[..., 12], y - pk[..., 13]
-    rho2d = 2.0 * (dx * dx + dy * dy)
-    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
-    M2 = pk[..., _M2]
-    z = jnp.where(rho3d <= rho2d, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
-    return u, v, G, z, log2_fp
-
-
 class _Static(NamedTuple):
     """Hashable static settings of the compositor."""
 
@@ -542,8 +524,17 @@ def _chunk_slots(st: _Static, ctx, t, k):
 
 
 def _chunk_geometry(pk, x, y):
-    """G, z (B, P, c) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P, 1) pixel centres."""
-    _, _, G, z, _ = _geometry(pk[:, None], x, y, False)
+    """G, z (B, P, c) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P, 1) pixel centres.
+    G is the 2DGS kernel exp(-0.5 min(rho3d, rho2d)) and z the depth: at the ray-plane intersection
+    where the 3D term wins, else the centre's."""
+    pk = pk[:, None]
+    u, v, ok, _ = _plane(pk, x, y, False)
+    rho3d = jnp.where(ok, u * u + v * v, 1e8)
+    dx, dy = x - pk[..., 12], y - pk[..., 13]
+    rho2d = 2.0 * (dx * dx + dy * dy)
+    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
+    M2 = pk[..., _M2]
+    z = jnp.where(rho3d <= rho2d, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
     return G, z
 
 
