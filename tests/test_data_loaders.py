@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import stat
+import struct
 import subprocess
 import sys
 import textwrap
@@ -611,6 +612,30 @@ def test_truncated_or_padded_binary_model_is_a_clear_error(tmp_path, fname):
     f.write_bytes(good + b"\0\0\0")
     with pytest.raises(DatasetError, match="trailing"):
         data.load(tmp_path)
+
+
+@pytest.mark.parametrize("what,value", [("k1", float("nan")), ("fx", float("inf")), ("point", float("nan")),
+                                        ("pose", float("nan"))])
+def test_non_finite_binary_model_values_are_a_clear_error(tmp_path, what, value):
+    """pycolmap reads NaN / inf from binary models without complaint: a NaN k1 had been undistorted
+    into a camera twice the image's size, a NaN point would have become a NaN Gaussian."""
+    sc = make_colmap_scene(tmp_path, models=("OPENCV",) if what == "k1" else ("PINHOLE",), n_images=3, n_points=5)
+    sp = sc["sparse"]
+    # Byte offsets of the first record's fields: cameras.bin (count u64, id i32, model i32, width u64,
+    # height u64, params f64...), points3D.bin (count u64, id u64, xyz f64), images.bin (count u64,
+    # id i32, qvec f64 x 4, tvec f64 x 3; read for poses only without frames.bin, as in Mip-NeRF 360).
+    fname, offset = {"k1": ("cameras.bin", 32 + 8 * 4), "fx": ("cameras.bin", 32), "point": ("points3D.bin", 16),
+                     "pose": ("images.bin", 12 + 32)}[what]
+    if what == "pose":
+        (sp / "rigs.bin").unlink()
+        (sp / "frames.bin").unlink()
+    b = bytearray((sp / fname).read_bytes())
+    b[offset:offset + 8] = struct.pack("<d", value)
+    (sp / fname).write_bytes(bytes(b))
+    with pytest.raises(DatasetError, match=f"{fname}.*non-finite") as e:
+        data.load(tmp_path)
+    assert {"k1": "camera 1 (OPENCV)", "fx": "camera 1 (PINHOLE)", "point": "1 of 5 points",
+            "pose": "image 1 (img_000.png)"}[what] in str(e.value)
 
 
 def test_truncated_text_model_is_a_clear_error(tmp_path):

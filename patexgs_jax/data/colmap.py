@@ -338,7 +338,33 @@ def read_model(folder: Path) -> "pycolmap.Reconstruction":
             if got[name] != n:
                 raise DatasetError(f"COLMAP file {folder / (name + '.txt')} declares {n} entries in its header "
                                    f"but holds {got[name]}: it is truncated; re-export the model.")
+    _check_finite(rec, folder, ext)
     return rec
+
+
+def _check_finite(rec, folder: Path, ext: str) -> None:
+    """A NaN or infinite camera parameter, pose or 3D point is a :class:`DatasetError` naming the
+    file and the entry. pycolmap reads them from binary models without complaint; a NaN distortion
+    coefficient was undistorted into a camera of the wrong size, and a NaN point would have become a
+    NaN Gaussian."""
+    for cid, cam in sorted(rec.cameras.items()):
+        p = np.asarray(cam.params, np.float64)
+        if not np.all(np.isfinite(p)):
+            raise DatasetError(f"COLMAP file {folder / ('cameras' + ext)}: camera {cid} ({cam.model.name}) has "
+                               f"non-finite parameters {p.tolist()}; fix the calibration or re-export the model.")
+    poses = "frames" if (folder / f"frames{ext}").is_file() else "images"  # rig-aware models keep poses in frames
+    for iid, im in sorted(rec.images.items()):
+        if im.has_pose and not np.all(np.isfinite(im.cam_from_world().matrix())):
+            raise DatasetError(f"COLMAP file {folder / (poses + ext)}: image {iid} ({im.name}) has a "
+                               "non-finite pose; re-run COLMAP mapping or re-export the model.")
+    if rec.points3D:
+        ids = np.fromiter(rec.points3D.keys(), np.int64)
+        xyz = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
+        bad = ids[~np.all(np.isfinite(xyz), axis=1)]
+        if bad.size:
+            raise DatasetError(f"COLMAP file {folder / ('points3D' + ext)}: {bad.size} of {ids.size} points have "
+                               f"non-finite coordinates (ids {bad[:5].tolist()}{' ...' if bad.size > 5 else ''}); "
+                               "re-run COLMAP triangulation or delete those points.")
 
 
 # ----------------------------------------------------------------------------------------------------
