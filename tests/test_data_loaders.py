@@ -474,6 +474,10 @@ def test_transforms_ply_point_cloud(tmp_path):
     (tmp_path / "bad.ply").write_bytes((tmp_path / "sparse_pc.ply").read_bytes()[:-5])
     with pytest.raises(DatasetError, match="bad.ply"):
         read_ply_points(tmp_path / "bad.ply")
+    ascii_ply = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "nan.ply").write_text(ascii_ply + "0 0 0\n1 nan 2\n")
+    with pytest.raises(DatasetError, match="nan.ply: 1 of 2 vertices have non-finite coordinates"):
+        read_ply_points(tmp_path / "nan.ply")
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -285,6 +285,12 @@ def read_ply_points(path) -> tuple[np.ndarray, np.ndarray | None]:
     cols = None
     if all(k in table for k in ("red", "green", "blue")):
         cols = np.stack([table["red"], table["green"], table["blue"]], axis=-1).astype(np.float32)
+    for what, a in (("coordinates", pts), ("colours", cols)):
+        if a is not None and not np.all(np.isfinite(a)):
+            bad = int(np.sum(~np.all(np.isfinite(a), axis=1)))
+            raise DatasetError(f"{path}: {bad} of {count} vertices have non-finite {what}; "
+                               "delete them or regenerate the point cloud.")
+    if cols is not None:
         cols = cols / (255.0 if cols.max(initial=0) > 1.0 or dict(props)["red"] == "u1" else 1.0)
     return pts, cols
 
