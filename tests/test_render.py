@@ -232,6 +232,40 @@ def _single_splat_scene(tex_rgb, tex_alpha=None, scale=1.0, n_pad=C):
                              rgb_textures=[tex_rgb], alpha_textures=[tex_alpha], capacity=n_pad)
 
 
+def test_pyramid_levels_and_their_transpose_match_numpy():
+    """Each bucket's levels are ``D X D^T`` of the level above (the first with each slot's own
+    filter for its size), and the backward is the transpose ``D^T G D``: checked in float64 against
+    numpy, for the unrolled filters and the einsum (the first level of a 32-texel slot)."""
+    from patexgs_jax import textures as tx
+
+    rng = np.random.default_rng(3)
+    with jax.enable_x64(True):
+        for b in (1, 3, 5):  # slots of 2 and 8 (unrolled), 32 (an einsum to level 1, unrolled below)
+            P = 1 << b
+            sizes = np.arange(P // 2 + 1, P + 1)
+            X = np.zeros((sizes.size, P, P, 2))
+            for k, n in enumerate(sizes):
+                X[k, :n, :n] = rng.normal(size=(n, n, 2))
+            levels, vjp = jax.vjp(lambda x: tx._pyramid(x, jnp.asarray(sizes), b), jnp.asarray(X))
+            G = [rng.normal(size=lev.shape) for lev in levels]
+            want_levels, want_grad = [X], G[-1]
+            Ds = []
+            for k in range(1, b + 1):
+                if k == 1:  # the level-1 filters are tabulated in float32, zero past each size
+                    D = tx._first_level_table(P)[sizes - (P // 2 + 1)].astype(np.float64)
+                    np.testing.assert_allclose(D[-1], tx.downsample_matrix(P, P // 2), rtol=1e-6)
+                else:
+                    D = np.stack([tx.downsample_matrix(P >> (k - 1), P >> k)] * sizes.size)
+                Ds.append(D)
+                want_levels.append(np.einsum("kip,kpqc,kjq->kijc", Ds[-1], want_levels[-1], Ds[-1]))
+            for k in range(b, 0, -1):  # the transpose, coarsest level first
+                want_grad = G[k - 1] + np.einsum("kip,kijc,kjq->kpqc", Ds[k - 1], want_grad, Ds[k - 1])
+            for got, want in zip(levels, want_levels):
+                np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(np.asarray(vjp([jnp.asarray(g) for g in G])[0]), want_grad,
+                                       rtol=0, atol=1e-12)
+
+
 def test_constant_texture_is_mip_invariant():
     rgb = np.full((9, 9, 3), 0.25)
     alpha = np.full((6, 6), 0.8)
