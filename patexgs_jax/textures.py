@@ -211,40 +211,52 @@ class Atlas:
 _UNROLL_MAX = 16  # largest slot side filtered with unrolled sums (see _sandwich); einsums above
 
 
-def _sandwich(D, X):
+def _rows_filter(D, Xf):
+    """``Y[k, i, x] = sum_p D[k, i, p] Xf[k, p, x]``: D (K | 1, I, P), Xf (K, P, X) -> (K, I, X), as a
+    sum of P broadcast products, which XLA fuses into one loop."""
+    return sum(D[:, :, p, None] * Xf[:, None, p, :] for p in range(Xf.shape[1]))
+
+
+def _cols_filter(D, Y):
+    """``Z[k, i, j, c] = sum_q Y[k, i, q, c] D[k, j, q]``: Y (K, I, P, C) -> (K, I, J, C)."""
+    return sum(Y[:, :, None, q, :] * D[:, None, :, q, None] for q in range(Y.shape[2]))
+
+
+def _once(fn, D, X):
+    """``fn(D, X)`` in a conditional's branch (its predicate, D's first entry being finite, is always
+    true but XLA cannot prove it). XLA cannot fuse across a conditional: fused into their consumers,
+    a level was computed again in each (the next level's filter and the atlas concatenation), and a
+    filter's first stage again for every element of its second."""
+    def zeros(D, X):
+        return jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype), jax.eval_shape(fn, D, X))
+
+    return lax.cond(jnp.isfinite(D[0, 0, 0]), fn, zeros, D, X)
+
+
+def _sandwich(D, X, once: bool = False):
     """``D X D^T`` per slot and channel: D (K | 1, I, P) filters, X (K, P, P, C) -> (K, I, I, C).
 
     Written as sums over the P contracted rows, then columns, of broadcast products, which XLA fuses
     into one loop each. As an einsum, XLA's CPU backend first transposes X (and, in the backward, the
-    cotangent) into a batched matmul's layout, 2-4x slower at 65,536 slots of 8 x 8 texels.
+    cotangent) into a batched matmul's layout, 2-4x slower at 65,536 slots of 8 x 8 texels. With
+    ``once``, each stage is computed once (:func:`_once`).
     """
     K, P, _, C = X.shape
     I = D.shape[1]
-    Xf = X.reshape(K, P, P * C)
-    Y = sum(D[:, :, p, None] * Xf[:, None, p, :] for p in range(P)).reshape(K, I, P, C)
-    return sum(Y[:, :, None, q, :] * D[:, None, :, q, None] for q in range(P))
-
-
-def _sandwich_once(D, X):
-    """:func:`_sandwich` in a conditional's branch (its predicate, D's first entry being finite, is
-    always true but XLA cannot prove it). XLA cannot fuse across a conditional: fused into its
-    consumers (the next level's filter and the atlas concatenation), a level was computed again in
-    each, and again for every element of the next level that reads it."""
-    def zeros(D, X):
-        return jnp.zeros((X.shape[0], D.shape[1], D.shape[1], X.shape[3]), X.dtype)
-
-    return lax.cond(jnp.isfinite(D[0, 0, 0]), _sandwich, zeros, D, X)
+    stage = (lambda fn, D, X: _once(fn, D, X)) if once else (lambda fn, D, X: fn(D, X))
+    Y = stage(_rows_filter, D, X.reshape(K, P, P * C)).reshape(K, I, P, C)
+    return stage(_cols_filter, D, Y)
 
 
 @jax.custom_vjp
 def _filter(D, X):
     """:func:`_sandwich`, linear in X, whose transpose is the same sums with D^T (no gradient for D:
-    the filters depend on texture sizes only). The forward is computed once (:func:`_sandwich_once`);
-    in the transpose a conditional measured 2x slower (the cotangents' sums fuse well as they are)."""
-    return _sandwich_once(D, X)
+    the filters depend on texture sizes only). The forward's stages are computed once; in the
+    transpose, conditionals measured 2x slower (the cotangents' sums fuse well as they are)."""
+    return _sandwich(D, X, once=True)
 
 
-_filter.defvjp(lambda D, X: (_sandwich_once(D, X), D),
+_filter.defvjp(lambda D, X: (_sandwich(D, X, once=True), D),
                lambda D, g: (jnp.zeros_like(D), _sandwich(jnp.swapaxes(D, 1, 2), g)))
 
 
