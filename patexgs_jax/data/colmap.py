@@ -343,10 +343,9 @@ def read_model(folder: Path) -> "pycolmap.Reconstruction":
 
 
 def _check_finite(rec, folder: Path, ext: str) -> None:
-    """A NaN or infinite camera parameter, pose or 3D point is a :class:`DatasetError` naming the
-    file and the entry. pycolmap reads them from binary models without complaint; a NaN distortion
-    coefficient was undistorted into a camera of the wrong size, and a NaN point would have become a
-    NaN Gaussian."""
+    """A NaN or infinite camera parameter or pose is a :class:`DatasetError` naming the file and the
+    entry (3D points: :func:`model_points`). pycolmap reads them from binary models without complaint; a
+    NaN distortion coefficient was undistorted into a camera of the wrong size."""
     for cid, cam in sorted(rec.cameras.items()):
         p = np.asarray(cam.params, np.float64)
         if not np.all(np.isfinite(p)):
@@ -357,14 +356,21 @@ def _check_finite(rec, folder: Path, ext: str) -> None:
         if im.has_pose and not np.all(np.isfinite(im.cam_from_world().matrix())):
             raise DatasetError(f"COLMAP file {folder / (poses + ext)}: image {iid} ({im.name}) has a "
                                "non-finite pose; re-run COLMAP mapping or re-export the model.")
-    if rec.points3D:
-        ids = np.fromiter(rec.points3D.keys(), np.int64)
-        xyz = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
-        bad = ids[~np.all(np.isfinite(xyz), axis=1)]
-        if bad.size:
-            raise DatasetError(f"COLMAP file {folder / ('points3D' + ext)}: {bad.size} of {ids.size} points have "
-                               f"non-finite coordinates (ids {bad[:5].tolist()}{' ...' if bad.size > 5 else ''}); "
-                               "re-run COLMAP triangulation or delete those points.")
+
+
+def model_points(rec, folder: Path):
+    """(ids (M,) int64 sorted, xyz (M, 3) float64, colours (M, 3) float32 in [0, 1]) of a model's 3D
+    points; a non-finite point is a :class:`DatasetError` naming the file and the ids (it would have
+    become a NaN Gaussian)."""
+    ids = np.array(sorted(rec.points3D.keys()), np.int64)
+    xyz = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
+    cols = np.array([rec.points3D[i].color for i in ids], np.float32).reshape(-1, 3) / 255.0
+    bad = ids[~np.all(np.isfinite(xyz), axis=1)]
+    if bad.size:
+        raise DatasetError(f"COLMAP file {folder / ('points3D' + _model_ext(folder))}: {bad.size} of {ids.size} "
+                           f"points have non-finite coordinates (ids {bad[:5].tolist()}"
+                           f"{' ...' if bad.size > 5 else ''}); re-run COLMAP triangulation or delete those points.")
+    return ids, xyz, cols
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -455,6 +461,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         raise DatasetError(f"No COLMAP model in {scene}: expected sparse/0/ or sparse/ with cameras, images "
                            "and points3D (.bin or .txt).")
     rec = read_model(sparse)
+    point_ids, pts, cols = model_points(rec, sparse)  # before undistorting, which keeps the points as they are
     reg = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     if not reg:
         raise DatasetError(f"The COLMAP model in {sparse} has no registered images ({len(rec.images)} images, "
@@ -542,10 +549,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         records.append(dict(name=im.name, K=K, w2c=w2c, width=w, height=h, image_path=files[im.name],
                             load=image_loader(files[im.name], post, background)))
 
-    ids = sorted(rec.points3D.keys())
-    if ids:
-        pts = np.array([rec.points3D[i].xyz for i in ids], np.float64)
-        cols = np.array([rec.points3D[i].color for i in ids], np.float32) / 255.0
+    if point_ids.size:
         source = "sfm"
     else:
         warn(f"The COLMAP model in {sparse} has no 3D points; using {num_random_points} random points "

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .colmap import default_factor, find_sparse_dir, read_model
+from .colmap import default_factor, find_sparse_dir, model_points, read_model
 from .dataset import (
     image_loader,
     DEFAULT_IMAGE_CACHE_SIZE,
@@ -151,13 +151,10 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
     sparse = find_sparse_dir(scene)
     info = {"image_folder": str(folder), "skipped": skipped, "bounds": bounds}
     if sparse is not None:
-        rec = read_model(sparse)
-        ids = sorted(rec.points3D.keys())
-        pts = np.array([rec.points3D[i].xyz for i in ids], np.float64).reshape(-1, 3)
-        cols = np.array([rec.points3D[i].color for i in ids], np.float32).reshape(-1, 3) / 255.0
+        ids, pts, cols = model_points(read_model(sparse), sparse)
         source = "sfm"
         info["sparse"] = str(sparse)
-        if not ids:
+        if not ids.size:
             pts = cols = None
             source = "random"
     else:
