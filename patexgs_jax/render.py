@@ -679,13 +679,14 @@ def _select(pk, gid, x, y, sel):
     return pk.reshape(B * c, F)[splat], gid.reshape(-1)[splat], x.reshape(-1)[pixel], y.reshape(-1)[pixel]
 
 
-def _pair_rows(ctx, idx, shape):
-    """(idx, splat, pixel), each (K,) int32: the pairs ``idx`` (flat into ``shape`` = (B, P, c), N
-    for none), and the rows of their splats in the (B c) chunk slots and of their pixels in the
-    (B P) pixels. Through :func:`_barrier`, so that the pass's pair search is done once, not again
-    in every gather that reads it (XLA fused it into each, and redid it for every gathered element,
-    the columns of a splat row included)."""
-    B, P, c = shape
+def _pair_rows(ctx, passes: _Passes, j):
+    """(idx, splat, pixel), each (K,) int32: the pairs of pass j (:func:`_pass_pairs`, flat into
+    ``passes.shape`` = (B, P, c), N for none), and the rows of their splats in the (B c) chunk slots
+    and of their pixels in the (B P) pixels. Through :func:`_barrier`, so that the pass's pair
+    search is done once, not again in every gather that reads it (XLA fused it into each, and redid
+    it for every gathered element, the columns of a splat row included)."""
+    B, P, c = passes.shape
+    idx = _pass_pairs(passes, j)
     i = jnp.minimum(idx, B * P * c - 1)
     b, r = i // (P * c), i % (P * c)
     return _barrier((idx, b * c + r % c, b * P + r // c), ctx["flag"])
@@ -747,7 +748,7 @@ def _texture_fwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape)
 
     def body(state):
         j, dense = state
-        sel = _pair_rows(ctx, _pass_pairs(passes, j), shape)
+        sel = _pair_rows(ctx, passes, j)
         idx = sel[0]
         vals = look(sel)
         return j + 1, jax.tree.map(lambda d, q: d.at[idx].set(q, mode="drop"), dense, vals)
@@ -783,7 +784,7 @@ def _texture_bwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape,
 
     def body(state):
         j, g_pk, g_rt, g_at = state
-        sel = _pair_rows(ctx, _pass_pairs(passes, j), shape)
+        sel = _pair_rows(ctx, passes, j)
         g, g_rt, g_at = one(sel, _pick(ct, sel[0]), g_rt, g_at)
         return j + 1, g_pk + g, g_rt, g_at
 

@@ -243,7 +243,7 @@ def _sandwich(D, X, once: bool = False):
     """
     K, P, _, C = X.shape
     I = D.shape[1]
-    stage = (lambda fn, D, X: _once(fn, D, X)) if once else (lambda fn, D, X: fn(D, X))
+    stage = _once if once else (lambda fn, D, X: fn(D, X))
     Y = stage(_rows_filter, D, X.reshape(K, P, P * C)).reshape(K, I, P, C)
     return stage(_cols_filter, D, Y)
 
@@ -260,6 +260,16 @@ _filter.defvjp(lambda D, X: (_sandwich(D, X, once=True), D),
                lambda D, g: (jnp.zeros_like(D), _sandwich(jnp.swapaxes(D, 1, 2), g)))
 
 
+def _downsample(D, X):
+    """``D X D^T``: D (K | 1, I, P), X (K, P, P, C) -> (K, I, I, C); :func:`_filter` for slots up to
+    ``_UNROLL_MAX`` a side, an einsum above (few slots, and P^3 products each)."""
+    if X.shape[1] <= _UNROLL_MAX:
+        return _filter(D, X)
+    if D.shape[0] == 1:
+        return jnp.einsum("ip,kpqc,jq->kijc", D[0], X, D[0])
+    return jnp.einsum("kip,kpqc,kjq->kijc", D, X, D)
+
+
 def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:
     """Levels 0..b of a bucket's textures: (cap, P, P, ch) -> list of (cap, s_k, s_k, ch)."""
     levels = [level0]
@@ -268,18 +278,10 @@ def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:
     P = 1 << b
     table = jnp.asarray(_first_level_table(P), level0.dtype)
     idx = jnp.clip(n - (P // 2 + 1), 0, P // 2 - 1)
-    D = table[idx]  # (cap, P/2, P)
-    if P <= _UNROLL_MAX:
-        levels.append(_filter(D, level0))
-    else:
-        levels.append(jnp.einsum("kip,kpqc,kjq->kijc", D, level0, D))
+    levels.append(_downsample(table[idx], level0))  # each slot's filter (cap, P/2, P) for its size
     for k in range(2, b + 1):
-        s_in, s_out = P >> (k - 1), P >> k
-        Dk = jnp.asarray(downsample_matrix(s_in, s_out), level0.dtype)
-        if s_in <= _UNROLL_MAX:
-            levels.append(_filter(Dk[None], levels[-1]))
-        else:
-            levels.append(jnp.einsum("ip,kpqc,jq->kijc", Dk, levels[-1], Dk))
+        Dk = jnp.asarray(downsample_matrix(P >> (k - 1), P >> k), level0.dtype)
+        levels.append(_downsample(Dk[None], levels[-1]))
     return levels
 
 
