@@ -34,7 +34,10 @@ Structure
   splats (pixels x chunk at a time) and stops the tile once every pixel saturated or the list ended,
   so the work follows the splats that actually contribute. It has a hand-written backward pass
   (``jax.custom_vjp``) that re-walks the chunks and stores nothing per pair: backward memory is
-  the inputs plus a few per-pixel accumulators.
+  the inputs plus a few per-pixel accumulators. Within a chunk, the compositing's and the kernel's
+  backward are derived by hand (:func:`_chunk_contrib_bwd`, :func:`_chunk_geometry_bwd`: fewer
+  passes over the (pixels x splats) block than autodiff's, and the per-splat sums as matrix
+  products); the texture lookups' backward is autodiff's.
 
   Textures: only the (pixel, splat) pairs of a chunk step that can reach alpha 1/255 (bounded by
   ``opacity * G * max(alpha texels)``) at pixels still compositing are looked up, gathered into
@@ -331,12 +334,13 @@ def _bin(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity):
 # Compositing
 # ------------------------------------------------------------------------------------------------
 def _uv(s0, s1, s2):
-    """(u, v) = (s0, s1) / s2 with "no intersection" (ok False) when the ray is (nearly) parallel."""
+    """(u, v) = (s0, s1) / s2 with "no intersection" (ok False) when the ray is (nearly) parallel;
+    also returns 1 / s2 (1 where ok is False)."""
     ok = jnp.abs(s2) * _UV_LIMIT > jnp.maximum(jnp.abs(s0), jnp.abs(s1))
     inv = 1.0 / jnp.where(ok, s2, 1.0)
     u = jnp.where(ok, s0 * inv, 0.0)
     v = jnp.where(ok, s1 * inv, 0.0)
-    return u, v, ok
+    return u, v, ok, inv
 
 
 _F_ACC = 9  # per-pixel accumulators: rgb (3), depth (1), normal (3), D1 = sum w m, D2 = sum w m^2
@@ -446,6 +450,14 @@ def _unpair(g_pairs):
     return g_pairs[:, :ch] + jnp.pad(g_pairs[:-1, ch:], ((1, 0), (0, 0)))
 
 
+def _rays(pk, x, y):
+    """The homogeneous ray-plane products s_i = A_i x + B_i y + C_i (i = 0, 1, 2) of pixel centres
+    x, y with the splats' planes pk (..., >= 9), broadcast against each other; (u, v) = (s0, s1) / s2
+    (:func:`_uv`)."""
+    A, B, Cc = pk[..., _A], pk[..., _B], pk[..., _C]
+    return [x * A[..., i] + y * B[..., i] + Cc[..., i] for i in range(3)]
+
+
 def _plane(pk, x, y, need_footprint: bool):
     """Where the rays of pixel centres x, y meet the splats' planes: pk (..., >= 9) packed splats
     (only the plane-equation columns A, B, C are read), x, y broadcast against them.
@@ -453,9 +465,8 @@ def _plane(pk, x, y, need_footprint: bool):
     Returns u, v, whether the ray meets the plane, and log2 of the mip footprint max(D12, D13)
     (log2 1e4 where a ray misses the plane, the coarsest level) or None, all of the broadcast shape.
     """
-    A, B, Cc = pk[..., _A], pk[..., _B], pk[..., _C]
-    s = [x * A[..., i] + y * B[..., i] + Cc[..., i] for i in range(3)]
-    u, v, ok = _uv(*s)
+    s = _rays(pk, x, y)
+    u, v, ok, _ = _uv(*s)
     log2_fp = None
     if need_footprint:
         def neighbour(d):
@@ -467,8 +478,8 @@ def _plane(pk, x, y, need_footprint: bool):
             inv = jnp.where(hit, 1.0 / jnp.where(hit, t[2], 1.0), 0.0)
             return t[0] * inv, t[1] * inv, hit
 
-        ux, vx, okx = neighbour(A)
-        uy, vy, oky = neighbour(B)
+        ux, vx, okx = neighbour(pk[..., _A])
+        uy, vy, oky = neighbour(pk[..., _B])
         # log2 max(D12, D13) = 0.5 log2 max(D12^2, D13^2): no square roots, and the banks share it.
         d2 = jnp.maximum((ux - u) ** 2 + (vx - v) ** 2, (uy - u) ** 2 + (vy - v) ** 2)
         log2_fp = jnp.where(ok & okx & oky, 0.5 * safe_log2(d2), math.log2(_UV_LIMIT))
@@ -523,19 +534,51 @@ def _chunk_slots(st: _Static, ctx, t, k):
     return gid, valid
 
 
+def _geometry_terms(pk, x, y):
+    """The kernel's per-pair terms of :func:`_chunk_geometry`, each (B, P, c)."""
+    pk = pk[:, None]
+    u, v, ok, inv = _uv(*_rays(pk, x, y))
+    rho3d = jnp.where(ok, u * u + v * v, 1e8)
+    dx, dy = x - pk[..., _MU.start], y - pk[..., _MU.start + 1]
+    rho2d = 2.0 * (dx * dx + dy * dy)
+    use3 = rho3d <= rho2d
+    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
+    M2 = pk[..., _M2]
+    z = jnp.where(use3, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
+    return G, z, u, v, ok, inv, use3, dx, dy
+
+
 def _chunk_geometry(pk, x, y):
     """G, z (B, P, c) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P, 1) pixel centres.
     G is the 2DGS kernel exp(-0.5 min(rho3d, rho2d)) and z the depth: at the ray-plane intersection
     where the 3D term wins, else the centre's."""
-    pk = pk[:, None]
-    u, v, ok, _ = _plane(pk, x, y, False)
-    rho3d = jnp.where(ok, u * u + v * v, 1e8)
-    dx, dy = x - pk[..., 12], y - pk[..., 13]
-    rho2d = 2.0 * (dx * dx + dy * dy)
-    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
-    M2 = pk[..., _M2]
-    z = jnp.where(rho3d <= rho2d, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
-    return G, z
+    return _geometry_terms(pk, x, y)[:2]
+
+
+def _chunk_geometry_bwd(pk, x, y, g_G, g_z):
+    """The cotangent (B, c, F) of pk for cotangents g_G, g_z (B, P, c) of :func:`_chunk_geometry`,
+    derived by hand: every per-splat sum over the tile's pixels is one product with the pixels'
+    (x, y, 1), where autodiff's backward made a reduction per packed column."""
+    G, z, u, v, ok, inv, use3, dx, dy = _geometry_terms(pk, x, y)
+    M2 = pk[:, None, :, _M2]
+    g_rho = -0.5 * g_G * G                                    # d/d min(rho3d, rho2d)
+    g_rho3 = jnp.where(use3 & ok, g_rho, 0.0)
+    g_rho2 = jnp.where(use3, 0.0, g_rho)
+    g_z3 = jnp.where(use3, g_z, 0.0)
+    g_u = jnp.where(ok, 2.0 * u * g_rho3 + M2[..., 0] * g_z3, 0.0)
+    g_v = jnp.where(ok, 2.0 * v * g_rho3 + M2[..., 1] * g_z3, 0.0)
+    # u = s0 / s2, v = s1 / s2.
+    cols = [g_u * inv, g_v * inv, -(g_u * u + g_v * v) * inv,
+            -4.0 * g_rho2 * dx, -4.0 * g_rho2 * dy, g_z3 * u, g_z3 * v, g_z3, g_z - g_z3]
+    c = pk.shape[1]
+    H = jnp.concatenate(cols, axis=-1)                                        # (B, P, 9c)
+    X = jnp.concatenate([x, y, jnp.ones_like(x)], axis=-1)                  # (B, P, 3)
+    R = jnp.einsum("bpk,bpn->bkn", X, H, precision=lax.Precision.HIGHEST)
+    R = R.reshape(R.shape[0], 3, 9, c)
+    abc = jnp.transpose(R[:, :, :3], (0, 3, 1, 2)).reshape(-1, c, 9)   # A_i, B_i, C_i: (x, y, 1) rows
+    ones = jnp.transpose(R[:, 2, 3:], (0, 2, 1))                      # (B, c, 6): mu (2), M2 (3), depth
+    rest = jnp.zeros(ones.shape[:-1] + (_DEP - _OP,), pk.dtype)          # opacity to normal
+    return jnp.concatenate([abc, ones[..., 2:5], ones[..., :2], rest, ones[..., 5:]], axis=-1)
 
 
 class _Passes(NamedTuple):
@@ -792,8 +835,43 @@ def _texture_bwd(st: _Static, ctx, pk, gid, x, y, passes: _Passes | None, shape,
     return lax.while_loop(lambda state: _more_passes(passes, state[0]), body, init)[1:]
 
 
+class _Terms(NamedTuple):
+    """Per-pair terms of a tile's chunk, each (P, c), shared by :func:`_chunk_contrib` and its
+    hand-derived backward :func:`_chunk_contrib_bwd`."""
+
+    a_raw: jax.Array     # opacity * G (* alpha texture) before the cap
+    a_tex: jax.Array | None  # the alpha texture factor (1 where a splat has none), None without
+    keep: jax.Array      # the pair is composited (alpha >= 1/255, in front of near, a real slot)
+    a: jax.Array         # alpha, zero where not kept
+    log1m: jax.Array     # log(1 - a)
+    cum: jax.Array       # inclusive prefix sum of log1m along the chunk
+    include: jax.Array   # compositing has not stopped before the pair
+    trans: jax.Array     # transmittance in front of the pair (0 where not included)
+    w: jax.Array         # a * trans, the pair's blending weight
+    zs: jax.Array        # z where kept, else 1 (the distortion's NDC depth is safe everywhere)
+    m: jax.Array         # the NDC depth of the distortion loss
+
+
+def _contrib_terms(st: _Static, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done_in) -> _Terms:
+    cfg = st.config
+    a_raw = pk[:, _OP] * G
+    if st.alpha:
+        a_tex = jnp.where(ctx["alpha_has"][gid], a_tex, 1.0)
+        a_raw = a_raw * a_tex
+    a = jnp.clip(a_raw, 0.0, ALPHA_MAX)
+    keep = valid & (a >= ALPHA_MIN) & (z > cfg.near)
+    a = jnp.where(keep, a, 0.0)
+    log1m = jnp.log1p(-a)
+    cum = _prefix_sum(log1m)
+    include = ~done_in[:, None] & (log_t_in[:, None] + cum >= _LOG_T_MIN)
+    trans = jnp.where(include, jnp.exp(log_t_in[:, None] + cum - log1m), 0.0)
+    zs = jnp.where(keep, z, 1.0)
+    m = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * (1.0 - _DIST_NEAR / zs)
+    return _Terms(a_raw, a_tex if st.alpha else None, keep, a, log1m, cum, include, trans, a * trans, zs, m)
+
+
 def _chunk_contrib(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in):
-    """A tile's chunk contribution, differentiable in (pk, G, z, offs, a_tex).
+    """A tile's chunk contribution.
 
     Args:
       pk: (c, F) packed splats; G, z (P, c); offs: None or the RGB texture offsets, a list of 3
@@ -802,29 +880,77 @@ def _chunk_contrib(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in
     Returns:
       ((dacc (P, 9), log_t_out (P,)), (done_out (P,), w (P, c)))
     """
-    cfg = st.config
-    a = pk[:, _OP] * G
-    if st.alpha:
-        a = a * jnp.where(ctx["alpha_has"][gid], a_tex, 1.0)
-    a = jnp.clip(a, 0.0, ALPHA_MAX)
-    keep = valid & (a >= ALPHA_MIN) & (z > cfg.near)
-    a = jnp.where(keep, a, 0.0)
-    log1m = jnp.log1p(-a)
-    cum = _prefix_sum(log1m)
-    include = ~done_in[:, None] & (log_t_in[:, None] + cum >= _LOG_T_MIN)
-    w = jnp.where(include, a * jnp.exp(log_t_in[:, None] + cum - log1m), 0.0)     # (P, c)
+    t = _contrib_terms(st, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done_in)
+    w = t.w
     rgb = w @ pk[:, _COL]
     if st.rgb:
         has = ctx["rgb_has"][gid]
         rgb = rgb + jnp.stack([jnp.sum(jnp.where(has, w * o, 0.0), axis=1) for o in offs], axis=1)
-    m = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * (1.0 - _DIST_NEAR / jnp.where(keep, z, 1.0))
-    wm = w * m
+    wm = w * t.m
     dacc = jnp.concatenate([rgb, jnp.sum(w * z, axis=1, keepdims=True), w @ pk[:, _NRM],
-                            jnp.sum(wm, axis=1, keepdims=True), jnp.sum(wm * m, axis=1, keepdims=True)],
+                            jnp.sum(wm, axis=1, keepdims=True), jnp.sum(wm * t.m, axis=1, keepdims=True)],
                            axis=1)
-    log_t_out = log_t_in + jnp.sum(jnp.where(include, log1m, 0.0), axis=1)
-    done_out = done_in | (log_t_in + cum[:, -1] < _LOG_T_MIN)
+    log_t_out, done_out = _contrib_state(t, log_t_in, done_in)
     return (dacc, log_t_out), (done_out, w)
+
+
+def _contrib_state(t: _Terms, log_t_in, done_in):
+    """The pixels' log transmittance and stop flag (P,) after a chunk of terms ``t``."""
+    return (log_t_in + jnp.sum(jnp.where(t.include, t.log1m, 0.0), axis=1),
+            done_in | (log_t_in + t.cum[:, -1] < _LOG_T_MIN))
+
+
+def _chunk_contrib_bwd(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in,
+                       ct_acc, dot_in, base_term):
+    """:func:`_chunk_contrib` and its backward, derived by hand: autodiff's version of it was
+    about three times the forward's dense work per chunk step.
+
+    Args: those of :func:`_chunk_contrib`, and ct_acc (P, 9) the pixels' accumulator cotangents,
+      dot_in (P,) ``ct_acc . acc`` through the chunks before this one, base_term (P,)
+      ``ct_acc . acc_final + ct_T * T_final`` (see :func:`_composite`).
+    Returns:
+      (log_t_out, done_out, dot_out) (P,) the state after the chunk, and the cotangents
+      g_pk (c, F), g_G, g_z (P, c) and (g_offs, g_a_tex): a list of 3 (P, c) or None, (P, c) or
+      None.
+
+    With w_i = a_i T_i, T_i = T_in prod_{j<i} (1 - a_j), f_i the pair's 9 accumulated features and
+    L = log T_out: ``d/da_i = T_i (ct . f_i) - (sum_{j>i} w_j (ct . f_j) + dL) / (1 - a_i)`` for
+    an included pair, 0 otherwise (a pair after the stop has only stopped pairs after it).
+    """
+    t = _contrib_terms(st, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done_in)
+    w = t.w
+    ct_rgb, ct_z, ct_nrm, ct_m, ct_m2 = (ct_acc[:, 0:3], ct_acc[:, 3:4], ct_acc[:, 4:7],
+                                         ct_acc[:, 7:8], ct_acc[:, 8:9])
+    # ct . f per pair.
+    g_w = ct_rgb @ pk[:, _COL].T + ct_nrm @ pk[:, _NRM].T + ct_z * z + (ct_m + ct_m2 * t.m) * t.m
+    g_offs = None
+    if st.rgb:
+        has = ctx["rgb_has"][gid]
+        g_w = g_w + sum(jnp.where(has, ct_rgb[:, i:i + 1] * o, 0.0) for i, o in enumerate(offs))
+        g_offs = [jnp.where(has, w * ct_rgb[:, i:i + 1], 0.0) for i in range(3)]
+    wf = g_w * w                                                                # w_i (ct . f_i)
+    dot_out = dot_in + jnp.sum(wf, axis=-1)                                     # ct . acc so far
+    g_log_t = base_term - dot_out                                               # (P,)
+    log_t_out, done_out = _contrib_state(t, log_t_in, done_in)
+    c = w.shape[-1]
+    later = jnp.tril(jnp.ones((c, c), w.dtype), -1)   # later[i, j] = 1 where i > j
+    behind = jnp.matmul(wf, later, precision=lax.Precision.HIGHEST)   # sum_{i>j} w_i (ct . f_i)
+    g_a = g_w * t.trans - (behind + jnp.where(t.include, g_log_t[:, None], 0.0)) / (1.0 - t.a)
+    g_a = jnp.where(t.keep & (t.a_raw < ALPHA_MAX), g_a, 0.0)                  # d/d a_raw
+    op = pk[:, _OP]
+    g_atex = None
+    if st.alpha:
+        g_G = g_a * op * t.a_tex
+        g_op = jnp.sum(g_a * G * t.a_tex, axis=0)
+        g_atex = jnp.where(ctx["alpha_has"][gid], g_a * op * G, 0.0)
+    else:
+        g_G = g_a * op
+        g_op = jnp.sum(g_a * G, axis=0)
+    dm_dz = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * _DIST_NEAR / (t.zs * t.zs)
+    g_z = w * (ct_z + (ct_m + 2.0 * ct_m2 * t.m) * dm_dz)
+    g_pk = jnp.zeros_like(pk)
+    g_pk = g_pk.at[:, _OP].set(g_op).at[:, _COL].set(w.T @ ct_rgb).at[:, _NRM].set(w.T @ ct_nrm)
+    return (log_t_out, done_out, dot_out), (g_pk, g_G, g_z, (g_offs, g_atex))
 
 
 def _prefix_sum(x):
@@ -942,21 +1068,16 @@ def _chunk_bwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, 
     paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""
     gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    (G, z), vjp_geo = jax.vjp(lambda p: _chunk_geometry(p, x, y), pk)
+    G, z = _chunk_geometry(pk, x, y)
     textured = st.rgb or st.alpha
     passes, tvals = None, (None, None)
     if textured:
         passes = _texture_passes(st, ctx, pk, gid, valid, G, done)
         tvals = _texture_fwd(st, ctx, pk, gid, x, y, passes, G.shape)
-    contrib = jax.vmap(functools.partial(_chunk_contrib, st, ctx))
-
-    def f(pk_, G_, z_, tv_):
-        return contrib(pk_, G_, z_, *tv_, gid, valid, log_t, done)
-
-    (dacc, log_t2), vjp, (done2, _) = jax.vjp(f, pk, G, z, tvals, has_aux=True)
-    dot_through = dot_through + jnp.sum(ct_acc * dacc, axis=-1)
-    g_pk, g_G, g_z, g_tv = vjp((ct_acc, base_term - dot_through))
-    g_pk = g_pk + vjp_geo((g_G, g_z))[0]
+    (log_t2, done2, dot_through), (g_pk, g_G, g_z, g_tv) = jax.vmap(
+        functools.partial(_chunk_contrib_bwd, st, ctx))(pk, G, z, *tvals, gid, valid, log_t, done,
+                                                        ct_acc, dot_through, base_term)
+    g_pk = g_pk + _chunk_geometry_bwd(pk, x, y, g_G, g_z)
     if textured:
         g_tex, g_rt, g_at = _texture_bwd(st, ctx, pk, gid, x, y, passes, G.shape, g_tv, g_rt, g_at)
         g_pk = g_pk + g_tex

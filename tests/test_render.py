@@ -507,3 +507,105 @@ def test_texture_pairs_is_validated():
     for bad in (0.0, -0.5, 1.5):
         with pytest.raises(ValueError, match="texture_pairs"):
             RenderConfig(texture_pairs=bad)
+
+
+# ---------------------------------------------------------------------------------------------
+# The compositor's hand-derived backward against autodiff
+# ---------------------------------------------------------------------------------------------
+def _chunk_inputs(rng, P, c):
+    """A tile chunk's inputs with every branch of the compositing taken: saturated alpha (capped at
+    0.99), pairs below 1/255, behind the near plane or in padding slots, pixels already stopped and
+    pixels whose transmittance crosses 1e-4 inside the chunk, splats with and without textures."""
+    F = 22
+    pk = rng.normal(size=(c, F))
+    pk[:, 14] = rng.uniform(0.0, 1.0, c)
+    pk[:3, 14] = 0.9999                                    # saturating splats at the front
+    G = rng.uniform(0.0, 1.0, (P, c))
+    G[: P // 2, :3] = 1.0
+    G[:, 5] = 1e-4                                         # below 1/255 everywhere
+    z = rng.uniform(0.5, 4.0, (P, c))
+    z[:, 6] = 0.005                                        # in front of the near plane (0.01)
+    a_tex = rng.uniform(0.0, 1.0, (P, c))
+    a_tex[: P // 2, :3] = 1.0
+    offs = [rng.normal(size=(P, c)) * 0.3 for _ in range(3)]
+    valid = np.arange(c) < c - 3                           # the last slots are padding
+    done = np.zeros(P, bool)
+    done[1] = True
+    log_t = np.log(rng.uniform(1e-3, 1.0, P))
+    log_t[2] = np.log(2e-4)                                # crosses 1e-4 inside the chunk
+    gid = np.arange(c, dtype=np.int32)
+    ctx = dict(rgb_has=jnp.asarray(np.arange(c) % 3 != 1), alpha_has=jnp.asarray(np.arange(c) % 4 != 2))
+    return pk, G, z, offs, a_tex, valid, done, log_t, gid, ctx
+
+
+@pytest.mark.parametrize("rgb, alpha", [(False, False), (True, True), (False, True)])
+def test_chunk_backward_matches_autodiff(rgb, alpha):
+    """:func:`_chunk_contrib_bwd` (the compositing's backward, derived by hand) gives autodiff's
+    cotangents of :func:`_chunk_contrib`, and the state after the chunk, to float64 rounding."""
+    rng = np.random.default_rng(11 + 2 * rgb + alpha)
+    P, c = 12, 16
+    st_ = render_mod._Static(config=RenderConfig(), tiles_x=1, num_tiles=1, rgb=rgb, alpha=alpha)
+    with jax.enable_x64(True):
+        pk, G, z, offs, a_tex, valid, done, log_t, gid, ctx = jax.tree.map(
+            jnp.asarray, _chunk_inputs(rng, P, c))
+        offs = offs if rgb else None
+        a_tex = a_tex if alpha else None
+        ct = jnp.asarray(rng.normal(size=(P, 9)))
+        dot_in = jnp.asarray(rng.normal(size=P))
+        base = jnp.asarray(rng.normal(size=P))
+
+        def f(pk_, G_, z_, offs_, a_tex_):
+            return render_mod._chunk_contrib(st_, ctx, pk_, G_, z_, offs_, a_tex_, gid, valid, log_t, done)
+
+        (dacc, log_t_out), vjp, (done_out, w) = jax.vjp(f, pk, G, z, offs, a_tex, has_aux=True)
+        dot_out = dot_in + jnp.sum(ct * dacc, axis=-1)
+        want = vjp((ct, base - dot_out))
+        (lt, dn, dot), (g_pk, g_G, g_z, (g_offs, g_atex)) = render_mod._chunk_contrib_bwd(
+            st_, ctx, pk, G, z, offs, a_tex, gid, valid, log_t, done, ct, dot_in, base)
+        terms = render_mod._contrib_terms(st_, ctx, pk, G, z, a_tex, gid, valid, log_t, done)
+        got = jax.tree.map(np.asarray, ((lt, dn, dot), (g_pk, g_G, g_z, g_offs, g_atex)))
+        want = jax.tree.map(np.asarray, ((log_t_out, done_out, dot_out), want))
+        terms, w, done = jax.tree.map(np.asarray, (terms, w, done))
+    # The cases the inputs are meant to reach.
+    assert done_out[2] and not done[2], "pixel 2 stops inside the chunk"
+    assert np.all(w[1] == 0), "pixel 1 had stopped before the chunk"
+    assert np.any(terms.keep & (terms.a_raw > render_mod.ALPHA_MAX)), "saturated pairs"
+    assert np.any(terms.include & ~terms.keep), "skipped pairs"
+    (lt, dn, dot), got = got
+    (lt_w, dn_w, dot_w), want = want
+    np.testing.assert_allclose(lt, lt_w, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(dn, dn_w)
+    np.testing.assert_allclose(dot, dot_w, rtol=1e-12, atol=1e-12)
+    for name, a, b in zip(("pk", "G", "z", "offs", "a_tex"), got, want):
+        assert (a is None) == (b is None), name
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+            np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-10, err_msg=name)
+    assert np.abs(got[1]).max() > 0 and np.abs(got[0]).max() > 0
+
+
+def test_geometry_backward_matches_autodiff():
+    """:func:`_chunk_geometry_bwd` gives autodiff's cotangent of the packed splats through
+    :func:`_chunk_geometry`: for rays that meet the splat planes (the 3D term or the screen-space
+    low-pass winning) and rays (nearly) parallel to them."""
+    rng = np.random.default_rng(5)
+    B, P, c = 2, 20, 6
+    with jax.enable_x64(True):
+        pk = rng.normal(size=(B, c, 22))
+        pk[:, :, 0:9] *= 0.05                               # planes: (u, v) of order one
+        pk[:, :, 6:8] += rng.normal(size=(B, c, 2))
+        pk[:, :, 8] = rng.uniform(0.5, 1.0, (B, c))
+        pk[:, 0, [2, 5, 8]] = 0.0                           # s2 = 0: no ray meets this plane
+        pk[:, :, 12:14] = rng.uniform(0.0, 5.0, (B, c, 2))
+        x = jnp.asarray(rng.uniform(0.0, 5.0, (B, P, 1)))
+        y = jnp.asarray(rng.uniform(0.0, 5.0, (B, P, 1)))
+        pk = jnp.asarray(pk)
+        g_G = jnp.asarray(rng.normal(size=(B, P, c)))
+        g_z = jnp.asarray(rng.normal(size=(B, P, c)))
+        (G, z), vjp = jax.vjp(lambda p: render_mod._chunk_geometry(p, x, y), pk)
+        want = vjp((g_G, g_z))[0]
+        got = render_mod._chunk_geometry_bwd(pk, x, y, g_G, g_z)
+        _, _, _, _, ok, _, use3, _, _ = render_mod._geometry_terms(pk, x, y)
+        got, want, ok, use3 = jax.tree.map(np.asarray, (got, want, ok, use3))
+    assert not ok[:, :, 0].any() and ok[:, :, 1:].all()
+    assert 0 < use3.mean() < 1, "both terms of the kernel should win somewhere"
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
