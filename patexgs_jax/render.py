@@ -269,6 +269,7 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
 _A, _B, _C, _M2, _MU, _OP, _COL, _NRM, _DEP = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12),
                                                slice(12, 14), 14, slice(15, 18), slice(18, 21), 21)
 _PLANE = 9  # the first columns, A, B and C: all a texture lookup reads (see _plane)
+_CN = slice(_COL.start, _NRM.stop)  # colour and normal, adjacent: one product with the weights
 
 
 # ------------------------------------------------------------------------------------------------
@@ -882,12 +883,13 @@ def _chunk_contrib(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in
     """
     t = _contrib_terms(st, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done_in)
     w = t.w
-    rgb = w @ pk[:, _COL]
+    cn = w @ pk[:, _CN]                                                 # (P, 6) colour, normal
+    rgb = cn[:, :3]
     if st.rgb:
         has = ctx["rgb_has"][gid]
         rgb = rgb + jnp.stack([jnp.sum(jnp.where(has, w * o, 0.0), axis=1) for o in offs], axis=1)
     wm = w * t.m
-    dacc = jnp.concatenate([rgb, jnp.sum(w * z, axis=1, keepdims=True), w @ pk[:, _NRM],
+    dacc = jnp.concatenate([rgb, jnp.sum(w * z, axis=1, keepdims=True), cn[:, 3:],
                             jnp.sum(wm, axis=1, keepdims=True), jnp.sum(wm * t.m, axis=1, keepdims=True)],
                            axis=1)
     log_t_out, done_out = _contrib_state(t, log_t_in, done_in)
@@ -922,7 +924,8 @@ def _chunk_contrib_bwd(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_
     ct_rgb, ct_z, ct_nrm, ct_m, ct_m2 = (ct_acc[:, 0:3], ct_acc[:, 3:4], ct_acc[:, 4:7],
                                          ct_acc[:, 7:8], ct_acc[:, 8:9])
     # ct . f per pair.
-    g_w = ct_rgb @ pk[:, _COL].T + ct_nrm @ pk[:, _NRM].T + ct_z * z + (ct_m + ct_m2 * t.m) * t.m
+    ct_cn = jnp.concatenate([ct_rgb, ct_nrm], axis=1)                  # (P, 6) as pk[:, _CN]
+    g_w = ct_cn @ pk[:, _CN].T + ct_z * z + (ct_m + ct_m2 * t.m) * t.m
     g_offs = None
     if st.rgb:
         has = ctx["rgb_has"][gid]
@@ -949,7 +952,7 @@ def _chunk_contrib_bwd(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_
     dm_dz = _DIST_FAR / (_DIST_FAR - _DIST_NEAR) * _DIST_NEAR / (t.zs * t.zs)
     g_z = w * (ct_z + (ct_m + 2.0 * ct_m2 * t.m) * dm_dz)
     g_pk = jnp.zeros_like(pk)
-    g_pk = g_pk.at[:, _OP].set(g_op).at[:, _COL].set(w.T @ ct_rgb).at[:, _NRM].set(w.T @ ct_nrm)
+    g_pk = g_pk.at[:, _OP].set(g_op).at[:, _CN].set(w.T @ ct_cn)
     return (log_t_out, done_out, dot_out), (g_pk, g_G, g_z, (g_offs, g_atex))
 
 
