@@ -854,6 +854,7 @@ class _Terms(NamedTuple):
 
 
 def _contrib_terms(st: _Static, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done_in) -> _Terms:
+    """The :class:`_Terms` of a tile's chunk; arguments as :func:`_chunk_contrib`'s."""
     cfg = st.config
     a_raw = pk[:, _OP] * G
     if st.alpha:
@@ -904,8 +905,9 @@ def _contrib_state(t: _Terms, log_t_in, done_in):
 
 def _chunk_contrib_bwd(st: _Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in,
                        ct_acc, dot_in, base_term):
-    """:func:`_chunk_contrib` and its backward, derived by hand: autodiff's version of it was
-    about three times the forward's dense work per chunk step.
+    """The backward of :func:`_chunk_contrib`, derived by hand (fewer passes over the (P, c) block
+    than autodiff's, which also recomputed the accumulators to form ``ct_acc . acc``), and the
+    pixels' state after the chunk.
 
     Args: those of :func:`_chunk_contrib`, and ct_acc (P, 9) the pixels' accumulator cotangents,
       dot_in (P,) ``ct_acc . acc`` through the chunks before this one, base_term (P,)
