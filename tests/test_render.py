@@ -516,10 +516,10 @@ def _chunk_inputs(rng, P, c):
     """A tile chunk's inputs with every branch of the compositing taken: saturated alpha (capped at
     0.99), pairs below 1/255, behind the near plane or in padding slots, pixels already stopped and
     pixels whose transmittance crosses 1e-4 inside the chunk, splats with and without textures."""
-    F = 22
-    pk = rng.normal(size=(c, F))
-    pk[:, 14] = rng.uniform(0.0, 1.0, c)
-    pk[:3, 14] = 0.9999                                    # saturating splats at the front
+    OP = render_mod._OP                                    # the opacity column
+    pk = rng.normal(size=(c, render_mod._DEP + 1))
+    pk[:, OP] = rng.uniform(0.0, 1.0, c)
+    pk[:3, OP] = 0.9999                                    # saturating splats at the front
     G = rng.uniform(0.0, 1.0, (P, c))
     G[: P // 2, :3] = 1.0
     G[:, 5] = 1e-4                                         # below 1/255 everywhere
@@ -590,7 +590,7 @@ def test_geometry_backward_matches_autodiff():
     rng = np.random.default_rng(5)
     B, P, c = 2, 20, 6
     with jax.enable_x64(True):
-        pk = rng.normal(size=(B, c, 22))
+        pk = rng.normal(size=(B, c, render_mod._DEP + 1))
         pk[:, :, 0:9] *= 0.05                               # planes: (u, v) of order one
         pk[:, :, 6:8] += rng.normal(size=(B, c, 2))
         pk[:, :, 8] = rng.uniform(0.5, 1.0, (B, c))
