@@ -535,8 +535,22 @@ def _chunk_slots(st: _Static, ctx, t, k):
     return gid, valid
 
 
-def _geometry_terms(pk, x, y):
-    """The kernel's per-pair terms of :func:`_chunk_geometry`, each (B, P, c)."""
+class _Geometry(NamedTuple):
+    """The kernel's per-pair terms of a batch's chunk, each (B, P, c) (:func:`_geometry_terms`)."""
+
+    G: jax.Array       # the 2DGS kernel
+    z: jax.Array       # the pair's depth
+    u: jax.Array       # ray-plane intersection (0 where the ray misses the plane)
+    v: jax.Array
+    ok: jax.Array      # the ray meets the plane
+    inv: jax.Array     # 1 / s2 (see _uv)
+    use3: jax.Array    # the 3D term wins (rho3d <= rho2d)
+    dx: jax.Array      # pixel centre minus the splat's projected centre
+    dy: jax.Array
+
+
+def _geometry_terms(pk, x, y) -> _Geometry:
+    """The :class:`_Geometry` of pk (B, c, F) packed splats at pixel centres x, y (B, P, 1)."""
     pk = pk[:, None]
     u, v, ok, inv = _uv(*_rays(pk, x, y))
     rho3d = jnp.where(ok, u * u + v * v, 1e8)
@@ -546,21 +560,23 @@ def _geometry_terms(pk, x, y):
     G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
     M2 = pk[..., _M2]
     z = jnp.where(use3, M2[..., 0] * u + M2[..., 1] * v + M2[..., 2], pk[..., _DEP])
-    return G, z, u, v, ok, inv, use3, dx, dy
+    return _Geometry(G, z, u, v, ok, inv, use3, dx, dy)
 
 
 def _chunk_geometry(pk, x, y):
     """G, z (B, P, c) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P, 1) pixel centres.
     G is the 2DGS kernel exp(-0.5 min(rho3d, rho2d)) and z the depth: at the ray-plane intersection
     where the 3D term wins, else the centre's."""
-    return _geometry_terms(pk, x, y)[:2]
+    t = _geometry_terms(pk, x, y)
+    return t.G, t.z
 
 
-def _chunk_geometry_bwd(pk, x, y, g_G, g_z):
+def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
     """The cotangent (B, c, F) of pk for cotangents g_G, g_z (B, P, c) of :func:`_chunk_geometry`,
-    derived by hand: every per-splat sum over the tile's pixels is one product with the pixels'
-    (x, y, 1), where autodiff's backward made a reduction per packed column."""
-    G, z, u, v, ok, inv, use3, dx, dy = _geometry_terms(pk, x, y)
+    given the forward's terms ``geo`` (:func:`_geometry_terms` of the same pk, x, y), derived by
+    hand: every per-splat sum over the tile's pixels is one product with the pixels' (x, y, 1),
+    where autodiff's backward made a reduction per packed column."""
+    G, _, u, v, ok, inv, use3, dx, dy = geo
     M2 = pk[:, None, :, _M2]
     g_rho = -0.5 * g_G * G                                    # d/d min(rho3d, rho2d)
     g_rho3 = jnp.where(use3 & ok, g_rho, 0.0)
@@ -1073,7 +1089,8 @@ def _chunk_bwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, 
     paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""
     gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    G, z = _chunk_geometry(pk, x, y)
+    geo = _geometry_terms(pk, x, y)
+    G, z = geo.G, geo.z
     textured = st.rgb or st.alpha
     passes, tvals = None, (None, None)
     if textured:
@@ -1082,7 +1099,7 @@ def _chunk_bwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, 
     (log_t2, done2, dot_through), (g_pk, g_G, g_z, g_tv) = jax.vmap(
         functools.partial(_chunk_contrib_bwd, st, ctx))(pk, G, z, *tvals, gid, valid, log_t, done,
                                                         ct_acc, dot_through, base_term)
-    g_pk = g_pk + _chunk_geometry_bwd(pk, x, y, g_G, g_z)
+    g_pk = g_pk + _chunk_geometry_bwd(pk, x, y, geo, g_G, g_z)
     if textured:
         g_tex, g_rt, g_at = _texture_bwd(st, ctx, pk, gid, x, y, passes, G.shape, g_tv, g_rt, g_at)
         g_pk = g_pk + g_tex

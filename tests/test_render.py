@@ -603,9 +603,9 @@ def test_geometry_backward_matches_autodiff():
         g_z = jnp.asarray(rng.normal(size=(B, P, c)))
         (G, z), vjp = jax.vjp(lambda p: render_mod._chunk_geometry(p, x, y), pk)
         want = vjp((g_G, g_z))[0]
-        got = render_mod._chunk_geometry_bwd(pk, x, y, g_G, g_z)
-        _, _, _, _, ok, _, use3, _, _ = render_mod._geometry_terms(pk, x, y)
-        got, want, ok, use3 = jax.tree.map(np.asarray, (got, want, ok, use3))
+        geo = render_mod._geometry_terms(pk, x, y)
+        got = render_mod._chunk_geometry_bwd(pk, x, y, geo, g_G, g_z)
+        got, want, ok, use3 = jax.tree.map(np.asarray, (got, want, geo.ok, geo.use3))
     assert not ok[:, :, 0].any() and ok[:, :, 1:].all()
     assert 0 < use3.mean() < 1, "both terms of the kernel should win somewhere"
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
