@@ -541,18 +541,23 @@ def _chunk_inputs(rng, P, c):
 @pytest.mark.parametrize("rgb, alpha", [(False, False), (True, True), (False, True)])
 def test_chunk_backward_matches_autodiff(rgb, alpha):
     """:func:`_chunk_contrib_bwd` (the compositing's backward, derived by hand) gives autodiff's
-    cotangents of :func:`_chunk_contrib`, and the state after the chunk, to float64 rounding."""
+    cotangents of :func:`_chunk_contrib`, and the state after the chunk, to float64 rounding: one
+    tile of P pixels, its (P, c) pairs in the chunk's (c, 1, P) layout."""
     rng = np.random.default_rng(11 + 2 * rgb + alpha)
     P, c = 12, 16
     st_ = render_mod._Static(config=RenderConfig(), tiles_x=1, num_tiles=1, rgb=rgb, alpha=alpha)
+    pk, G, z, offs, a_tex, valid, done, log_t, gid, ctx = _chunk_inputs(rng, P, c)
+    block = lambda a: a.T[:, None]                         # (P, c) -> (c, 1, P)
+    G, z, a_tex, offs = block(G), block(z), block(a_tex), [block(o) for o in offs]
+    pk, valid, gid, done, log_t = pk[None], valid[None], gid[None], done[None], log_t[None]
     with jax.enable_x64(True):
-        pk, G, z, offs, a_tex, valid, done, log_t, gid, ctx = jax.tree.map(
-            jnp.asarray, _chunk_inputs(rng, P, c))
+        pk, G, z, offs, a_tex, valid, done, log_t, gid = jax.tree.map(
+            jnp.asarray, (pk, G, z, offs, a_tex, valid, done, log_t, gid))
         offs = offs if rgb else None
         a_tex = a_tex if alpha else None
-        ct = jnp.asarray(rng.normal(size=(P, 9)))
-        dot_in = jnp.asarray(rng.normal(size=P))
-        base = jnp.asarray(rng.normal(size=P))
+        ct = jnp.asarray(rng.normal(size=(1, P, 9)))
+        dot_in = jnp.asarray(rng.normal(size=(1, P)))
+        base = jnp.asarray(rng.normal(size=(1, P)))
 
         def f(pk_, G_, z_, offs_, a_tex_):
             return render_mod._chunk_contrib(st_, ctx, pk_, G_, z_, offs_, a_tex_, gid, valid, log_t, done)
@@ -567,8 +572,8 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
         want = jax.tree.map(np.asarray, ((log_t_out, done_out, dot_out), want))
         terms, w, done = jax.tree.map(np.asarray, (terms, w, done))
     # The cases the inputs are meant to reach.
-    assert done_out[2] and not done[2], "pixel 2 stops inside the chunk"
-    assert np.all(w[1] == 0), "pixel 1 had stopped before the chunk"
+    assert done_out[0, 2] and not done[0, 2], "pixel 2 stops inside the chunk"
+    assert np.all(w[:, 0, 1] == 0), "pixel 1 had stopped before the chunk"
     assert np.any(terms.keep & (terms.a_raw > render_mod.ALPHA_MAX)), "saturated pairs"
     assert np.any(terms.include & ~terms.keep), "skipped pairs"
     (lt, dn, dot), got = got
@@ -586,9 +591,10 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
 def test_geometry_backward_matches_autodiff():
     """:func:`_chunk_geometry_bwd` gives autodiff's cotangent of the packed splats through
     :func:`_chunk_geometry`: for rays that meet the splat planes (the 3D term or the screen-space
-    low-pass winning) and rays (nearly) parallel to them."""
+    low-pass winning) and rays (nearly) parallel to them, in tiles at different image positions
+    (the pixels share their offsets within the tile, as the renderer's do)."""
     rng = np.random.default_rng(5)
-    B, P, c = 2, 20, 6
+    B, P, c = 3, 20, 6
     with jax.enable_x64(True):
         pk = rng.normal(size=(B, c, render_mod._DEP + 1))
         pk[:, :, 0:9] *= 0.05                               # planes: (u, v) of order one
@@ -596,16 +602,18 @@ def test_geometry_backward_matches_autodiff():
         pk[:, :, 8] = rng.uniform(0.5, 1.0, (B, c))
         pk[:, 0, [2, 5, 8]] = 0.0                           # s2 = 0: no ray meets this plane
         pk[:, :, 12:14] = rng.uniform(0.0, 5.0, (B, c, 2))
-        x = jnp.asarray(rng.uniform(0.0, 5.0, (B, P, 1)))
-        y = jnp.asarray(rng.uniform(0.0, 5.0, (B, P, 1)))
+        corner = np.array([[0.0, 0.0], [2.0, 0.0], [1.0, 3.0]])    # the tiles' positions
+        offset = rng.uniform(0.0, 2.0, (2, P))                      # the pixels' within a tile
+        x = jnp.asarray(corner[:, :1] + offset[0])
+        y = jnp.asarray(corner[:, 1:] + offset[1])
         pk = jnp.asarray(pk)
-        g_G = jnp.asarray(rng.normal(size=(B, P, c)))
-        g_z = jnp.asarray(rng.normal(size=(B, P, c)))
+        g_G = jnp.asarray(rng.normal(size=(c, B, P)))
+        g_z = jnp.asarray(rng.normal(size=(c, B, P)))
         (G, z), vjp = jax.vjp(lambda p: render_mod._chunk_geometry(p, x, y), pk)
         want = vjp((g_G, g_z))[0]
         geo = render_mod._geometry_terms(pk, x, y)
         got = render_mod._chunk_geometry_bwd(pk, x, y, geo, g_G, g_z)
         got, want, ok, use3 = jax.tree.map(np.asarray, (got, want, geo.ok, geo.use3))
-    assert not ok[:, :, 0].any() and ok[:, :, 1:].all()
+    assert not ok[0].any() and ok[1:].all()
     assert 0 < use3.mean() < 1, "both terms of the kernel should win somewhere"
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
