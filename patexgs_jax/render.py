@@ -545,8 +545,6 @@ class _Geometry(NamedTuple):
     ok: jax.Array      # the ray meets the plane
     inv: jax.Array     # 1 / s2 (see _uv)
     use3: jax.Array    # the 3D term wins (rho3d <= rho2d)
-    dx: jax.Array      # pixel centre minus the splat's projected centre
-    dy: jax.Array
 
 
 def _cols(pk):
@@ -565,7 +563,7 @@ def _geometry_terms(pk, x, y) -> _Geometry:
     use3 = rho3d <= rho2d
     G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
     z = jnp.where(use3, col[_M2.start] * u + col[_M2.start + 1] * v + col[_M2.start + 2], col[_DEP])
-    return _Geometry(G, z, u, v, ok, inv, use3, dx, dy)
+    return _Geometry(G, z, u, v, ok, inv, use3)
 
 
 def _chunk_geometry(pk, x, y):
@@ -579,11 +577,14 @@ def _chunk_geometry(pk, x, y):
 def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
     """The cotangent (B, c, F) of pk for cotangents g_G, g_z (c, B, P) of :func:`_chunk_geometry`,
     given the forward's terms ``geo`` (:func:`_geometry_terms` of the same pk, x, y), derived by
-    hand: every per-splat sum over the tile's pixels is one product with the pixels' (x, y, 1),
-    where autodiff's backward made a reduction per packed column. The pixels of every tile must
-    share their offsets from the tile's first pixel (x[b] - x[b, 0] the same for every b, and y
-    alike), as the tiles of :func:`_pixel_coords` do."""
-    G, _, u, v, ok, inv, use3, dx, dy = geo
+    hand: the per-splat sums over a tile's pixels are products of a few per-pair columns with the
+    pixels' (x, y, 1), where autodiff's backward made a reduction per packed column. The centre's
+    cotangent comes from the sums of one column (``-4 (sum g x - mu sum g)``, not a column each for
+    x and y), and each column is multiplied on its own (stacked first, the stack was the costliest op
+    of the backward's chunk loop). The pixels of every tile must share their offsets from the
+    tile's first pixel (x[b] - x[b, 0] the same for every b, and y alike), as the tiles of
+    :func:`_pixel_coords` do."""
+    G, _, u, v, ok, inv, use3 = geo
     M2 = _cols(pk)[_M2]
     g_rho = -0.5 * g_G * G                                    # d/d min(rho3d, rho2d)
     g_rho3 = jnp.where(use3 & ok, g_rho, 0.0)
@@ -592,23 +593,35 @@ def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
     g_u = jnp.where(ok, 2.0 * u * g_rho3 + M2[0] * g_z3, 0.0)
     g_v = jnp.where(ok, 2.0 * v * g_rho3 + M2[1] * g_z3, 0.0)
     # u = s0 / s2, v = s1 / s2.
-    cols = [g_u * inv, g_v * inv, -(g_u * u + g_v * v) * inv,
-            -4.0 * g_rho2 * dx, -4.0 * g_rho2 * dy, g_z3 * u, g_z3 * v, g_z3, g_z - g_z3]
+    g_s2 = -(g_u * u + g_v * v) * inv
     B, c = pk.shape[:2]
     P = x.shape[-1]
-    # x = x0 + xi, y = y0 + yi: the tile's corner plus the pixel's offset within it, the same in
-    # every tile, so the sums over the pixels are one plain product with the (P, 3) offsets.
-    x0, y0 = x[:, :1], y[:, :1]
-    Xi = jnp.stack([(x - x0)[0], (y - y0)[0], jnp.ones((P,), x.dtype)], axis=-1)       # (P, 3)
-    H = jnp.stack(cols).reshape(-1, P)                                                 # (9 c B, P)
-    R = jnp.matmul(H, Xi, precision=lax.Precision.HIGHEST).reshape(9, c, B, 3)
-    R = jnp.transpose(R, (2, 1, 0, 3))                                                 # (B, c, 9, 3)
+    # x = x0 + xi, y = y0 + yi: the tile's centre plus the pixel's offset from it, the same in
+    # every tile, so the sums over the pixels are plain products with the (P, 3) offsets. (From
+    # the centre, not a corner: smaller offsets, less cancellation where the sums are corrected.)
+    xi, yi = x[0] - x[0, 0], y[0] - y[0, 0]
+    xi, yi = xi - jnp.mean(xi), yi - jnp.mean(yi)
+    x0, y0 = x[:, :1] - xi[0], y[:, :1] - yi[0]
+    Xi = jnp.stack([xi, yi, jnp.ones((P,), x.dtype)], axis=-1)                           # (P, 3)
+
+    def sums(col):  # (c, B, P) -> (B, c, 3): sums over the pixels weighted by xi, yi and 1
+        r = jnp.matmul(col.reshape(-1, P), Xi, precision=lax.Precision.HIGHEST)
+        return jnp.swapaxes(r.reshape(c, B, 3), 0, 1)
+
     x0, y0 = x0[..., None], y0[..., None]                                              # (B, 1, 1)
-    R = jnp.stack([R[..., 0] + x0 * R[..., 2], R[..., 1] + y0 * R[..., 2], R[..., 2]], axis=-1)
-    abc = jnp.swapaxes(R[:, :, :3], -1, -2).reshape(B, c, 9)       # A_i, B_i, C_i: (x, y, 1) rows
-    ones = R[:, :, 3:, 2]                                             # (B, c, 6): mu (2), M2 (3), depth
-    rest = jnp.zeros(ones.shape[:-1] + (_DEP - _OP,), pk.dtype)          # opacity to normal
-    return jnp.concatenate([abc, ones[..., 2:5], ones[..., :2], rest, ones[..., 5:]], axis=-1)
+
+    def xy1(col):  # (B, c, 3): the sums weighted by x, y and 1
+        r = sums(col)
+        return r + jnp.concatenate([x0 * r[..., 2:], y0 * r[..., 2:], jnp.zeros_like(r[..., 2:])], -1)
+
+    abc = jnp.stack([xy1(g_u * inv), xy1(g_v * inv), xy1(g_s2)], axis=-1).reshape(B, c, 9)
+    # d rho2d / d mu = -4 (x - mu): from the x-, y- and 1-weighted sums of one column.
+    r2 = sums(g_rho2)
+    mu = pk[..., _MU]                                                                    # (B, c, 2)
+    g_mu = -4.0 * (r2[..., :2] + (jnp.concatenate([x0, y0], -1) - mu) * r2[..., 2:])
+    one = [sums(v)[..., 2] for v in (g_z3 * u, g_z3 * v, g_z3, g_z - g_z3)]
+    rest = jnp.zeros((B, c, _DEP - _OP), pk.dtype)                                          # opacity to normal
+    return jnp.concatenate([abc, jnp.stack(one[:3], -1), g_mu, rest, one[3][..., None]], axis=-1)
 
 
 class _Passes(NamedTuple):
