@@ -619,7 +619,7 @@ def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
     r2 = sums(g_rho2)
     mu = pk[..., _MU]                                                                    # (B, c, 2)
     g_mu = -4.0 * (r2[..., :2] + (jnp.concatenate([x0, y0], -1) - mu) * r2[..., 2:])
-    one = [sums(v)[..., 2] for v in (g_z3 * u, g_z3 * v, g_z3, g_z - g_z3)]
+    one = [sums(col)[..., 2] for col in (g_z3 * u, g_z3 * v, g_z3, g_z - g_z3)]
     rest = jnp.zeros((B, c, _DEP - _OP), pk.dtype)                                          # opacity to normal
     return jnp.concatenate([abc, jnp.stack(one[:3], -1), g_mu, rest, one[3][..., None]], axis=-1)
 
