@@ -596,29 +596,26 @@ def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
     g_s2 = -(g_u * u + g_v * v) * inv
     B, c = pk.shape[:2]
     P = x.shape[-1]
-    # x = x0 + xi, y = y0 + yi: the tile's centre plus the pixel's offset from it, the same in
+    # (x, y) = centre + (xi, yi): the tile's centre plus the pixel's offset from it, the same in
     # every tile, so the sums over the pixels are plain products with the (P, 3) offsets. (From
     # the centre, not a corner: smaller offsets, less cancellation where the sums are corrected.)
     xi, yi = x[0] - x[0, 0], y[0] - y[0, 0]
     xi, yi = xi - jnp.mean(xi), yi - jnp.mean(yi)
-    x0, y0 = x[:, :1] - xi[0], y[:, :1] - yi[0]
+    centre = jnp.stack([x[:, 0] - xi[0], y[:, 0] - yi[0]], axis=-1)[:, None]               # (B, 1, 2)
     Xi = jnp.stack([xi, yi, jnp.ones((P,), x.dtype)], axis=-1)                           # (P, 3)
 
     def sums(col):  # (c, B, P) -> (B, c, 3): sums over the pixels weighted by xi, yi and 1
         r = jnp.matmul(col.reshape(-1, P), Xi, precision=lax.Precision.HIGHEST)
         return jnp.swapaxes(r.reshape(c, B, 3), 0, 1)
 
-    x0, y0 = x0[..., None], y0[..., None]                                              # (B, 1, 1)
-
     def xy1(col):  # (B, c, 3): the sums weighted by x, y and 1
         r = sums(col)
-        return r + jnp.concatenate([x0 * r[..., 2:], y0 * r[..., 2:], jnp.zeros_like(r[..., 2:])], -1)
+        return r.at[..., :2].add(centre * r[..., 2:])
 
     abc = jnp.stack([xy1(g_u * inv), xy1(g_v * inv), xy1(g_s2)], axis=-1).reshape(B, c, 9)
     # d rho2d / d mu = -4 (x - mu): from the x-, y- and 1-weighted sums of one column.
     r2 = sums(g_rho2)
-    mu = pk[..., _MU]                                                                    # (B, c, 2)
-    g_mu = -4.0 * (r2[..., :2] + (jnp.concatenate([x0, y0], -1) - mu) * r2[..., 2:])
+    g_mu = -4.0 * (r2[..., :2] + (centre - pk[..., _MU]) * r2[..., 2:])
     one = [sums(col)[..., 2] for col in (g_z3 * u, g_z3 * v, g_z3, g_z - g_z3)]
     rest = jnp.zeros((B, c, _DEP - _OP), pk.dtype)                                          # opacity to normal
     return jnp.concatenate([abc, jnp.stack(one[:3], -1), g_mu, rest, one[3][..., None]], axis=-1)
