@@ -73,6 +73,9 @@ from .math import quat_to_rotmat, safe_div, safe_log2, safe_normalize, sh_basis
 from .scene import Scene
 
 MIP_MODES = ("none", "nearest", "trilinear")
+COVERAGE_MODES = ("lowpass", "prefilter")
+#: Eq. 11's lambda_mip per coverage mode when RenderConfig.lambda_mip is None (see RenderConfig).
+LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0}
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
@@ -88,8 +91,18 @@ class RenderConfig:
     """Static rendering options (hashable; a new value compiles a new renderer).
 
     Attributes:
+      coverage: how a splat covers a pixel. "lowpass" (default): the 2DGS kernel
+        ``exp(-0.5 min(rho3d, 2 |x - mu2d|^2))``, which keeps a sub-pixel splat about a pixel wide
+        at its full opacity (the paper's literal Eqs. 11-13 and the 2DGS baselines). "prefilter":
+        the splat-plane Gaussian convolved with a Gaussian pixel filter of variance
+        ``pixel_var`` (px^2), mapped onto the plane at the splat's centre (EWA resampling), with
+        the opacity scaled so that the splat's integrated coverage is kept: a splat smaller than a
+        pixel fades instead of growing (the PATexGS methods' mode).
+      pixel_var: the prefilter's pixel filter variance in px^2 (a box pixel has 1/12).
       mip: "none" (level 0 only), "nearest" (paper Eq. 11, default) or "trilinear".
-      lambda_mip: the paper's lambda_mip in Eq. 11.
+      lambda_mip: the paper's lambda_mip in Eq. 11; None takes the coverage mode's value
+        (:data:`LAMBDA_MIP_DEFAULT`: 0.4 as the paper for "lowpass"; 1/6 for "prefilter", where
+        ``lambda n D`` is then the texels per pixel of a texture spanning 6 scale units).
       rgb_mip: use mipmaps for the RGB textures (False: level 0 always; paper Table 3 ablation).
       alpha_mip: use mipmaps for the alpha textures (paper Eq. 13).
       background: RGB colour behind everything.
@@ -109,7 +122,9 @@ class RenderConfig:
     """
 
     mip: str = "nearest"
-    lambda_mip: float = 0.4
+    lambda_mip: float | None = None
+    coverage: str = "lowpass"
+    pixel_var: float = 0.1
     rgb_mip: bool = True
     alpha_mip: bool = True
     background: tuple = (0.0, 0.0, 0.0)
@@ -122,6 +137,12 @@ class RenderConfig:
     def __post_init__(self):
         if self.mip not in MIP_MODES:
             raise ValueError(f"RenderConfig.mip must be one of {MIP_MODES}, got {self.mip!r}.")
+        if self.coverage not in COVERAGE_MODES:
+            raise ValueError(f"RenderConfig.coverage must be one of {COVERAGE_MODES}, got {self.coverage!r}.")
+        if self.lambda_mip is None:
+            object.__setattr__(self, "lambda_mip", LAMBDA_MIP_DEFAULT[self.coverage])
+        if not self.pixel_var > 0:
+            raise ValueError(f"pixel_var must be positive, got {self.pixel_var}.")
         if not self.lambda_mip > 0:
             raise ValueError(f"lambda_mip must be positive, got {self.lambda_mip}.")
         if len(tuple(self.background)) != 3:
@@ -199,6 +220,40 @@ def _cross(a, b):
                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
+def _prefilter(M, mu, depth, pixel_var):
+    """The prefiltered kernel of each splat (coverage "prefilter").
+
+    With K = d(x, y)/d(u, v) the splat's screen Jacobian at its centre (pixels per scale unit), the
+    splat's Gaussian exp(-0.5 |h|^2) convolved with the pixel filter N(0, pixel_var I) (on screen,
+    mapped onto the plane by K^-1) is ``coverage * exp(-0.5 h^T P h)`` with
+    ``P = K^T (K K^T + pixel_var I)^-1 K`` and ``coverage = |det K| / sqrt(det(K K^T + pixel_var I))``
+    (EWA; Mip-Splatting's 2D filter in the splat plane): the integral over the screen is kept.
+    Both forms stay finite for an edge-on splat (K singular: coverage 0). K is normalised by its
+    largest entry first, so that neither tiny nor huge splats overflow float32.
+
+    Args:
+      M: (C, 3, 3) splat plane (u, v, 1) to image homogeneous coordinates; mu: (C, 2) the centres
+        on screen; depth: (C,) the centres' depth (positive).
+    Returns:
+      (C, 3) (p, r, t) of P, and (C,) the coverage factor in [0, 1].
+    """
+    K = (M[:, :2, :2] - mu[:, :, None] * M[:, 2, None, :2]) / depth[:, None, None]
+    k = jnp.maximum(jnp.max(jnp.abs(K), axis=(1, 2)), 1e-6 * math.sqrt(pixel_var))
+    K = K / k[:, None, None]
+    e = pixel_var / (k * k)
+    k00, k01, k10, k11 = K[:, 0, 0], K[:, 0, 1], K[:, 1, 0], K[:, 1, 1]
+    a = k00 * k00 + k01 * k01 + e          # K K^T + e I = [[a, b], [b, d]]
+    b = k00 * k10 + k01 * k11
+    d = k10 * k10 + k11 * k11 + e
+    det = a * d - b * b                    # >= e^2 > 0
+    # P = K^T [[d, -b], [-b, a]] K / det
+    p = (d * k00 * k00 - 2.0 * b * k00 * k10 + a * k10 * k10) / det
+    r = (d * k00 * k01 - b * (k00 * k11 + k10 * k01) + a * k10 * k11) / det
+    t = (d * k01 * k01 - 2.0 * b * k01 * k11 + a * k11 * k11) / det
+    coverage = jnp.abs(k00 * k11 - k01 * k10) / jnp.sqrt(det)
+    return jnp.stack([p, r, t], axis=-1), coverage
+
+
 def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, active_sh_degree,
              alpha_peak):
     """Per-splat quantities. Returns a dict of (C, ...) arrays (see the keys below)."""
@@ -220,6 +275,9 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
     depth = p[:, 2]
     in_front = depth > config.near
     mu = safe_div(M[:, :2, 2], jnp.where(in_front, depth, 1.0)[:, None])
+    prefilter = config.coverage == "prefilter"
+    if prefilter:
+        conic, coverage = _prefilter(M, mu, jnp.where(in_front, depth, 1.0), config.pixel_var)
     if screen_offset is not None:
         off = screen_offset.astype(dt)
         Cc = Cc - off[:, :1] * A - off[:, 1:] * B
@@ -234,6 +292,8 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
 
     normal = jnp.where((jnp.sum(nrm * p, axis=-1) > 0)[:, None], -nrm, nrm)
     opacity = jax.nn.sigmoid(scene.opacity_logits) * (scene.active > 0)
+    if prefilter:
+        opacity = opacity * coverage
 
     # Culling and screen-space bounds (no gradient): alpha >= 1/255 needs
     # rho <= 2 log(255 * opacity * max A) =: r2.
@@ -241,33 +301,50 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
     visible = in_front & (peak >= ALPHA_MIN)
     r2 = jnp.where(visible, 2.0 * jnp.log(jnp.maximum(peak, ALPHA_MIN) * 255.0), 0.0)
     Ms = lax.stop_gradient(M)
-    # Dual conic of the projected circle u^2 + v^2 = r2: M diag(r2, r2, -1) M^T.
-    Q = (r2[:, None, None] * jnp.einsum("cia,cja->cij", Ms[:, :, :2], Ms[:, :, :2])
-         - Ms[:, :, None, 2] * Ms[:, None, :, 2])
+    if prefilter:
+        # Dual conic of the projected ellipse h^T P h = r2: M blockdiag(r2 P^-1, -1) M^T, times
+        # det P (> 0), so that an edge-on splat (det P = 0) gives no division: q22 >= 0, unbounded.
+        pf = lax.stop_gradient(conic)
+        adj = jnp.stack([pf[:, 2], -pf[:, 1], -pf[:, 1], pf[:, 0]], axis=-1).reshape(-1, 2, 2)
+        det_p = pf[:, 0] * pf[:, 2] - pf[:, 1] ** 2
+        Q = (r2[:, None, None] * jnp.einsum("cia,cab,cjb->cij", Ms[:, :, :2], adj, Ms[:, :, :2])
+             - det_p[:, None, None] * Ms[:, :, None, 2] * Ms[:, None, :, 2])
+    else:
+        # Dual conic of the projected circle u^2 + v^2 = r2: M diag(r2, r2, -1) M^T.
+        Q = (r2[:, None, None] * jnp.einsum("cia,cja->cij", Ms[:, :, :2], Ms[:, :, :2])
+             - Ms[:, :, None, 2] * Ms[:, None, :, 2])
     q22 = Q[:, 2, 2]
     bounded = q22 < 0
     q22s = jnp.where(bounded, q22, -1.0)
     cx, cy = Q[:, 0, 2] / q22s, Q[:, 1, 2] / q22s
     hx = jnp.sqrt(jnp.maximum(cx * cx - Q[:, 0, 0] / q22s, 0.0))
     hy = jnp.sqrt(jnp.maximum(cy * cy - Q[:, 1, 1] / q22s, 0.0))
-    r_lp = jnp.sqrt(0.5 * r2)  # the low-pass disc: 2 |d|^2 <= r2
-    mus = lax.stop_gradient(mu)
     big = 1e9
-    xmin = jnp.where(bounded, jnp.minimum(cx - hx, mus[:, 0] - r_lp), -big)
-    xmax = jnp.where(bounded, jnp.maximum(cx + hx, mus[:, 0] + r_lp), big)
-    ymin = jnp.where(bounded, jnp.minimum(cy - hy, mus[:, 1] - r_lp), -big)
-    ymax = jnp.where(bounded, jnp.maximum(cy + hy, mus[:, 1] + r_lp), big)
-    radius = jnp.where(visible, jnp.maximum(jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, r_lp), 0.0)
+    if prefilter:
+        xmin, xmax = jnp.where(bounded, cx - hx, -big), jnp.where(bounded, cx + hx, big)
+        ymin, ymax = jnp.where(bounded, cy - hy, -big), jnp.where(bounded, cy + hy, big)
+        radius = jnp.where(visible, jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, 0.0)
+    else:
+        r_lp = jnp.sqrt(0.5 * r2)  # the low-pass disc: 2 |d|^2 <= r2
+        mus = lax.stop_gradient(mu)
+        xmin = jnp.where(bounded, jnp.minimum(cx - hx, mus[:, 0] - r_lp), -big)
+        xmax = jnp.where(bounded, jnp.maximum(cx + hx, mus[:, 0] + r_lp), big)
+        ymin = jnp.where(bounded, jnp.minimum(cy - hy, mus[:, 1] - r_lp), -big)
+        ymax = jnp.where(bounded, jnp.maximum(cy + hy, mus[:, 1] + r_lp), big)
+        radius = jnp.where(visible, jnp.maximum(jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, r_lp), 0.0)
 
-    packed = jnp.concatenate([
-        A, B, Cc, M2, mu, opacity[:, None], color, normal, depth[:, None]], axis=-1)
+    cols = [A, B, Cc, M2, mu, opacity[:, None], color, normal, depth[:, None]]
+    if prefilter:
+        cols.append(conic)
+    packed = jnp.concatenate(cols, axis=-1)
     return dict(packed=packed, depth=depth, visible=visible, bounds=(xmin, xmax, ymin, ymax),
                 radius=jnp.where(jnp.isfinite(radius), radius, big))
 
 
-# Column layout of the packed per-splat array.
+# Column layout of the packed per-splat array (``_PF`` only with coverage "prefilter").
 _A, _B, _C, _M2, _MU, _OP, _COL, _NRM, _DEP = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12),
                                                slice(12, 14), 14, slice(15, 18), slice(18, 21), 21)
+_PF = slice(22, 25)  # the prefiltered kernel's quadratic form (p, r, t): q = p u^2 + 2 r u v + t v^2
 _PLANE = 9  # the first columns, A, B and C: all a texture lookup reads (see _plane)
 _CN = slice(_COL.start, _NRM.stop)  # colour and normal, adjacent: one product with the weights
 
@@ -505,6 +582,10 @@ class _Static(NamedTuple):
         return self.alpha and self.config.mip != "none" and self.config.alpha_mip
 
     @property
+    def prefilter(self):
+        return self.config.coverage == "prefilter"
+
+    @property
     def need_footprint(self):
         return self.rgb_mip or self.alpha_mip
 
@@ -553,28 +634,35 @@ def _cols(pk):
     return jnp.transpose(pk, (2, 1, 0))[..., None]
 
 
-def _geometry_terms(pk, x, y) -> _Geometry:
-    """The :class:`_Geometry` of pk (B, c, F) packed splats at pixel centres x, y (B, P)."""
+def _geometry_terms(pk, x, y, prefilter: bool) -> _Geometry:
+    """The :class:`_Geometry` of pk (B, c, F) packed splats at pixel centres x, y (B, P); with
+    ``prefilter`` the kernel is the prefiltered one (coverage "prefilter", columns ``_PF``)."""
     col = _cols(pk)
     u, v, ok, inv = _uv(*[x * col[i] + y * col[3 + i] + col[6 + i] for i in range(3)])
-    rho3d = jnp.where(ok, u * u + v * v, 1e8)
-    dx, dy = x - col[_MU.start], y - col[_MU.start + 1]
-    rho2d = 2.0 * (dx * dx + dy * dy)
-    use3 = rho3d <= rho2d
-    G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
+    if prefilter:
+        p, r, t = (col[i] for i in range(_PF.start, _PF.stop))
+        use3 = ok
+        G = jnp.exp(-0.5 * jnp.where(ok, (p * u + 2.0 * r * v) * u + t * v * v, 1e8))
+    else:
+        rho3d = jnp.where(ok, u * u + v * v, 1e8)
+        dx, dy = x - col[_MU.start], y - col[_MU.start + 1]
+        rho2d = 2.0 * (dx * dx + dy * dy)
+        use3 = rho3d <= rho2d
+        G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
     z = jnp.where(use3, col[_M2.start] * u + col[_M2.start + 1] * v + col[_M2.start + 2], col[_DEP])
     return _Geometry(G, z, u, v, ok, inv, use3)
 
 
-def _chunk_geometry(pk, x, y):
+def _chunk_geometry(pk, x, y, prefilter: bool = False):
     """G, z (c, B, P) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P) pixel centres.
     G is the 2DGS kernel exp(-0.5 min(rho3d, rho2d)) and z the depth: at the ray-plane intersection
-    where the 3D term wins, else the centre's."""
-    t = _geometry_terms(pk, x, y)
+    where the 3D term wins, else the centre's. With ``prefilter``, G is the prefiltered kernel
+    exp(-0.5 (p u^2 + 2 r u v + t v^2)) (0 where the ray misses the plane) and z the intersection's."""
+    t = _geometry_terms(pk, x, y, prefilter)
     return t.G, t.z
 
 
-def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
+def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z, prefilter: bool = False):
     """The cotangent (B, c, F) of pk for cotangents g_G, g_z (c, B, P) of :func:`_chunk_geometry`,
     given the forward's terms ``geo`` (:func:`_geometry_terms` of the same pk, x, y), derived by
     hand: the per-splat sums over a tile's pixels are products of a few per-pair columns with the
@@ -585,13 +673,18 @@ def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
     tile's first pixel (x[b] - x[b, 0] the same for every b, and y alike), as the tiles of
     :func:`_pixel_coords` do."""
     G, _, u, v, ok, inv, use3 = geo
-    M2 = _cols(pk)[_M2]
-    g_rho = -0.5 * g_G * G                                    # d/d min(rho3d, rho2d)
+    col = _cols(pk)
+    M2 = col[_M2]
+    g_rho = -0.5 * g_G * G                                    # d/d min(rho3d, rho2d), or d/d q
     g_rho3 = jnp.where(use3 & ok, g_rho, 0.0)
-    g_rho2 = jnp.where(use3, 0.0, g_rho)
     g_z3 = jnp.where(use3, g_z, 0.0)
-    g_u = jnp.where(ok, 2.0 * u * g_rho3 + M2[0] * g_z3, 0.0)
-    g_v = jnp.where(ok, 2.0 * v * g_rho3 + M2[1] * g_z3, 0.0)
+    if prefilter:  # d q / d(u, v) = 2 P (u, v)
+        qu = col[_PF.start] * u + col[_PF.start + 1] * v
+        qv = col[_PF.start + 1] * u + col[_PF.start + 2] * v
+    else:
+        qu, qv = u, v
+    g_u = jnp.where(ok, 2.0 * qu * g_rho3 + M2[0] * g_z3, 0.0)
+    g_v = jnp.where(ok, 2.0 * qv * g_rho3 + M2[1] * g_z3, 0.0)
     # u = s0 / s2, v = s1 / s2.
     g_s2 = -(g_u * u + g_v * v) * inv
     B, c = pk.shape[:2]
@@ -613,12 +706,17 @@ def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z):
         return r.at[..., :2].add(centre * r[..., 2:])
 
     abc = jnp.stack([xy1(g_u * inv), xy1(g_v * inv), xy1(g_s2)], axis=-1).reshape(B, c, 9)
-    # d rho2d / d mu = -4 (x - mu): from the x-, y- and 1-weighted sums of one column.
-    r2 = sums(g_rho2)
-    g_mu = -4.0 * (r2[..., :2] + (centre - pk[..., _MU]) * r2[..., 2:])
-    one = [sums(col)[..., 2] for col in (g_z3 * u, g_z3 * v, g_z3, g_z - g_z3)]
+    if prefilter:  # the centre is not read
+        g_mu = jnp.zeros((B, c, 2), pk.dtype)
+    else:  # d rho2d / d mu = -4 (x - mu): from the x-, y- and 1-weighted sums of one column.
+        r2 = sums(jnp.where(use3, 0.0, g_rho))
+        g_mu = -4.0 * (r2[..., :2] + (centre - pk[..., _MU]) * r2[..., 2:])
+    one = [sums(q)[..., 2] for q in (g_z3 * u, g_z3 * v, g_z3, g_z - g_z3)]
     rest = jnp.zeros((B, c, _DEP - _OP), pk.dtype)                                          # opacity to normal
-    return jnp.concatenate([abc, jnp.stack(one[:3], -1), g_mu, rest, one[3][..., None]], axis=-1)
+    out = [abc, jnp.stack(one[:3], -1), g_mu, rest, one[3][..., None]]
+    if prefilter:  # d q / d(p, r, t) = (u^2, 2 u v, v^2)
+        out.append(jnp.stack([sums(q)[..., 2] for q in (g_rho3 * u * u, 2.0 * g_rho3 * u * v, g_rho3 * v * v)], -1))
+    return jnp.concatenate(out, axis=-1)
 
 
 class _Passes(NamedTuple):
@@ -1052,7 +1150,7 @@ def _chunk_fwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done):
     reductions along the short inner axis.)"""
     gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    G, z = _chunk_geometry(pk, x, y)
+    G, z = _chunk_geometry(pk, x, y, st.prefilter)
     tvals = (None, None)
     if st.rgb or st.alpha:
         passes = _texture_passes(st, ctx, pk, gid, valid, G, done)
@@ -1132,7 +1230,7 @@ def _chunk_bwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, 
     paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""
     gid, valid = jax.vmap(lambda t: _chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    geo = _geometry_terms(pk, x, y)
+    geo = _geometry_terms(pk, x, y, st.prefilter)
     G, z = geo.G, geo.z
     textured = st.rgb or st.alpha
     passes, tvals = None, (None, None)
@@ -1141,7 +1239,7 @@ def _chunk_bwd(st: _Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, 
         tvals = _texture_fwd(st, ctx, pk, gid, x, y, passes, G.shape)
     (log_t2, done2, dot_through), (g_pk, g_G, g_z, g_tv) = _chunk_contrib_bwd(
         st, ctx, pk, G, z, *tvals, gid, valid, log_t, done, ct_acc, dot_through, base_term)
-    g_pk = g_pk + _chunk_geometry_bwd(pk, x, y, geo, g_G, g_z)
+    g_pk = g_pk + _chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, st.prefilter)
     if textured:
         g_tex, g_rt, g_at = _texture_bwd(st, ctx, pk, gid, x, y, passes, G.shape, g_tv, g_rt, g_at)
         g_pk = g_pk + g_tex

@@ -111,9 +111,26 @@ def sample_mip(levels, u, v, footprint, mip, lam):
     return (1 - frac) * out0 + frac * out1
 
 
+def screen_jacobian(K, Rc, tc, mean, axes):
+    """(2, 2) d(pixel)/d(u, v) at a splat's centre: column j is the derivative of the projection of
+    ``mean + h axes[j]`` at h = 0 (axes: the scaled tangent axes, world frame)."""
+    pc = Rc @ mean + tc
+    q = K @ pc
+    out = np.zeros((2, 2))
+    for j in range(2):
+        dq = K @ (Rc @ axes[j])
+        out[:, j] = (dq[:2] * q[2] - q[:2] * dq[2]) / q[2] ** 2
+    return out
+
+
 def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=True, alpha_mip=True,
-                     background=(0.0, 0.0, 0.0), near=0.01):
+                     background=(0.0, 0.0, 0.0), near=0.01, coverage="lowpass", pixel_var=0.1):
     """Renders a dict of activated float64 parameters.
+
+    coverage "lowpass" is the 2DGS kernel; "prefilter" the splat's Gaussian convolved with a
+    Gaussian pixel filter of variance ``pixel_var`` through the centre's screen Jacobian J: the
+    kernel exp(-0.5 h^T (I + pixel_var J^-1 J^-T)^-1 h) scaled by det(I + pixel_var J^-1 J^-T)^-1/2,
+    here from J directly (J^T (J J^T + v I)^-1 J and |det J| / sqrt(det(J J^T + v I))).
 
     g: dict with means (N,3), scales (N,2), quats (N,4), opacities (N,) (0 for inactive), sh (N,K,3),
        rgb (list of None or (n,n,3)), alpha (list of None or (m,m,1)).
@@ -165,11 +182,22 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
             return np.where(bad, 1e30, u), np.where(bad, 1e30, v), t, bad
 
         u, v, t, bad = hit(d0)
-        rho3 = np.where(bad, np.inf, u * u + v * v)
-        rho2 = 2 * ((x - mu[0]) ** 2 + (y - mu[1]) ** 2)
-        use3 = rho3 <= rho2
-        G = np.exp(-0.5 * np.minimum(rho3, rho2))
-        z = np.where(use3, t, pc[2])
+        opacity = g["opacities"][i]
+        if coverage == "prefilter":
+            J = screen_jacobian(K, Rc, tc, mean, (tu * s[0], tv * s[1]))
+            Sf = J @ J.T + pixel_var * np.eye(2)
+            Pm = J.T @ np.linalg.inv(Sf) @ J
+            opacity = opacity * abs(np.linalg.det(J)) / np.sqrt(np.linalg.det(Sf))
+            uc, vc = np.where(bad, 0.0, u), np.where(bad, 0.0, v)
+            q = Pm[0, 0] * uc * uc + 2 * Pm[0, 1] * uc * vc + Pm[1, 1] * vc * vc
+            G = np.where(bad, 0.0, np.exp(-0.5 * q))
+            z = np.where(bad, pc[2], t)
+        else:
+            rho3 = np.where(bad, np.inf, u * u + v * v)
+            rho2 = 2 * ((x - mu[0]) ** 2 + (y - mu[1]) ** 2)
+            use3 = rho3 <= rho2
+            G = np.exp(-0.5 * np.minimum(rho3, rho2))
+            z = np.where(use3, t, pc[2])
         ux, vx, _, _ = hit(dx)
         uy, vy, _, _ = hit(dy)
         foot = np.maximum(np.hypot(ux - u, vx - v), np.hypot(uy - u, vy - v))
@@ -187,7 +215,7 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
         nc = Rc @ n
         if nc @ pc > 0:
             nc = -nc
-        a = np.clip(g["opacities"][i] * G * A, 0.0, 0.99)
+        a = np.clip(opacity * G * A, 0.0, 0.99)
         take = ~done & (a >= 1 / 255) & (z > near)
         test_T = T * (1 - a)
         stop = take & (test_T < 1e-4)

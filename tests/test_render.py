@@ -55,7 +55,8 @@ def ref_render(sc, cam, cfg):
     return reference_render(scene_to_reference(sc), np.asarray(cam.K, np.float64),
                             np.asarray(cam.world_to_camera, np.float64), cam.width, cam.height,
                             mip=cfg.mip, lam=cfg.lambda_mip, rgb_mip=cfg.rgb_mip,
-                            alpha_mip=cfg.alpha_mip, background=cfg.background, near=cfg.near)
+                            alpha_mip=cfg.alpha_mip, background=cfg.background, near=cfg.near,
+                            coverage=cfg.coverage, pixel_var=cfg.pixel_var)
 
 
 CONFIGS = {
@@ -64,6 +65,8 @@ CONFIGS = {
     "nearest": (True, 1, RenderConfig(mip="nearest")),
     "trilinear": (True, 2, RenderConfig(mip="trilinear", lambda_mip=1.5)),
     "no-rgb-mip": (True, 0, RenderConfig(mip="nearest", rgb_mip=False, lambda_mip=2.0)),
+    "prefilter": (True, 1, RenderConfig(mip="nearest", coverage="prefilter")),
+    "prefilter-2dgs": (False, 2, RenderConfig(mip="none", coverage="prefilter", pixel_var=0.3)),
 }
 
 
@@ -213,7 +216,7 @@ def _directional_fd_check(sc, cam, cfg, seed, h=1e-6, rtol=2e-4):
         assert abs(analytic - fd) <= rtol * abs(fd) + 1e-6, (analytic, fd)
 
 
-@pytest.mark.parametrize("name", ["2dgs", "trilinear"])
+@pytest.mark.parametrize("name", ["2dgs", "trilinear", "prefilter"])
 def test_gradients_match_finite_differences(name):
     textured, degree, cfg = CONFIGS[name]
     sc = scene(21, textured, degree)
@@ -588,15 +591,21 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
     assert np.abs(got[1]).max() > 0 and np.abs(got[0]).max() > 0
 
 
-def test_geometry_backward_matches_autodiff():
+@pytest.mark.parametrize("prefilter", [False, True])
+def test_geometry_backward_matches_autodiff(prefilter):
     """:func:`_chunk_geometry_bwd` gives autodiff's cotangent of the packed splats through
     :func:`_chunk_geometry`: for rays that meet the splat planes (the 3D term or the screen-space
-    low-pass winning) and rays (nearly) parallel to them, in tiles at different image positions
-    (the pixels share their offsets within the tile, as the renderer's do)."""
+    low-pass winning; or the prefiltered kernel) and rays (nearly) parallel to them, in tiles at
+    different image positions (the pixels share their offsets within the tile, as the renderer's
+    do)."""
     rng = np.random.default_rng(5)
     B, P, c = 3, 20, 6
+    F = render_mod._PF.stop if prefilter else render_mod._DEP + 1
     with jax.enable_x64(True):
-        pk = rng.normal(size=(B, c, render_mod._DEP + 1))
+        pk = rng.normal(size=(B, c, F))
+        if prefilter:  # a positive definite quadratic form (p, r, t)
+            pk[:, :, render_mod._PF] = np.stack([rng.uniform(0.2, 1.0, (B, c)), rng.uniform(-0.1, 0.1, (B, c)),
+                                                 rng.uniform(0.2, 1.0, (B, c))], axis=-1)
         pk[:, :, 0:9] *= 0.05                               # planes: (u, v) of order one
         pk[:, :, 6:8] += rng.normal(size=(B, c, 2))
         pk[:, :, 8] = rng.uniform(0.5, 1.0, (B, c))
@@ -609,11 +618,15 @@ def test_geometry_backward_matches_autodiff():
         pk = jnp.asarray(pk)
         g_G = jnp.asarray(rng.normal(size=(c, B, P)))
         g_z = jnp.asarray(rng.normal(size=(c, B, P)))
-        (G, z), vjp = jax.vjp(lambda p: render_mod._chunk_geometry(p, x, y), pk)
+        (G, z), vjp = jax.vjp(lambda p: render_mod._chunk_geometry(p, x, y, prefilter), pk)
         want = vjp((g_G, g_z))[0]
-        geo = render_mod._geometry_terms(pk, x, y)
-        got = render_mod._chunk_geometry_bwd(pk, x, y, geo, g_G, g_z)
-        got, want, ok, use3 = jax.tree.map(np.asarray, (got, want, geo.ok, geo.use3))
+        geo = render_mod._geometry_terms(pk, x, y, prefilter)
+        got = render_mod._chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, prefilter)
+        got, want, ok, use3, G = jax.tree.map(np.asarray, (got, want, geo.ok, geo.use3, geo.G))
     assert not ok[0].any() and ok[1:].all()
-    assert 0 < use3.mean() < 1, "both terms of the kernel should win somewhere"
+    if prefilter:
+        assert np.all(G[0] == 0) and G[1:].max() > 0.1, "no coverage where the ray misses the plane"
+        assert np.abs(got[..., render_mod._PF]).max() > 0
+    else:
+        assert 0 < use3.mean() < 1, "both terms of the kernel should win somewhere"
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)
