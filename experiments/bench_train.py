@@ -86,7 +86,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None):
             stamps.append(time.perf_counter())
 
     run = Run(ds, cfg, None, verbose=False)
-    run.render_cfg = RenderConfig(mip=mip)
+    run.render_cfgs = (RenderConfig(mip=mip),) * 2
     run.scene = make_scene(n, tex)
     run.opt_state = run.optimizer.init(run.scene)
     run.stats = DensifyStats.zeros(run.scene.capacity)

@@ -481,8 +481,9 @@ def load_trained(run_dir):
     else:
         raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply.")
     spec = method_spec(cfg.get("method", "patexgs"))
-    rc = RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"],
-                      lambda_mip=float(cfg.get("lambda_mip", 0.4)), background=tuple(cfg.get("background", (0, 0, 0))))
+    lam = cfg.get("lambda_mip")
+    rc = RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"], coverage=spec["coverage"],
+                      lambda_mip=None if lam is None else float(lam), background=tuple(cfg.get("background", (0, 0, 0))))
     return scene, rc, summary
 
 

@@ -69,7 +69,7 @@ from jax import lax
 
 from . import textures as tex
 from .camera import Camera
-from .math import quat_to_rotmat, safe_div, safe_log2, safe_normalize, sh_basis
+from .math import quat_to_rotmat, safe_div, safe_log2, safe_normalize, safe_sqrt, sh_basis
 from .scene import Scene
 
 MIP_MODES = ("none", "nearest", "trilinear")
@@ -99,6 +99,10 @@ class RenderConfig:
         the opacity scaled so that the splat's integrated coverage is kept: a splat smaller than a
         pixel fades instead of growing (the PATexGS methods' mode).
       pixel_var: the prefilter's pixel filter variance in px^2 (a box pixel has 1/12).
+      min_var: with the prefilter, the smallest screen variance (px^2) of a filtered splat along
+        any axis: where a splat is narrower, its filter is widened to reach it (its coverage still
+        kept), so that a sub-pixel splat's summed alpha does not depend on where it falls between
+        pixel centres. 0: the filter is ``pixel_var`` everywhere.
       mip: "none" (level 0 only), "nearest" (paper Eq. 11, default) or "trilinear".
       lambda_mip: the paper's lambda_mip in Eq. 11; None takes the coverage mode's value
         (:data:`LAMBDA_MIP_DEFAULT`: 0.4 as the paper for "lowpass"; 1/6 for "prefilter", where
@@ -125,6 +129,7 @@ class RenderConfig:
     lambda_mip: float | None = None
     coverage: str = "lowpass"
     pixel_var: float = 0.1
+    min_var: float = 0.0
     rgb_mip: bool = True
     alpha_mip: bool = True
     background: tuple = (0.0, 0.0, 0.0)
@@ -143,6 +148,8 @@ class RenderConfig:
             object.__setattr__(self, "lambda_mip", LAMBDA_MIP_DEFAULT[self.coverage])
         if not self.pixel_var > 0:
             raise ValueError(f"pixel_var must be positive, got {self.pixel_var}.")
+        if not self.min_var >= 0:
+            raise ValueError(f"min_var must be >= 0, got {self.min_var}.")
         if not self.lambda_mip > 0:
             raise ValueError(f"lambda_mip must be positive, got {self.lambda_mip}.")
         if len(tuple(self.background)) != 3:
@@ -220,7 +227,7 @@ def _cross(a, b):
                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
-def _prefilter(M, mu, depth, pixel_var):
+def _prefilter(M, mu, depth, pixel_var, min_var):
     """The prefiltered kernel of each splat (coverage "prefilter").
 
     With K = d(x, y)/d(u, v) the splat's screen Jacobian at its centre (pixels per scale unit), the
@@ -228,6 +235,11 @@ def _prefilter(M, mu, depth, pixel_var):
     mapped onto the plane by K^-1) is ``coverage * exp(-0.5 h^T P h)`` with
     ``P = K^T (K K^T + pixel_var I)^-1 K`` and ``coverage = |det K| / sqrt(det(K K^T + pixel_var I))``
     (EWA; Mip-Splatting's 2D filter in the splat plane): the integral over the screen is kept.
+    The filter's variance is raised above ``pixel_var`` where the splat is narrower than
+    ``min_var`` (px^2) along its narrowest screen axis, to ``min_var`` minus the splat's variance
+    there: a sampled Gaussian narrower than about half a pixel sums to its integral only up to
+    +-50% (depending on where its centre falls between pixel centres), so sub-pixel splats would
+    flicker as they move.
     Both forms stay finite for an edge-on splat (K singular: coverage 0). K is normalised by its
     largest entry first, so that neither tiny nor huge splats overflow float32.
 
@@ -240,17 +252,25 @@ def _prefilter(M, mu, depth, pixel_var):
     K = (M[:, :2, :2] - mu[:, :, None] * M[:, 2, None, :2]) / depth[:, None, None]
     k = jnp.maximum(jnp.max(jnp.abs(K), axis=(1, 2)), 1e-6 * math.sqrt(pixel_var))
     K = K / k[:, None, None]
-    e = pixel_var / (k * k)
     k00, k01, k10, k11 = K[:, 0, 0], K[:, 0, 1], K[:, 1, 0], K[:, 1, 1]
-    a = k00 * k00 + k01 * k01 + e          # K K^T + e I = [[a, b], [b, d]]
-    b = k00 * k10 + k01 * k11
-    d = k10 * k10 + k11 * k11 + e
-    det = a * d - b * b                    # >= e^2 > 0
-    # P = K^T [[d, -b], [-b, a]] K / det
-    p = (d * k00 * k00 - 2.0 * b * k00 * k10 + a * k10 * k10) / det
-    r = (d * k00 * k01 - b * (k00 * k11 + k10 * k01) + a * k10 * k11) / det
-    t = (d * k01 * k01 - 2.0 * b * k01 * k11 + a * k11 * k11) / det
-    coverage = jnp.abs(k00 * k11 - k01 * k10) / jnp.sqrt(det)
+    # With f = |K|_F^2 = tr(K K^T) and det = det K: det(K K^T + e I) = det^2 + e f + e^2 and
+    # P = (det^2 I + e adj(K)^T adj(K)) / (det^2 + e f + e^2), whose denominators are sums of
+    # non-negative terms. The textbook K^T (K K^T + e I)^-1 K cancels catastrophically in float32
+    # for a needle: its narrow axis is lost.
+    f = k00 * k00 + k01 * k01 + k10 * k10 + k11 * k11
+    det = k00 * k11 - k01 * k10
+    det2 = det * det
+    if min_var > 0:  # the splat's smallest screen variance (over k^2): det^2 / the largest
+        lmax = 0.5 * f + safe_sqrt(0.25 * (k00 * k00 + k01 * k01 - k10 * k10 - k11 * k11) ** 2
+                                   + (k00 * k10 + k01 * k11) ** 2)
+        e = jnp.maximum(pixel_var, min_var - k * k * det2 / lmax) / (k * k)
+    else:
+        e = pixel_var / (k * k)
+    den = det2 + e * f + e * e
+    p = (det2 + e * (k00 * k00 + k10 * k10)) / den
+    r = e * (k00 * k01 + k10 * k11) / den
+    t = (det2 + e * (k01 * k01 + k11 * k11)) / den
+    coverage = jnp.abs(det) / jnp.sqrt(den)
     return jnp.stack([p, r, t], axis=-1), coverage
 
 
@@ -277,7 +297,7 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
     mu = safe_div(M[:, :2, 2], jnp.where(in_front, depth, 1.0)[:, None])
     prefilter = config.coverage == "prefilter"
     if prefilter:
-        conic, coverage = _prefilter(M, mu, jnp.where(in_front, depth, 1.0), config.pixel_var)
+        conic, coverage = _prefilter(M, mu, jnp.where(in_front, depth, 1.0), config.pixel_var, config.min_var)
     if screen_offset is not None:
         off = screen_offset.astype(dt)
         Cc = Cc - off[:, :1] * A - off[:, 1:] * B
@@ -292,12 +312,13 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
 
     normal = jnp.where((jnp.sum(nrm * p, axis=-1) > 0)[:, None], -nrm, nrm)
     opacity = jax.nn.sigmoid(scene.opacity_logits) * (scene.active > 0)
+    # Culling and screen-space bounds (no gradient): alpha >= 1/255 needs
+    # rho <= 2 log(255 * opacity * max A) =: r2 (with the prefilter, alpha / coverage >= 1/255 and
+    # q <= r2: see _alpha_min).
+    peak = lax.stop_gradient(opacity * alpha_peak)
     if prefilter:
         opacity = opacity * coverage
 
-    # Culling and screen-space bounds (no gradient): alpha >= 1/255 needs
-    # rho <= 2 log(255 * opacity * max A) =: r2.
-    peak = lax.stop_gradient(opacity * alpha_peak)
     visible = in_front & (peak >= ALPHA_MIN)
     r2 = jnp.where(visible, 2.0 * jnp.log(jnp.maximum(peak, ALPHA_MIN) * 255.0), 0.0)
     Ms = lax.stop_gradient(M)
@@ -335,7 +356,7 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
 
     cols = [A, B, Cc, M2, mu, opacity[:, None], color, normal, depth[:, None]]
     if prefilter:
-        cols.append(conic)
+        cols += [conic, lax.stop_gradient(coverage)[:, None]]
     packed = jnp.concatenate(cols, axis=-1)
     return dict(packed=packed, depth=depth, visible=visible, bounds=(xmin, xmax, ymin, ymax),
                 radius=jnp.where(jnp.isfinite(radius), radius, big))
@@ -345,6 +366,7 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
 _A, _B, _C, _M2, _MU, _OP, _COL, _NRM, _DEP = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12),
                                                slice(12, 14), 14, slice(15, 18), slice(18, 21), 21)
 _PF = slice(22, 25)  # the prefiltered kernel's quadratic form (p, r, t): q = p u^2 + 2 r u v + t v^2
+_COV = 25  # the prefilter's coverage factor (no gradient): pairs are skipped below ALPHA_MIN times it
 _PLANE = 9  # the first columns, A, B and C: all a texture lookup reads (see _plane)
 _CN = slice(_COL.start, _NRM.stop)  # colour and normal, adjacent: one product with the weights
 
@@ -714,8 +736,9 @@ def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z, prefilter: bool = Fa
     one = [sums(q)[..., 2] for q in (g_z3 * u, g_z3 * v, g_z3, g_z - g_z3)]
     rest = jnp.zeros((B, c, _DEP - _OP), pk.dtype)                                          # opacity to normal
     out = [abc, jnp.stack(one[:3], -1), g_mu, rest, one[3][..., None]]
-    if prefilter:  # d q / d(p, r, t) = (u^2, 2 u v, v^2)
-        out.append(jnp.stack([sums(q)[..., 2] for q in (g_rho3 * u * u, 2.0 * g_rho3 * u * v, g_rho3 * v * v)], -1))
+    if prefilter:  # d q / d(p, r, t) = (u^2, 2 u v, v^2); the coverage column is a threshold only
+        out += [jnp.stack([sums(q)[..., 2] for q in (g_rho3 * u * u, 2.0 * g_rho3 * u * v, g_rho3 * v * v)], -1),
+                jnp.zeros((B, c, 1), pk.dtype)]
     return jnp.concatenate(out, axis=-1)
 
 
@@ -784,7 +807,7 @@ def _texture_passes(st: _Static, ctx, pk, gid, valid, G, done):
     if K >= N:
         return None
     bound = _cols(pk)[_OP] * _per_slot(ctx["peak"][gid]) * G
-    take = _per_slot(valid) & ~done & (bound >= ALPHA_MIN * (1.0 - 1e-3))
+    take = _per_slot(valid) & ~done & (bound >= _alpha_min(st, pk) * (1.0 - 1e-3))
     return _mark_passes(take, K)
 
 
@@ -990,6 +1013,14 @@ class _Terms(NamedTuple):
     m: jax.Array         # the NDC depth of the distortion loss
 
 
+def _alpha_min(st: _Static, pk):
+    """The alpha below which a pair is skipped: ALPHA_MIN; with the prefilter, ALPHA_MIN times the
+    splat's coverage factor (a (c, B, 1) column), so that a sub-pixel splat whose whole footprint is
+    fainter than 1/255 is still composited and keeps its integrated coverage, while its fringe is
+    cut where the unscaled kernel falls below 1/255, as a resolved splat's is."""
+    return ALPHA_MIN * _cols(pk)[_COV] if st.prefilter else ALPHA_MIN
+
+
 def _per_slot(v):
     """(B, c) per-slot values -> (c, B, 1), to broadcast against a chunk's (c, B, P) blocks."""
     return v.T[..., None]
@@ -1003,7 +1034,7 @@ def _contrib_terms(st: _Static, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done
         a_tex = jnp.where(_per_slot(ctx["alpha_has"][gid]), a_tex, 1.0)
         a_raw = a_raw * a_tex
     a = jnp.clip(a_raw, 0.0, ALPHA_MAX)
-    keep = _per_slot(valid) & (a >= ALPHA_MIN) & (z > cfg.near)
+    keep = _per_slot(valid) & (a >= _alpha_min(st, pk)) & (z > cfg.near)
     a = jnp.where(keep, a, 0.0)
     log1m = jnp.log1p(-a)
     cum = _prefix_sum_slots(log1m)

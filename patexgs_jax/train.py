@@ -19,7 +19,11 @@ Stages
 Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as Textured Gaussians),
 ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
 ``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
-the mipmaps without the adaptive allocation), ``patexgs-trilinear`` (mip levels blended trilinearly).
+the mipmaps without the adaptive allocation), ``patexgs-trilinear`` (mip levels blended trilinearly),
+``patexgs-literal`` (the paper's Eqs. 11-13 read literally: the 2DGS screen-space low-pass and
+lambda_mip 0.4). The ``patexgs`` family, but ``patexgs-literal``, renders its texture stage, and
+is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``); stage 1 is
+2DGS for every method.
 
 Robustness
   The data order is a per-epoch permutation seeded by (seed, epoch), and every random choice is
@@ -83,7 +87,8 @@ class TrainConfig:
       max_gaussians: cap on the number of Gaussians (budget runs); None for no cap.
       lr: learning rates.
       background: RGB behind the scene.
-      lambda_mip: the paper's lambda_mip.
+      lambda_mip: the paper's lambda_mip (Eq. 11); None: the coverage mode's calibrated value
+        (:data:`patexgs_jax.render.LAMBDA_MIP_DEFAULT`).
       seed: seeds data order, initialisation and every random choice.
       checkpoint_every: steps between checkpoints (and one at the end of each stage and the run).
       log_every: steps between progress lines.
@@ -117,7 +122,7 @@ class TrainConfig:
     max_gaussians: int | None = None
     lr: LearningRates = LearningRates()
     background: tuple = (0.0, 0.0, 0.0)
-    lambda_mip: float = 0.4
+    lambda_mip: float | None = None
     seed: int = 0
     checkpoint_every: int = 2_000
     log_every: int = 100
@@ -139,10 +144,15 @@ class TrainConfig:
     def total_steps(self) -> int:
         return self.iters_2dgs + (0 if self.method == "2dgs" else self.iters_tex)
 
-    def render_config(self) -> RenderConfig:
+    def render_config(self, stage: int = 2) -> RenderConfig:
+        """The renderer's settings in ``stage`` (1: the 2DGS stage, the same for every method so that
+        it can be shared; 2: the method's own, also used to evaluate the trained scene)."""
         spec = method_spec(self.method)
+        if stage == 1:
+            return RenderConfig(mip="none", background=tuple(self.background))
         return RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"],
-                            lambda_mip=self.lambda_mip, background=tuple(self.background))
+                            coverage=spec["coverage"], lambda_mip=self.lambda_mip,
+                            background=tuple(self.background))
 
 
 #: Named schedules. ``tiny``: minutes on a 2-core CPU (the embedded-scene default); ``small``: a
@@ -171,19 +181,22 @@ def preset_config(preset: str = "paper", **overrides) -> TrainConfig:
 
 
 def method_spec(method: str) -> dict:
-    """What a ``--method`` name means: textures (None, "fixed", "adaptive"), fixed size, mip flags."""
-    base = dict(textures="adaptive", size=None, mip="nearest", rgb_mip=True, alpha_mip=True)
+    """What a ``--method`` name means: textures (None, "fixed", "adaptive"), fixed size, mip flags and
+    coverage mode (:class:`RenderConfig`: the ``patexgs`` family prefilters, the baselines and
+    ``patexgs-literal`` keep the 2DGS low-pass)."""
+    base = dict(textures="adaptive", size=None, mip="nearest", rgb_mip=True, alpha_mip=True, coverage="prefilter")
     if method == "2dgs":
-        return dict(base, textures=None, mip="none")
+        return dict(base, textures=None, mip="none", coverage="lowpass")
     if method.startswith("textured-fixed-"):
         n = method.rsplit("-", 1)[1]
         if not n.isdigit() or int(n) not in FIXED_SIZES:
             raise ValueError(f"textured-fixed-N takes N in {FIXED_SIZES}, got {method!r}.")
-        return dict(base, textures="fixed", size=int(n), mip="none")
+        return dict(base, textures="fixed", size=int(n), mip="none", coverage="lowpass")
     variants = {"patexgs": {}, "patexgs-no-mip": dict(mip="none"),
                 "patexgs-no-alpha-mip": dict(alpha_mip=False), "patexgs-no-rgb-mip": dict(rgb_mip=False),
                 "patexgs-no-adaptive": dict(textures="fixed", size=8),
-                "patexgs-trilinear": dict(mip="trilinear")}
+                "patexgs-trilinear": dict(mip="trilinear"),
+                "patexgs-literal": dict(coverage="lowpass")}
     if method not in variants:
         raise ValueError(f"unknown method {method!r}; choose one of 2dgs, textured-fixed-N (N in "
                          f"{FIXED_SIZES}), {', '.join(variants)}.")
@@ -352,7 +365,7 @@ class _Run:
             raise ValueError("the dataset has no training views.")
         self.radius = float(dataset.normalization.radius)
         self.spec = method_spec(config.method)
-        self.render_cfg = config.render_config()
+        self.render_cfgs = (config.render_config(stage=1), config.render_config(stage=2))
         # The position learning rate decays over the 2DGS stage for every method, so stage 1 is the
         # same run whatever the method (and can be shared: ``train(..., stage1=)``).
         self.lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
@@ -368,6 +381,11 @@ class _Run:
         self.allocation = None
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
         self._jit_cache = {}
+
+    @property
+    def render_cfg(self) -> RenderConfig:
+        """The renderer's settings of the current stage (see :meth:`TrainConfig.render_config`)."""
+        return self.render_cfgs[0 if self.step < self.cfg.iters_2dgs else 1]
 
     # -- state -----------------------------------------------------------------------------------
     def fresh(self):

@@ -124,13 +124,15 @@ def screen_jacobian(K, Rc, tc, mean, axes):
 
 
 def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=True, alpha_mip=True,
-                     background=(0.0, 0.0, 0.0), near=0.01, coverage="lowpass", pixel_var=0.1):
+                     background=(0.0, 0.0, 0.0), near=0.01, coverage="lowpass", pixel_var=0.1, min_var=0.0):
     """Renders a dict of activated float64 parameters.
 
     coverage "lowpass" is the 2DGS kernel; "prefilter" the splat's Gaussian convolved with a
     Gaussian pixel filter of variance ``pixel_var`` through the centre's screen Jacobian J: the
     kernel exp(-0.5 h^T (I + pixel_var J^-1 J^-T)^-1 h) scaled by det(I + pixel_var J^-1 J^-T)^-1/2,
-    here from J directly (J^T (J J^T + v I)^-1 J and |det J| / sqrt(det(J J^T + v I))).
+    here from J directly (J^T (J J^T + v I)^-1 J and |det J| / sqrt(det(J J^T + v I))); a pair is
+    skipped below 1/255 times that scale. The filter's variance is raised to min_var minus the
+    splat's smallest screen variance where that is more than pixel_var.
 
     g: dict with means (N,3), scales (N,2), quats (N,4), opacities (N,) (0 for inactive), sh (N,K,3),
        rgb (list of None or (n,n,3)), alpha (list of None or (m,m,1)).
@@ -183,11 +185,14 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
 
         u, v, t, bad = hit(d0)
         opacity = g["opacities"][i]
+        a_min = 1 / 255
         if coverage == "prefilter":
             J = screen_jacobian(K, Rc, tc, mean, (tu * s[0], tv * s[1]))
-            Sf = J @ J.T + pixel_var * np.eye(2)
+            S = J @ J.T
+            Sf = S + max(pixel_var, min_var - np.linalg.eigvalsh(S)[0]) * np.eye(2)
             Pm = J.T @ np.linalg.inv(Sf) @ J
-            opacity = opacity * abs(np.linalg.det(J)) / np.sqrt(np.linalg.det(Sf))
+            cov = abs(np.linalg.det(J)) / np.sqrt(np.linalg.det(Sf))
+            opacity, a_min = opacity * cov, a_min * cov
             uc, vc = np.where(bad, 0.0, u), np.where(bad, 0.0, v)
             q = Pm[0, 0] * uc * uc + 2 * Pm[0, 1] * uc * vc + Pm[1, 1] * vc * vc
             G = np.where(bad, 0.0, np.exp(-0.5 * q))
@@ -216,7 +221,7 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
         if nc @ pc > 0:
             nc = -nc
         a = np.clip(opacity * G * A, 0.0, 0.99)
-        take = ~done & (a >= 1 / 255) & (z > near)
+        take = ~done & (a >= a_min) & (z > near)
         test_T = T * (1 - a)
         stop = take & (test_T < 1e-4)
         done |= stop

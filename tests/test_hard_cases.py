@@ -29,6 +29,8 @@ Regression corpus: examples hypothesis found failing are in ``REGRESSIONS`` (run
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -40,15 +42,18 @@ from patexgs_jax import Capacity, RenderConfig, render_jit
 from render_reference import reference_render, scene_to_reference, sh_color
 
 CFG = RenderConfig(mip="nearest", background=(0.2, 0.5, 0.8), near=hs.NEAR)
+#: The coverage modes under test: the 2DGS low-pass and the prefilter (the patexgs methods').
+CFGS = {"lowpass": CFG, "prefilter": RenderConfig(mip="nearest", background=CFG.background, near=hs.NEAR,
+                                                 coverage="prefilter", min_var=0.25)}
 CAP = Capacity(pairs=8192)  # C = 2048 splats x 4 tiles: never overflows
 WEIGHTS = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (hs.H, hs.W, 3)), jnp.float32)
 TOL, FLIP_FRACTION = 2e-4, 0.03
 
 
-@jax.jit
-def render_and_grad(scene, cam):
+@functools.partial(jax.jit, static_argnames="cfg")
+def render_and_grad(scene, cam, cfg=CFG):
     def loss(s):
-        out = render_jit(s, cam, config=CFG, capacity=CAP)
+        out = render_jit(s, cam, config=cfg, capacity=CAP)
         val = (jnp.sum(out.rgb * WEIGHTS) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth)
                + jnp.sum(out.normal) + jnp.sum(out.distortion))
         return val, out
@@ -57,8 +62,8 @@ def render_and_grad(scene, cam):
     return val, out, grad
 
 
-def run(scene, cam):
-    val, out, grad = render_and_grad(scene, cam)
+def run(scene, cam, cfg=CFG):
+    val, out, grad = render_and_grad(scene, cam, cfg)
     assert not bool(out.overflow)
     return float(val), jax.tree_util.tree_map(np.asarray, out), grad
 
@@ -78,7 +83,7 @@ def params(scene, n):
                 sh=np.asarray(scene.sh[:n], np.float64), rgb=textures(scene.rgb, 3), alpha=textures(scene.alpha, 1))
 
 
-def reference(scene, cam, n, g=None):
+def reference(scene, cam, n, g=None, cfg=CFG):
     """The float64 reference render of the first ``n`` slots (the others are inactive)."""
     g = dict(params(scene, n) if g is None else g)
     # The renderer's documented convention (patexgs_jax.math.quat_to_rotmat): a quaternion whose
@@ -86,8 +91,8 @@ def reference(scene, cam, n, g=None):
     q32 = np.asarray(scene.quats, np.float32)[:n]
     g["quats"] = np.where((np.sum(q32 * q32, axis=1) < 1e-24)[:, None], [1.0, 0.0, 0.0, 0.0], g["quats"])
     return reference_render(g, np.asarray(cam.K, np.float64), np.asarray(cam.world_to_camera, np.float64),
-                            cam.width, cam.height, mip=CFG.mip, lam=CFG.lambda_mip, background=CFG.background,
-                            near=CFG.near)
+                            cam.width, cam.height, mip=cfg.mip, lam=cfg.lambda_mip, background=cfg.background,
+                            near=cfg.near, coverage=cfg.coverage, pixel_var=cfg.pixel_var, min_var=cfg.min_var)
 
 
 def colour_bounds(g, cam):
@@ -140,9 +145,9 @@ def _mismatch(out, ref):
     return np.maximum(np.abs(out.rgb - ref["rgb"]).max(axis=-1), np.abs(out.alpha - ref["alpha"]))
 
 
-def check_against_reference(out, scene, cam, g, ill):
+def check_against_reference(out, scene, cam, g, ill, cfg=CFG):
     n = len(g["means"])
-    ref = reference(scene, cam, n, g)
+    ref = reference(scene, cam, n, g, cfg)
     worst = _mismatch(out, ref)
     if ill == "near_plane":
         # A splat centre within float32 rounding of the near plane (|z - near| < 1e-5 here, the
@@ -151,13 +156,13 @@ def check_against_reference(out, scene, cam, g, ill):
         # tolerance, the reference with some subset of those ambiguous splats culled.
         w2c = np.asarray(cam.world_to_camera, np.float64)
         z = g["means"] @ w2c[2, :3] + w2c[2, 3]
-        amb = np.flatnonzero((np.abs(z - CFG.near) < 1e-5) & (g["opacities"] > 0))
+        amb = np.flatnonzero((np.abs(z - cfg.near) < 1e-5) & (g["opacities"] > 0))
         best = np.mean(worst > TOL)
         for mask in range(1, 2 ** amb.size):
             g2 = dict(g, opacities=g["opacities"].copy())
             g2["opacities"][amb[[(mask >> b) & 1 == 1 for b in range(amb.size)]]] = 0.0
-            best = min(best, np.mean(_mismatch(out, reference(scene, cam, n, g2)) > TOL))
-        assert best <= FLIP_FRACTION, (best, amb, z[amb] - CFG.near)
+            best = min(best, np.mean(_mismatch(out, reference(scene, cam, n, g2, cfg)) > TOL))
+        assert best <= FLIP_FRACTION, (best, amb, z[amb] - cfg.near)
         return
     flips = worst > TOL
     if ill == "alpha_tie":
@@ -174,19 +179,19 @@ def check_against_reference(out, scene, cam, g, ill):
         f"{np.mean(flips):.3f} of pixels off by more than {TOL} (max {worst.max():.3g})")
 
 
-def check_order_independent(scene, cam, out, n, seed):
+def check_order_independent(scene, cam, out, n, seed, cfg=CFG):
     depth = np.asarray(np.asarray(scene.means[:n]) @ np.asarray(cam.world_to_camera)[2, :3]
                        + np.asarray(cam.world_to_camera)[2, 3])
     if np.unique(depth).size < n:
         return  # equal depths: the order of the tied splats is the slot order, by definition
     perm = np.arange(hs.C)
     perm[:n] = np.random.default_rng(seed).permutation(n)
-    _, out2, _ = run(permuted(scene, perm), cam)
+    _, out2, _ = run(permuted(scene, perm), cam, cfg)
     np.testing.assert_allclose(out2.rgb, out.rgb, atol=1e-6, rtol=0)
     np.testing.assert_allclose(out2.alpha, out.alpha, atol=1e-6, rtol=0)
 
 
-def check_transmittance_monotone(scene, cam, out, n):
+def check_transmittance_monotone(scene, cam, out, n, cfg=CFG):
     """Adding the splats one at a time, nearest first: alpha never decreases at any pixel."""
     w2c = np.asarray(cam.world_to_camera)
     depth = np.asarray(scene.means[:n]) @ w2c[2, :3] + w2c[2, 3]
@@ -195,23 +200,23 @@ def check_transmittance_monotone(scene, cam, out, n):
     for k in range(1, n + 1, 3):
         act = np.zeros(hs.C, np.float32)
         act[order[:k]] = 1.0
-        _, o, _ = run(scene.replace(active=jnp.asarray(act)), cam)
+        _, o, _ = run(scene.replace(active=jnp.asarray(act)), cam, cfg)
         assert np.all(o.alpha >= prev - 1e-7), (k, (prev - o.alpha).max())
         prev = o.alpha
     assert np.all(out.alpha >= prev - 1e-7)
 
 
-def check_case(case, seed, knob, extra=False):
+def check_case(case, seed, knob, extra=False, cfg=CFG):
     scene, cam, info = hs.build(case, seed, knob)
     n = info["n"]
-    val, out, grad = run(scene, cam)
+    val, out, grad = run(scene, cam, cfg)
     check_finite(val, out, grad)
     g = params(scene, n)
     check_invariants(g, cam, out)
-    check_against_reference(out, scene, cam, g, info["ill_conditioned"])
-    check_order_independent(scene, cam, out, n, seed)
+    check_against_reference(out, scene, cam, g, info["ill_conditioned"], cfg)
+    check_order_independent(scene, cam, out, n, seed, cfg)
     if extra:
-        check_transmittance_monotone(scene, cam, out, n)
+        check_transmittance_monotone(scene, cam, out, n, cfg)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -222,6 +227,15 @@ def test_hard_scene(case, seed, knob):
     check_case(case, seed, knob)
 
 
+@pytest.mark.parametrize("case", hs.CASES)
+@settings(max_examples=2)
+@given(seed=st.integers(0, 2**32 - 1), knob=st.floats(0.0, 1.0))
+def test_hard_scene_prefilter(case, seed, knob):
+    """The same properties with the prefiltered coverage (subpixel, edge-on, huge and near-plane
+    splats among the cases)."""
+    check_case(case, seed, knob, extra=True, cfg=CFGS["prefilter"])
+
+
 @settings(max_examples=4)
 @given(case=st.sampled_from(hs.CASES), seed=st.integers(0, 2**32 - 1), knob=st.floats(0.0, 1.0))
 def test_transmittance_non_increasing(case, seed, knob):
@@ -229,15 +243,19 @@ def test_transmittance_non_increasing(case, seed, knob):
 
 
 @pytest.mark.parametrize("n,seed", [(hs.NTEX, 0), (600, 1), (hs.C, 2)])
-def test_thousands_of_splats_on_one_pixel(n, seed):
+@pytest.mark.parametrize("coverage", list(CFGS))
+def test_thousands_of_splats_on_one_pixel(n, seed, coverage):
+    cfg = CFGS[coverage]
     scene, cam = hs.pile_on_one_pixel(seed, n)
-    val, out, grad = run(scene, cam)
+    val, out, grad = run(scene, cam, cfg)
     check_finite(val, out, grad)
     g = params(scene, n)
     check_invariants(g, cam, out)
-    check_against_reference(out, scene, cam, g, None)
-    if n > 500:
-        assert out.alpha[8, 8] > 0.99  # the pile saturates its pixel
+    check_against_reference(out, scene, cam, g, None, cfg)
+    if n > 500 and coverage == "lowpass":
+        assert out.alpha[8, 8] > 0.99  # the pile saturates its pixel (each splat widened to a pixel)
+    if n > 500 and coverage == "prefilter":
+        assert 0.5 < out.alpha[8, 8] < 0.99  # sub-pixel splats: each covers its share of the pixel
 
 
 def test_every_gaussian_pruned():

@@ -1,0 +1,133 @@
+"""Zoom-out A/B of render settings on trained runs: how close each setting's render at 1/s is to the
+same model's supersampled render, and to the ground truth.
+
+For every trained run in a :mod:`experiments.mipnerf360` output folder, the test views are rendered
+under each named :class:`RenderConfig` variant, in one process (the machines are noisy, so timing
+comparisons belong in one run). For each scale s it prints
+
+  * ``alias``: PSNR of the render at 1/s against this variant's own full-resolution render
+    box-downsampled by s (what a perfectly anti-aliased renderer of the same model shows);
+  * ``gt``: PSNR against the test image box-downsampled by s;
+  * ``ms``: the median full-resolution render time.
+
+  python -m experiments.zoom_ab --study runs/mipnerf360 [--data ROOT] [--variants a,b] [--views N]
+
+The variants are the keys of :data:`VARIANTS`. A model is judged with the settings it was not trained
+with too (a render-time switch), which shows what the renderer itself does, separately from what
+training does with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from experiments.evaluation import render_image, render_ms, usable
+from patexgs_jax.checkpoint import latest_checkpoint, load_checkpoint
+from patexgs_jax.data.dataset import box_downsample
+from patexgs_jax.metrics import psnr
+from patexgs_jax.render import RenderConfig
+
+SCALES = (1, 2, 4, 8)
+
+#: Named render settings (mip flags of the run's method are applied on top: see :func:`_config`).
+VARIANTS = {
+    "lowpass": dict(coverage="lowpass", lambda_mip=0.4),
+    "prefilter": dict(coverage="prefilter"),
+    "prefilter-v.083": dict(coverage="prefilter", pixel_var=1.0 / 12.0),
+    "prefilter-v.2": dict(coverage="prefilter", pixel_var=0.2),
+    "prefilter-v.25": dict(coverage="prefilter", pixel_var=0.25),
+    "prefilter-v.3": dict(coverage="prefilter", pixel_var=0.3),
+    "prefilter-lam.4": dict(coverage="prefilter", lambda_mip=0.4),
+    "prefilter-lam.33": dict(coverage="prefilter", lambda_mip=1.0 / 3.0),
+    "prefilter-lam.083": dict(coverage="prefilter", lambda_mip=1.0 / 12.0),
+    "prefilter-trilinear": dict(coverage="prefilter", mip="trilinear"),
+    "prefilter-nomip": dict(coverage="prefilter", mip="none"),
+}
+
+
+def _config(base: RenderConfig, variant: dict) -> RenderConfig:
+    kw = dict(mip=base.mip, rgb_mip=base.rgb_mip, alpha_mip=base.alpha_mip, background=base.background)
+    if base.mip == "none":  # a method without mipmaps stays without them
+        variant = {k: v for k, v in variant.items() if k != "mip"}
+    kw.update(variant)
+    return RenderConfig(**kw)
+
+
+def _runs(study: Path):
+    """(scene, label, run folder) of every finished run of a study."""
+    for scene_dir in sorted((study / "runs").iterdir()):
+        for run in sorted(scene_dir.iterdir()):
+            if (run / "summary.json").exists():
+                yield scene_dir.name, run.name, run
+
+
+def probe(scene, views, config: RenderConfig, scales=SCALES) -> dict:
+    """{str(s): {"alias", "gt"}} means over ``views`` for one render setting."""
+    out = {str(s): dict(alias=[], gt=[]) for s in scales}
+    for v in views:
+        full = render_image(scene, v.camera, config)
+        for s in scales:
+            vs = v if s == 1 else v.scaled(s)
+            img = full if s == 1 else render_image(scene, vs.camera, config)
+            out[str(s)]["gt"].append(float(psnr(img, np.asarray(vs.image, np.float32))))
+            if s > 1:
+                out[str(s)]["alias"].append(float(psnr(img, box_downsample(full, s))))
+    return {k: {m: (float(np.mean(x)) if x else None) for m, x in d.items()} for k, d in out.items()}
+
+
+def main(argv=None) -> int:
+    from patexgs_jax.data import load
+    from patexgs_jax.train import TrainConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--study", required=True, help="an experiments.mipnerf360 output folder")
+    ap.add_argument("--data", default=None, help="the study's --data (default: the embedded scene)")
+    ap.add_argument("--variants", default="lowpass,prefilter")
+    ap.add_argument("--views", type=int, default=None, help="at most this many test views")
+    ap.add_argument("--json", default=None, help="also write the figures here")
+    args = ap.parse_args(argv)
+    study = Path(args.study)
+    cfg = json.loads((study / "results.json").read_text())["config"]
+    names = args.variants.split(",")
+    for n in names:
+        if n not in VARIANTS:
+            ap.error(f"unknown variant {n!r}; choose from {', '.join(VARIANTS)}")
+    if args.data is None:
+        from patexgs_jax.data.synthetic import ensure_default_scene
+
+        root = Path(ensure_default_scene(verbose=False))
+    else:
+        root = Path(args.data)
+    figures = {}
+    for scene_name, label, run in _runs(study):
+        path = root if (root / "sparse").exists() or scene_name not in {p.name for p in root.iterdir()} else root / scene_name
+        ds = load(path, factor=cfg.get("factor"))
+        views = [v for v in ds.test_views if usable(v)][: args.views]
+        tree, meta = load_checkpoint(latest_checkpoint(run / "checkpoints"))
+        tc = TrainConfig(method=meta["config"]["method"])
+        base = tc.render_config()
+        scene = tree["scene"]
+        for n in names:
+            rc = _config(base, VARIANTS[n])
+            t = time.perf_counter()
+            res = probe(scene, views, rc)
+            res["ms"] = render_ms(scene, views, rc, max_views=4)
+            figures.setdefault(scene_name, {}).setdefault(label, {})[n] = res
+            cells = " | ".join(f"{res[str(s)]['gt']:.2f}" + ("" if s == 1 else f" / {res[str(s)]['alias']:.2f}")
+                               for s in SCALES)
+            print(f"{scene_name} {label:>10} {n:>20}: gt / alias  {cells} | {res['ms']:.1f} ms "
+                  f"({time.perf_counter() - t:.0f} s)", flush=True)
+        jax.clear_caches()
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
