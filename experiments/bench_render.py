@@ -18,7 +18,8 @@ the forward reaches, ``pairs/s x FLOPs per pair / peak``.
 FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.render`` (adds, multiplies,
 divisions, comparisons feeding arithmetic, exp/log/sqrt each 1; selects and integer address
 arithmetic not counted): the homogeneous intersection (3 plane equations 12, the division and its
-parallel-ray test 6), rho3d 3, the low-pass rho2d 6, G 3, depth 4, alpha 3, transmittance and
+parallel-ray test 6), rho3d 3, the low-pass rho2d 6 (the prefilter's quadratic form replaces both: 7),
+G 3, depth 4, alpha 3, transmittance and
 weight 8, colour 6, depth/normal/distortion accumulators 16, the transmittance sum 1: about 70 for
 2DGS. An RGB + alpha bilinear lookup adds 2 x 21 (coordinates, clamping, fractions) + 4 x 9 (per
 channel) + 7 (applying them): about 85 (RGB alone 54, alpha alone 31: configurations
@@ -61,13 +62,15 @@ CONFIGS = {
     "tex8-mip": (8, ("rgb", "alpha"), RenderConfig(mip="nearest")),
     "tex8-trilinear": (8, ("rgb", "alpha"), RenderConfig(mip="trilinear")),
     "tex8-mip-dense": (8, ("rgb", "alpha"), RenderConfig(mip="nearest", texture_pairs=1.0)),
+    "2dgs-prefilter": (None, (), RenderConfig(mip="none", coverage="prefilter")),
+    "tex8-mip-prefilter": (8, ("rgb", "alpha"), RenderConfig(mip="nearest", coverage="prefilter")),
 }
-DEFAULT_CONFIGS = ("2dgs", "tex8", "tex8-mip", "tex8-trilinear")
+DEFAULT_CONFIGS = ("2dgs", "tex8", "tex8-mip", "tex8-mip-prefilter", "tex8-trilinear")
 
 
 #: Hand-counted FLOPs per (pixel, splat) pair (see the module docstring).
 FLOPS_PER_PAIR = {"2dgs": 70, "tex8-rgb": 124, "tex8-alpha": 101, "tex8": 155, "tex8-mip": 215,
-                  "tex8-trilinear": 305, "tex8-mip-dense": 215}
+                  "tex8-trilinear": 305, "tex8-mip-dense": 215, "2dgs-prefilter": 68, "tex8-mip-prefilter": 213}
 
 
 def peak_gflops(n=2048, repeats=5) -> float:

@@ -10,7 +10,9 @@ centre, SH degree 3) on the fixed views of the embedded synthetic scene
 the real training loop (``patexgs_jax.train``'s run: view order, the jitted step with donated
 state, the host-side checks) with densification off so shapes stay fixed. Configurations:
 ``2dgs`` (no textures), ``tex8`` (every Gaussian an 8x8 RGBA texture, no mipmaps: Textured
-Gaussians) and ``tex8-mip`` (8x8 RGBA with per-pixel mipmaps, Eq. 11: PATexGS's renderer).
+Gaussians), ``tex8-mip`` (8x8 RGBA with per-pixel mipmaps, Eq. 11, and the 2DGS low-pass: the
+literal reading of PATexGS) and ``tex8-mip-prefilter`` (the same with the prefiltered coverage:
+the ``patexgs`` methods' renderer).
 
 For each case it prints: the median ms per step over ``--steps`` steps after the first (steady
 state; wall time between steps, host work included) and per view; the compile time (first step
@@ -32,10 +34,11 @@ import types
 
 from experiments.bench_render import parse_size
 
-CONFIGS = {  # name: (texture side or None, mip mode)
-    "2dgs": (None, "none"),
-    "tex8": (8, "none"),
-    "tex8-mip": (8, "nearest"),
+CONFIGS = {  # name: (texture side or None, mip mode, coverage mode)
+    "2dgs": (None, "none", "lowpass"),
+    "tex8": (8, "none", "lowpass"),
+    "tex8-mip": (8, "nearest", "lowpass"),
+    "tex8-mip-prefilter": (8, "nearest", "prefilter"),
 }
 NUM_VIEWS = 8
 
@@ -71,7 +74,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None):
     from patexgs_jax.densify import DensifyConfig, DensifyStats
 
     T = importlib.import_module("patexgs_jax.train")  # the module (the package's `train` is the function)
-    tex, mip = CONFIGS[name]
+    tex, mip, coverage = CONFIGS[name]
     off = DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_interval=10**9)
     cfg = T.TrainConfig(method="2dgs", iters_2dgs=steps + 1, sh_interval=1, normal_from=0, densify=off,
                         log_every=10**9, checkpoint_every=10**9, batch_size=batch_size, devices=devices)
@@ -86,7 +89,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None):
             stamps.append(time.perf_counter())
 
     run = Run(ds, cfg, None, verbose=False)
-    run.render_cfgs = (RenderConfig(mip=mip),) * 2
+    run.render_cfgs = (RenderConfig(mip=mip, coverage=coverage),) * 2
     run.scene = make_scene(n, tex)
     run.opt_state = run.optimizer.init(run.scene)
     run.stats = DensifyStats.zeros(run.scene.capacity)

@@ -43,6 +43,7 @@ VARIANTS = {
     "prefilter-v.2": dict(coverage="prefilter", pixel_var=0.2),
     "prefilter-v.25": dict(coverage="prefilter", pixel_var=0.25),
     "prefilter-v.3": dict(coverage="prefilter", pixel_var=0.3),
+    "prefilter-m0": dict(coverage="prefilter", min_var=0.0),
     "prefilter-m.25": dict(coverage="prefilter", min_var=0.25),
     "prefilter-m.3": dict(coverage="prefilter", min_var=0.3),
     "prefilter-v.083-m.3": dict(coverage="prefilter", pixel_var=1.0 / 12.0, min_var=0.3),

@@ -115,6 +115,28 @@ def test_edge_on_splat_has_no_coverage_and_finite_gradient():
             assert np.all(np.isfinite(np.asarray(leaf)))
 
 
+def test_wall_of_small_opaque_splats_stays_nearly_opaque():
+    """A wall tiled by opaque splats (0.98), each smaller than a pixel zoomed out: compositing k
+    splats of coverage c leaves (1 - c)^k of the background where the supersampled render has
+    none, so the prefiltered wall is somewhat see-through. Bound: within 0.1 of the supersampled
+    alpha at 1/4 and 1/8 (measured: 0.90-0.92 against 0.96; the low-pass gives 1.0)."""
+    n, side = 24, 96
+    g = (np.arange(n) + 0.5) / n * 2 - 1
+    X, Y = np.meshgrid(g, g)
+    means = np.stack([X.ravel(), Y.ravel(), np.zeros(n * n)], 1)
+    sc = Scene.from_arrays(means, np.full((n * n, 2), 0.6 * 2 / n), np.tile([1.0, 0, 0, 0], (n * n, 1)),
+                           np.full(n * n, 0.98), np.zeros((n * n, 1, 3)) + 1.0, capacity=n * n)
+    cam = Camera.from_intrinsics([0.9 * side] * 2 + [side / 2] * 2, look_at((0, 0, -3.0), (0, 0, 0)), side, side)
+    cap = Capacity(pairs=1 << 14)
+    full = np.asarray(render_jit(sc, cam, config=PREFILTER, capacity=cap).alpha)
+    for f in (4, 8):
+        small = np.asarray(render_jit(sc, cam.scaled(f), config=PREFILTER, capacity=cap).alpha)
+        ref = box_downsample(full[..., None], f)[..., 0]
+        c = slice(small.shape[0] // 2 - small.shape[0] // 8, small.shape[0] // 2 + small.shape[0] // 8)
+        assert ref[c, c].mean() > 0.95
+        assert small[c, c].mean() > ref[c, c].mean() - 0.1, (f, small[c, c].mean(), ref[c, c].mean())
+
+
 # ---------------------------------------------------------------------------------------------
 # Zoom-out: the render at 1/s is close to the box-downsampled full-resolution render
 # ---------------------------------------------------------------------------------------------
