@@ -62,7 +62,12 @@ class LPIPS:
 
 def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Sequence[int] = SCALES,
                     lpips: LPIPS | None = None, active_sh_degree=None, keep_images: int = 0) -> dict:
-    """Mean PSNR / SSIM / LPIPS over ``views`` at each zoom-out scale.
+    """Mean PSNR / SSIM / LPIPS over ``views`` at each zoom-out scale, and the alias PSNR.
+
+    The alias PSNR at scale s compares the render at 1/s with the same model's full-resolution
+    render box-downsampled by s (what a perfectly anti-aliased renderer of this model would show,
+    the ground truth's own downsampling): it measures the renderer's zoom-out coherence apart from
+    how well the model fits the images. It is None at s = 1.
 
     Args:
       scene: trained scene.
@@ -74,30 +79,41 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
       keep_images: keep (render, ground truth) of the first ``keep_images`` views per scale.
 
     Returns:
-      ``{str(s): {"psnr", "ssim", "lpips", "views"}}`` (means; lpips None where unavailable), plus
+      ``{str(s): {"psnr", "ssim", "lpips", "alias_psnr", "views"}}`` (means; lpips None where
+      unavailable, alias_psnr None at s = 1), plus
       ``"images": {str(s): [(render, gt), ...]}`` when ``keep_images`` > 0.
     """
+    from patexgs_jax.data.dataset import box_downsample
     from patexgs_jax.metrics import psnr, ssim
 
-    views = [v for v in views if usable(v)]
+    scales = [int(s) for s in scales]
+    acc = {s: dict(psnr=[], ssim=[], lpips=[], alias_psnr=[], kept=[]) for s in scales}
+    for i, v in enumerate([v for v in views if usable(v)]):
+        # This view's full-resolution render: the scale-1 image and the alias reference (one view's
+        # held at a time).
+        full = render_image(scene, v.camera, config, active_sh_degree=active_sh_degree)
+        for s in scales:
+            vs = v if s == 1 else v.scaled(s)
+            gt = np.asarray(vs.image, np.float32)
+            img = full if s == 1 else render_image(scene, vs.camera, config, active_sh_degree=active_sh_degree)
+            a = acc[s]
+            a["psnr"].append(float(psnr(img, gt)))
+            a["ssim"].append(float(ssim(jnp.asarray(img), jnp.asarray(gt))))
+            if s != 1:
+                a["alias_psnr"].append(float(psnr(img, box_downsample(full, s))))
+            if lpips is not None:
+                a["lpips"].append(lpips(img, gt))
+            if i < keep_images:
+                a["kept"].append((img, gt))
     result, images = {}, {}
     for s in scales:
-        ps, ss, ls, kept = [], [], [], []
-        for i, v in enumerate(views):
-            v = v if s == 1 else v.scaled(int(s))
-            gt = np.asarray(v.image, np.float32)
-            img = render_image(scene, v.camera, config, active_sh_degree=active_sh_degree)
-            ps.append(float(psnr(img, gt)))
-            ss.append(float(ssim(jnp.asarray(img), jnp.asarray(gt))))
-            if lpips is not None:
-                ls.append(lpips(img, gt))
-            if i < keep_images:
-                kept.append((img, gt))
-        lp = [x for x in ls if x is not None]
-        result[str(s)] = dict(psnr=_mean(ps), ssim=_mean(ss),
-                              lpips=_mean(lp) if lp and len(lp) == len(ls) else None, views=len(ps))
+        a = acc[s]
+        lp = [x for x in a["lpips"] if x is not None]
+        result[str(s)] = dict(psnr=_mean(a["psnr"]), ssim=_mean(a["ssim"]),
+                              lpips=_mean(lp) if lp and len(lp) == len(a["lpips"]) else None,
+                              alias_psnr=_mean(a["alias_psnr"]), views=len(a["psnr"]))
         if keep_images:
-            images[str(s)] = kept
+            images[str(s)] = a["kept"]
     if keep_images:
         result["images"] = images
     return result

@@ -15,12 +15,16 @@ For each scene:
      so method comparisons start from the same 2DGS model, as in the paper.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
      evaluated on the test split (every 8th image) at full resolution and zoomed out by 2, 4 and 8
-     (box-downsampled images, scaled cameras): PSNR, SSIM, LPIPS (AlexNet, when its weights are
+     (box-downsampled images, scaled cameras): PSNR, SSIM, LPIPS against the ground truth, the
+     alias PSNR (the render at 1/s against the model's own full-resolution render box-downsampled
+     by s: the renderer's zoom-out coherence, apart from the fit), LPIPS (AlexNet, when its weights are
      installed: see ``experiments/convert_lpips_weights.py``; else null), storage, Gaussian and
      texel counts, training time and the median render time of one test image.
   3. Results are written after every (scene, method): ``DIR/results.json``, ``DIR/tables.md``
      (the layouts of the paper's Tables 1-4 plus a cost table), ``DIR/plots/*.png`` and
-     ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views).
+     ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views) and
+     ``DIR/renders/<scene>/compare.png`` (the first test view: ground truth | each method, at full
+     size and at 1/8, the 1/8 row enlarged 8x with nearest-neighbour so its pixels show).
 
 ``--budget 10%`` trains every method with at most 10% of the Gaussians the unbudgeted 2DGS run
 reached (the paper's "10% of the default optimized number of Gaussians"; the unbudgeted 2DGS run is
@@ -33,16 +37,18 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
 
 ``results.json`` schema::
 
-    {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 1},
+    {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 2},
      "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
                 "train_config": {...}, "machine": str},
      "results": {scene: {label: {
-         "1": {"psnr", "ssim", "lpips", "views"}, "2": {...}, "4": {...}, "8": {...},
+         "1": {"psnr", "ssim", "lpips", "alias_psnr", "views"}, "2": {...}, "4": {...}, "8": {...},
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
          "max_gaussians", "steps"}}}}
 
-Scale keys are the zoom-out factors; ``lpips`` is null where unavailable (no weights, or images
-under 31 pixels); ``train_seconds`` is the wall-clock time of the training steps of both stages
+Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground
+truth (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same
+model's full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
+``lpips`` is null where unavailable (no weights, or images under 31 pixels); ``train_seconds`` is the wall-clock time of the training steps of both stages
 (stage 1 counted for every method; compilation included); ``render_ms`` the median time of one
 full-resolution test render after compilation.
 """
@@ -61,7 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS_SCHEMA = 1
+RESULTS_SCHEMA = 2
 SCALES = (1, 2, 4, 8)
 EMBEDDED_METHODS = ("2dgs", "patexgs")
 DEFAULT_METHODS = ("2dgs", "textured-fixed-8", "patexgs")
@@ -168,6 +174,52 @@ def _save_png(path: Path, image: np.ndarray) -> None:
     tmp = path.with_name(path.stem + ".tmp.png")
     Image.fromarray(image).save(tmp)
     os.replace(tmp, path)
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    return (np.clip(np.asarray(image, np.float32), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+
+
+def write_comparison(directory, keys, scales=(SCALES[0], SCALES[-1]), gap: int = 4) -> Path | None:
+    """``directory/compare.png``: the first test view, ground truth | each of ``keys``, one row per
+    scale, from the ``directory/first/<key>_x<s>.png`` images the study saves. Zoomed-out rows are
+    enlarged by their factor (nearest neighbour) to the full row's size, so their pixels show; each
+    column is headed by its name. Returns the path, or None when no image is there yet."""
+    from PIL import Image, ImageDraw
+
+    directory = Path(directory)
+    cols = ["ground-truth"] + list(dict.fromkeys(k for k in keys if k != "ground-truth"))
+    rows = []
+    for s in scales:
+        cells = []
+        for k in cols:
+            f = directory / "first" / f"{k}_x{s}.png"
+            if f.exists():
+                im = np.asarray(Image.open(f).convert("RGB"))
+                cells.append(np.repeat(np.repeat(im, s, axis=0), s, axis=1))
+            else:
+                cells.append(None)
+        rows.append(cells)
+    shapes = [c.shape for r in rows for c in r if c is not None]
+    if not shapes:
+        return None
+    h, w = max(x[0] for x in shapes), max(x[1] for x in shapes)
+    head = 14
+    canvas = np.full((head + len(rows) * (h + gap), len(cols) * (w + gap) - gap, 3), 255, np.uint8)
+    for i, r in enumerate(rows):
+        for j, c in enumerate(r):
+            if c is not None:
+                y, x = head + i * (h + gap), j * (w + gap)
+                canvas[y:y + c.shape[0], x:x + c.shape[1]] = c
+    img = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(img)
+    for j, k in enumerate(cols):
+        draw.text((j * (w + gap) + 2, 1), k, fill=(0, 0, 0))
+    for i, s in enumerate(scales):
+        draw.text((2, head + i * (h + gap) + 2), "full" if s == 1 else f"1/{s} (x{s})", fill=(255, 255, 0))
+    path = directory / "compare.png"
+    _save_png(path, np.asarray(img))
+    return path
 
 
 # ------------------------------------------------------------------------------------------------
@@ -293,7 +345,7 @@ class Study:
             self.save()
             full = entry["1"]
             self.say(f"[{name}] {key}: PSNR {' / '.join(_fmt(entry[str(s)]['psnr'], 2) for s in SCALES)} dB at 1, "
-                     f"1/2, 1/4, 1/8; SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
+                     f"1/2, 1/4, 1/8 (alias PSNR {' / '.join(_fmt(entry[str(s)]['alias_psnr'], 2) for s in SCALES[1:])}); SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
                      f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
                      f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
 
@@ -312,6 +364,10 @@ class Study:
         for s in (str(SCALES[0]), str(SCALES[-1])):
             if images.get(s):
                 _save_png(self.out / "renders" / scene / f"{key}_x{s}.png", side_by_side(images[s]))
+                first = self.out / "renders" / scene / "first"
+                _save_png(first / f"{key}_x{s}.png", _to_uint8(images[s][0][0]))
+                _save_png(first / f"ground-truth_x{s}.png", _to_uint8(images[s][0][1]))
+        write_comparison(self.out / "renders" / scene, [k for k in self.data["results"].get(scene, {})] + [key])
         s = result.summary
         entry = {k: v for k, v in ev.items()}
         entry.update(method=cfg.method, storage_mb=s["storage_mb"], num_gaussians=s["num_gaussians"],
@@ -394,19 +450,26 @@ def tables_markdown(data: dict) -> str:
         out.append(f"| {key} | " + " | ".join(cells) + " |")
     out.append("")
 
-    def scale_table(title, rows):
-        lines = [title, "", "| method | " + " | ".join(
-            f"{'Full' if s == 1 else f'1/{s}'} PSNR | SSIM | LPIPS" for s in SCALES) + " |",
-            "| --- |" + " ---: |" * (3 * len(SCALES))]
+    def scale_table(title, rows, alias=False):
+        """PSNR | SSIM | LPIPS against the ground truth at each scale; with ``alias``, the alias PSNR
+        beside them at each zoomed-out scale."""
+        head = [f"{'Full' if s == 1 else f'1/{s}'} PSNR | SSIM | LPIPS" + (" | alias PSNR" if alias and s != 1 else "")
+                for s in SCALES]
+        ncols = 3 * len(SCALES) + (len(SCALES) - 1 if alias else 0)
+        lines = [title, "", "| method | " + " | ".join(head) + " |", "| --- |" + " ---: |" * ncols]
         for key, name in rows:
             cells = []
             for s in SCALES:
                 cells += [_fmt(metric(key, s, "psnr"), 2), _fmt(metric(key, s, "ssim"), 3),
                           _fmt(metric(key, s, "lpips"), 3)]
+                if alias and s != 1:
+                    cells.append(_fmt(metric(key, s, "alias_psnr"), 2))
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
         return lines + [""]
 
-    out += scale_table("## Table 2: zoom-out (anti-aliasing)", [(k, k) for k in labels])
+    out += scale_table("## Table 2: zoom-out (anti-aliasing)", [(k, k) for k in labels], alias=True)
+    out += ["alias PSNR: the render at 1/s against the same model's full-resolution render box-downsampled "
+            "by s (the renderer's zoom-out coherence, apart from the fit).", ""]
     t3 = [(k, _row_name(k, _TABLE3)) for k in labels if k.partition("(")[0] in _TABLE3]
     if len(t3) >= 2:
         out += scale_table("## Table 3: mipmap ablation", t3)
@@ -446,17 +509,21 @@ def write_plots(data: dict, directory) -> list[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     paths = []
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for key in labels:
-        ys = [_mean_over_scenes(results, key, lambda e, s=s: e.get(str(s), {}).get("psnr")) for s in SCALES]
-        ax.plot(SCALES, [np.nan if y is None else y for y in ys], marker="o", label=key)
-    ax.set_xscale("log", base=2)
-    ax.set_xticks(SCALES, ["full", "1/2", "1/4", "1/8"])
-    ax.set_xlabel("zoom-out")
-    ax.set_ylabel("PSNR (dB)")
-    ax.set_title("PSNR vs scale (mean over scenes)")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, field, scales, title in (
+            (axes[0], "psnr", SCALES, "PSNR against the ground truth"),
+            (axes[1], "alias_psnr", SCALES[1:], "alias PSNR: against its own supersampled render")):
+        for key in labels:
+            ys = [_mean_over_scenes(results, key, lambda e, s=s: e.get(str(s), {}).get(field)) for s in scales]
+            ax.plot(scales, [np.nan if y is None else y for y in ys], marker="o", label=key)
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(scales, ["full" if s == 1 else f"1/{s}" for s in scales])
+        ax.set_xlabel("zoom-out")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle("zoom-out (mean over scenes)")
     fig.tight_layout()
     paths.append(directory / "psnr_vs_scale.png")
     fig.savefig(paths[-1], dpi=120)

@@ -54,11 +54,15 @@ Effects (the second form)
      "runs": {run_id: {"run": run_id, "method": str, "config": {...}, "stage1_run": run_id | null,
                        "train_seconds": float, "stage1_seconds": float | null, "num_gaussians": int,
                        "texels": int, "storage_mb": float, "psnr": {scale: float},
-                       "ssim": {scale: float}, "render_ms": {scale: float}, "wall_seconds": float}},
+                       "ssim": {scale: float}, "alias_psnr": {scale: float | null},
+                       "render_ms": {scale: float}, "wall_seconds": float}},
      "knobs": {knob: [{"label": str, "value": ..., "run": run_id}, ...]},
      "pareto": {"train_seconds" | "render_ms": {scale: [run_id, ...]}}}
 
-Scale keys are strings ("1", "2", ...). Pareto lists are sorted by increasing cost.
+Scale keys are strings ("1", "2", ...). ``psnr`` and ``ssim`` compare with the ground truth;
+``alias_psnr`` compares the render at 1/s with the run's own full-resolution render box-downsampled
+by s (null at scale 1; absent from records written before it existed). Pareto lists are sorted by
+increasing cost.
 """
 
 from __future__ import annotations
@@ -216,10 +220,13 @@ def markdown(study: dict) -> str:
     lines = [f"# Accuracy vs time ({Path(str(study['data'])).name}, preset {study['preset']})", "",
              f"Machine: {study.get('machine', '?')}. Test views at zoom-out scales {', '.join(scales)}; "
              "train s = both stages' training steps (a shared 2DGS stage counted in full); render ms = "
-             "per frame (per view the fastest of 3 renders, median over views; no compilation). Pareto: T = on the PSNR-vs-training-time front and "
+             "per frame (per view the fastest of 3 renders, median over views; no compilation); PSNR against "
+             "the ground truth; alias x s = the render at 1/s against the run's own full-resolution render "
+             "box-downsampled by s. Pareto: T = on the PSNR-vs-training-time front and "
              "R = on the PSNR-vs-render-time front at that scale (over all runs of the study).", ""]
     head = (["setting", "method", "train s"] + [f"render ms x{s}" for s in scales[:1]]
-            + [f"PSNR x{s}" for s in scales] + ["Gaussians", "MB", "Pareto"])
+            + [f"PSNR x{s}" for s in scales] + [f"alias x{s}" for s in scales if s != "1"]
+            + ["Gaussians", "MB", "Pareto"])
     for knob, entries in study["knobs"].items():
         lines += [f"## {knob}", "", "| " + " | ".join(head) + " |",
                   "| " + " | ".join(["---"] * 2 + ["---:"] * (len(head) - 3) + ["---"]) + " |"]
@@ -233,6 +240,7 @@ def markdown(study: dict) -> str:
             lines.append("| " + " | ".join(
                 [e["label"], r["method"], _fmt(r["train_seconds"], 0), _fmt(r["render_ms"].get(scales[0]), 1)]
                 + [_fmt(r["psnr"].get(s)) for s in scales]
+                + [_fmt((r.get("alias_psnr") or {}).get(s)) for s in scales if s != "1"]
                 + [str(r["num_gaussians"]), _fmt(r["storage_mb"]), marks or "-"]) + " |")
         lines.append("")
     return "\n".join(lines)
@@ -348,14 +356,16 @@ def render_ms_min(scene, views, render_config, *, max_views=8, repeats=3, active
 
 
 def measure(scene, views, render_config, scales=SCALES, *, active_sh_degree=None, max_views=8) -> dict:
-    """``{"psnr", "ssim", "render_ms": {scale: value}}`` of a scene on ``views`` (full resolution;
-    render time by :func:`render_ms_min`)."""
+    """``{"psnr", "ssim", "alias_psnr", "render_ms": {scale: value}}`` of a scene on ``views`` (full
+    resolution; alias PSNR as in :func:`experiments.evaluation.evaluate_scales`; render time by
+    :func:`render_ms_min`)."""
     from experiments.evaluation import evaluate_scales
 
     ev = evaluate_scales(scene, views, render_config, scales=scales, active_sh_degree=active_sh_degree)
     ms = {str(s): render_ms_min(scene, _scaled(views, s), render_config, max_views=max_views,
                                 active_sh_degree=active_sh_degree) for s in scales}
     return dict(psnr={str(s): ev[str(s)]["psnr"] for s in scales}, ssim={str(s): ev[str(s)]["ssim"] for s in scales},
+                alias_psnr={str(s): ev[str(s)]["alias_psnr"] for s in scales},
                 render_ms=ms)
 
 
@@ -422,7 +432,8 @@ class Study:
         self.state["study_seconds"] += rec["wall_seconds"]
         self.save()
         self.say(f"    {rid}: PSNR " + " / ".join(_fmt(m["psnr"][str(s)]) for s in self.scales)
-                 + f" dB, {rec['train_seconds']:.0f} s training, {_fmt(m['render_ms']['1'], 1)} ms/frame")
+                 + " dB (alias PSNR " + " / ".join(_fmt(m["alias_psnr"][str(s)]) for s in self.scales if s != 1)
+                 + f" dB), {rec['train_seconds']:.0f} s training, {_fmt(m['render_ms']['1'], 1)} ms/frame")
         return rec
 
     def add(self, entry: Entry) -> dict:

@@ -12,6 +12,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from experiments import mipnerf360 as mn
@@ -63,6 +64,10 @@ def test_results_schema_and_values(study):
             assert _finite(m["ssim"]) and -1.0 <= m["ssim"] <= 1.0
             assert m["lpips"] is None  # LPIPS switched off
             assert m["views"] == 2
+            if s == "1":
+                assert m["alias_psnr"] is None
+            else:  # the render at 1/s against its own supersampled render
+                assert _finite(m["alias_psnr"]) and 10.0 < m["alias_psnr"] < 80.0, (key, s, m)
         assert 0 < e["num_gaussians"] <= 300
         assert e["storage_mb"] > 0 and e["train_seconds"] > 0 and e["render_ms"] > 0
         assert e["method"] == key and e["steps"] == (12 if key == "2dgs" else 20)
@@ -84,6 +89,9 @@ def test_tables_plots_and_renders_are_written(study):
     for key in METHODS:
         row = next(line for line in md.splitlines() if line.startswith(f"| {key} |"))
         assert f"{data['results'][scene][key]['1']['psnr']:.2f}" in row
+    assert "alias PSNR" in md
+    row = next(line for line in md.split("## Table 2")[1].splitlines() if line.startswith("| patexgs |"))
+    assert f"{data['results'][scene]['patexgs']['8']['alias_psnr']:.2f}" in row
     for name in ("psnr_vs_scale.png", "accuracy_vs_time.png"):
         assert (out / "plots" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     from PIL import Image
@@ -94,6 +102,13 @@ def test_tables_plots_and_renders_are_written(study):
             # one view, ground truth | gap | render: (H + gap) x (2 W + gap)
             w, h = 64 // s, 48 // s
             assert im.size == (2 * w + 4, h + 4)
+    # ground truth | 2dgs | patexgs, at full size and at 1/8 enlarged to full size, under a header
+    im = Image.open(out / "renders" / scene / "compare.png")
+    assert im.size == (3 * 64 + 2 * 4, 14 + 2 * (48 + 4))
+    px = np.asarray(im.convert("RGB"))
+    first = np.asarray(Image.open(out / "renders" / scene / "first" / "patexgs_x8.png").convert("RGB"))
+    y0, x0 = 14 + 48 + 4, 2 * (64 + 4)
+    np.testing.assert_array_equal(px[y0 + 16:y0 + 48:8, x0 + 16:x0 + 64:8], first[2:6, 2:8])
 
 
 @pytest.mark.slow
@@ -150,7 +165,7 @@ def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
 
 def test_tables_follow_the_paper_layouts():
     e = lambda p: {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "2": dict(psnr=p + 1, ssim=0.85, lpips=None),  # noqa: E731
-                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1), "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
+                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0), "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
                    "storage_mb": 1.5, "num_gaussians": 100, "texels": 10, "train_seconds": 3.0, "render_ms": 4.0}
     keys = ["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-rgb-mip", "textured-fixed-8", "patexgs(10%)"]
     data = {"config": {"preset": "tiny"},
@@ -170,6 +185,9 @@ def test_tables_follow_the_paper_layouts():
     # an LPIPS missing at one scale shows as "-", not as a number
     t2 = md.split("## Table 2")[1].split("##")[0]
     assert "| 2dgs | 21.00 | 0.800 | 0.200 | 22.00 | 0.850 | - |" in t2
+    # the alias PSNR beside each zoomed-out scale's metrics ("-" where an entry lacks it)
+    assert "| 1/2 PSNR | SSIM | LPIPS | alias PSNR |" in t2
+    assert "| 2dgs | 21.00 | 0.800 | 0.200 | 22.00 | 0.850 | - | - | 23.00 | 0.900 | 0.100 | 30.00 |" in t2
 
 
 def test_arguments_are_checked(tmp_path):

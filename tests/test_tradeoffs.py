@@ -148,6 +148,7 @@ def test_study_end_to_end(study):
     for r in runs.values():
         assert set(r["psnr"]) == set(r["ssim"]) == set(r["render_ms"]) == {"1", "2"}
         assert all(5.0 < v < 60.0 for v in r["psnr"].values())
+        assert r["alias_psnr"]["1"] is None and 10.0 < r["alias_psnr"]["2"] < 80.0
         assert all(v > 0 for v in r["render_ms"].values())
         assert r["config"] == tr.config_json(dataclasses.replace(st.base, method=r["method"]))
         if r["method"] != "2dgs":
@@ -165,6 +166,7 @@ def test_study_end_to_end(study):
     assert (st.out / "tradeoffs.png").stat().st_size > 10_000
     md = (st.out / "tradeoffs.md").read_text()
     assert "## texture" in md and "textured-fixed-1" in md and "(not run yet)" not in md
+    assert "alias x2" in md and f"{runs[ids[-1]]['alias_psnr']['2']:.2f}" in md
 
 
 @pytest.mark.slow
