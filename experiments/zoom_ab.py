@@ -25,12 +25,9 @@ import time
 from pathlib import Path
 
 import jax
-import numpy as np
 
-from experiments.evaluation import render_image, render_ms, usable
+from experiments.evaluation import evaluate_scales, render_ms, usable
 from patexgs_jax.checkpoint import latest_checkpoint, load_checkpoint
-from patexgs_jax.data.dataset import box_downsample
-from patexgs_jax.metrics import psnr
 from patexgs_jax.render import RenderConfig
 
 SCALES = (1, 2, 4, 8)
@@ -73,17 +70,10 @@ def _runs(study: Path):
 
 
 def probe(scene, views, config: RenderConfig, scales=SCALES) -> dict:
-    """{str(s): {"alias", "gt"}} means over ``views`` for one render setting."""
-    out = {str(s): dict(alias=[], gt=[]) for s in scales}
-    for v in views:
-        full = render_image(scene, v.camera, config)
-        for s in scales:
-            vs = v if s == 1 else v.scaled(s)
-            img = full if s == 1 else render_image(scene, vs.camera, config)
-            out[str(s)]["gt"].append(float(psnr(img, np.asarray(vs.image, np.float32))))
-            if s > 1:
-                out[str(s)]["alias"].append(float(psnr(img, box_downsample(full, s))))
-    return {k: {m: (float(np.mean(x)) if x else None) for m, x in d.items()} for k, d in out.items()}
+    """{str(s): {"alias", "gt"}} means over ``views`` for one render setting (alias None at s = 1;
+    the studies' ``alias_psnr`` and ``psnr``)."""
+    ev = evaluate_scales(scene, views, config, scales=scales)
+    return {str(s): dict(alias=ev[str(s)]["alias_psnr"], gt=ev[str(s)]["psnr"]) for s in scales}
 
 
 def main(argv=None) -> int:
@@ -115,7 +105,7 @@ def main(argv=None) -> int:
         ds = load(path, factor=cfg.get("factor"))
         views = [v for v in ds.test_views if usable(v)][: args.views]
         tree, meta = load_checkpoint(latest_checkpoint(run / "checkpoints"))
-        tc = TrainConfig(method=meta["config"]["method"])
+        tc = TrainConfig(method=meta["config"]["method"], lambda_mip=meta["config"].get("lambda_mip"))
         base = tc.render_config()
         scene = tree["scene"]
         for n in names:

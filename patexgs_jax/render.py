@@ -9,6 +9,14 @@ Conventions (fixed for the package)
     pair is the intersection's camera z where rho3d <= rho2d, else the splat centre's. A ray so
     nearly parallel to the splat plane that |u| or |v| would exceed 1e4 has no 3D intersection: rho3d is taken as 1e8 (G from the low-pass only) and its texture lookups use the
     splat centre (u, v) = (0, 0) (whose mip footprint is the coarsest level).
+  * ``RenderConfig(coverage="prefilter")`` (the ``patexgs`` methods) replaces ``G`` and the
+    low-pass by the EWA resampling filter: with K the 2x2 Jacobian d(pixel)/d(u, v) at the splat's
+    centre, the splat-plane Gaussian convolved with a screen Gaussian of variance ``v``
+    (``pixel_var``, widened per axis so the filtered screen variance is at least ``min_var``) is
+    ``G = exp(-0.5 h^T P h)``, h the pixel's (u, v) offset from the centre mapped through K, P =
+    K^T (K K^T + V)^-1 K, and the opacity is multiplied by the coverage factor
+    ``|det K| / sqrt(det(K K^T + V))`` (<= 1), which keeps the splat's integrated coverage. Pairs
+    are skipped below 1/255 times that factor, so a faint sub-pixel splat still composites.
   * ``alpha = min(0.99, opacity * G * A_tex(u, v))``; a pair with alpha < 1/255, or whose
     intersection lies at depth <= ``near``, is skipped; front-to-back compositing in order of the
     Gaussians' centre depths stops before the first splat that would bring transmittance below 1e-4.

@@ -203,3 +203,31 @@ def test_arguments_are_checked(tmp_path):
     assert mn.main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--no-compile-cache"]) == 2
     with pytest.raises(ValueError, match="unknown method"):
         mn.run(str(tmp_path), methods=["patexgs", "nerf"], out=str(tmp_path / "o"), verbose=False)
+
+
+@pytest.mark.slow
+def test_zoom_ab_agrees_with_the_study(study, scene_dir, tmp_path, capsys):
+    """experiments.zoom_ab re-renders a study's runs under named settings: under a run's own
+    settings its figures are the study's; a render-time switch to the low-pass changes them."""
+    from experiments import zoom_ab
+
+    out, data = study
+    (scene,) = data["results"]
+    path = tmp_path / "ab.json"
+    assert zoom_ab.main(["--study", str(out), "--data", str(scene_dir), "--variants", "lowpass,prefilter",
+                         "--json", str(path)]) == 0
+    figs = json.loads(path.read_text())[scene]
+    assert set(figs) == set(METHODS)
+    own = data["results"][scene]["patexgs"]
+    for s in ("1", "2", "4", "8"):
+        got = figs["patexgs"]["prefilter"][s]
+        assert got["gt"] == pytest.approx(own[s]["psnr"], abs=1e-4)
+        if s == "1":
+            assert got["alias"] is None
+        else:
+            assert got["alias"] == pytest.approx(own[s]["alias_psnr"], abs=1e-4)
+    assert figs["patexgs"]["lowpass"]["8"]["alias"] != pytest.approx(own["8"]["alias_psnr"], abs=1e-3)
+    assert figs["patexgs"]["prefilter"]["ms"] > 0
+    assert "patexgs" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        zoom_ab.main(["--study", str(out), "--variants", "nonsense"])
