@@ -10,7 +10,7 @@ comparisons belong in one run). For each scale s it prints
   * ``gt``: PSNR against the test image box-downsampled by s;
   * ``ms``: the median full-resolution render time.
 
-  python -m experiments.zoom_ab --study runs/mipnerf360 [--data ROOT] [--variants a,b] [--views N]
+  python -m experiments.zoom_ab --study runs/mipnerf360 [--data ROOT] [--variants a,b] [--views N] [--methods a,b]
 
 The variants are the keys of :data:`VARIANTS`. A model is judged with the settings it was not trained
 with too (a render-time switch), which shows what the renderer itself does, separately from what
@@ -85,6 +85,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", default=None, help="the study's --data (default: the embedded scene)")
     ap.add_argument("--variants", default="lowpass,prefilter")
     ap.add_argument("--views", type=int, default=None, help="at most this many test views")
+    ap.add_argument("--methods", default=None, help="only these runs (comma-separated labels; default all)")
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args(argv)
     study = Path(args.study)
@@ -100,7 +101,10 @@ def main(argv=None) -> int:
     else:
         root = Path(args.data)
     figures = {}
+    only = None if args.methods is None else set(args.methods.split(","))
     for scene_name, label, run in _runs(study):
+        if only is not None and label not in only:
+            continue
         path = root if (root / "sparse").exists() or scene_name not in {p.name for p in root.iterdir()} else root / scene_name
         ds = load(path, factor=cfg.get("factor"))
         views = [v for v in ds.test_views if usable(v)][: args.views]
