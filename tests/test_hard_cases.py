@@ -255,7 +255,10 @@ def test_thousands_of_splats_on_one_pixel(n, seed, coverage):
     if n > 500 and coverage == "lowpass":
         assert out.alpha[8, 8] > 0.99  # the pile saturates its pixel (each splat widened to a pixel)
     if n > 500 and coverage == "prefilter":
-        assert 0.5 < out.alpha[8, 8] < 0.99  # sub-pixel splats: each covers its share of the pixel
+        # Sub-pixel splats: each covers its share of the pixel, so 600 leave it unsaturated. 2048
+        # saturate it anyway (their shares add up to far more than the pixel: compositing does not
+        # know that they all cover the same sub-pixel spot).
+        assert 0.5 < out.alpha[8, 8] and (n > 1000 or out.alpha[8, 8] < 0.99)
 
 
 def test_every_gaussian_pruned():
