@@ -15,11 +15,11 @@ For each scene:
      so method comparisons start from the same 2DGS model, as in the paper.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
      evaluated on the test split (every 8th image) at full resolution and zoomed out by 2, 4 and 8
-     (box-downsampled images, scaled cameras): PSNR, SSIM, LPIPS against the ground truth, the
-     alias PSNR (the render at 1/s against the model's own full-resolution render box-downsampled
-     by s: the renderer's zoom-out coherence, apart from the fit), LPIPS (AlexNet, when its weights are
-     installed: see ``experiments/convert_lpips_weights.py``; else null), storage, Gaussian and
-     texel counts, training time and the median render time of one test image.
+     (box-downsampled images, scaled cameras): PSNR, SSIM and LPIPS (AlexNet, when its weights
+     are installed: see ``experiments/convert_lpips_weights.py``; else null) against the ground
+     truth, the alias PSNR (the render at 1/s against the model's own full-resolution render
+     box-downsampled by s: the renderer's zoom-out coherence, apart from the fit), storage,
+     Gaussian and texel counts, training time and the median render time of one test image.
   3. Results are written after every (scene, method): ``DIR/results.json``, ``DIR/tables.md``
      (the layouts of the paper's Tables 1-4 plus a cost table), ``DIR/plots/*.png`` and
      ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views) and
