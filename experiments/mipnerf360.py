@@ -366,7 +366,8 @@ class Study:
                 _save_png(self.out / "renders" / scene / f"{key}_x{s}.png", side_by_side(images[s]))
                 first = self.out / "renders" / scene / "first"
                 _save_png(first / f"{key}_x{s}.png", _to_uint8(images[s][0][0]))
-                _save_png(first / f"ground-truth_x{s}.png", _to_uint8(images[s][0][1]))
+                if not (first / f"ground-truth_x{s}.png").exists():  # the same for every method
+                    _save_png(first / f"ground-truth_x{s}.png", _to_uint8(images[s][0][1]))
         write_comparison(self.out / "renders" / scene, [k for k in self.data["results"].get(scene, {})] + [key])
         s = result.summary
         entry = {k: v for k, v in ev.items()}
