@@ -16,7 +16,10 @@ Conventions (fixed for the package)
     ``G = exp(-0.5 h^T P h)``, h the pixel's (u, v) offset from the centre mapped through K, P =
     K^T (K K^T + V)^-1 K, and the opacity is multiplied by the coverage factor
     ``|det K| / sqrt(det(K K^T + V))`` (<= 1), which keeps the splat's integrated coverage. Pairs
-    are skipped below 1/255 times that factor, so a faint sub-pixel splat still composites.
+    are skipped below 1/255 times that factor, so a faint sub-pixel splat still composites. G is
+    zero outside the screen ellipse ``d^T S^-1 d <= SUPPORT_Q`` (S = K K^T + V, d the pixel's
+    offset from the centre): the filter is affine about the centre, and where P maps a near
+    edge-on splat's pixel to far along its plane, the kernel stops at twice the affine footprint.
   * ``alpha = min(0.99, opacity * G * A_tex(u, v))``; a pair with alpha < 1/255, or whose
     intersection lies at depth <= ``near``, is skipped; front-to-back compositing in order of the
     Gaussians' centre depths stops before the first splat that would bring transmittance below 1e-4.
@@ -87,6 +90,10 @@ LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0}
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
+#: With the prefilter, a splat's kernel is cut outside d^T S^-1 d <= SUPPORT_Q on screen (S its
+#: filtered screen covariance, d the offset from its centre): twice the radius where a fully opaque
+#: splat's kernel falls to 1/255 (see _project).
+SUPPORT_Q = 4.0 * 2.0 * math.log(255.0)
 _UV_LIMIT = 1e4  # |u|, |v| beyond this count as "no intersection" (G3d underflows long before)
 _DIST_NEAR, _DIST_FAR = 0.2, 1000.0  # the NDC depth mapping of the 2DGS distortion loss
 
@@ -256,7 +263,9 @@ def _prefilter(M, mu, depth, pixel_var, min_var):
       M: (C, 3, 3) splat plane (u, v, 1) to image homogeneous coordinates; mu: (C, 2) the centres
         on screen; depth: (C,) the centres' depth (positive).
     Returns:
-      (C, 3) (p, r, t) of P, and (C,) the coverage factor in [0, 1].
+      (C, 3) (p, r, t) of P, (C,) the coverage factor in [0, 1], (C, 2) the diagonal (xx, yy) of
+      the filtered splat's screen covariance S = K K^T + e I (px^2), e the filter's variance, and
+      (C, 3) S^-1 (xx, xy, yy).
     """
     K = (M[:, :2, :2] - mu[:, :, None] * M[:, 2, None, :2]) / depth[:, None, None]
     k = jnp.maximum(jnp.max(jnp.abs(K), axis=(1, 2)), 1e-6 * math.sqrt(pixel_var))
@@ -280,7 +289,12 @@ def _prefilter(M, mu, depth, pixel_var, min_var):
     r = e * (k00 * k01 + k10 * k11) / den
     t = (det2 + e * (k01 * k01 + k11 * k11)) / den
     coverage = jnp.abs(det) / jnp.sqrt(den)
-    return jnp.stack([p, r, t], axis=-1), coverage
+    k2 = k * k
+    # S^-1 = adj(S) / det S, det S = k^4 den: from den, which does not cancel for a needle.
+    inv_screen = jnp.stack([k10 * k10 + k11 * k11 + e, -(k00 * k10 + k01 * k11), k00 * k00 + k01 * k01 + e],
+                           axis=-1) / (k2 * den)[:, None]
+    screen = jnp.stack([k2 * (k00 * k00 + k01 * k01 + e), k2 * (k10 * k10 + k11 * k11 + e)], axis=-1)
+    return jnp.stack([p, r, t], axis=-1), coverage, screen, inv_screen
 
 
 def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, active_sh_degree,
@@ -306,7 +320,8 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
     mu = safe_div(M[:, :2, 2], jnp.where(in_front, depth, 1.0)[:, None])
     prefilter = config.coverage == "prefilter"
     if prefilter:
-        conic, coverage = _prefilter(M, mu, jnp.where(in_front, depth, 1.0), config.pixel_var, config.min_var)
+        conic, coverage, screen, inv_screen = _prefilter(M, mu, jnp.where(in_front, depth, 1.0),
+                                                         config.pixel_var, config.min_var)
     if screen_offset is not None:
         off = screen_offset.astype(dt)
         Cc = Cc - off[:, :1] * A - off[:, 1:] * B
@@ -351,9 +366,22 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
     hy = jnp.sqrt(jnp.maximum(cy * cy - Q[:, 1, 1] / q22s, 0.0))
     big = 1e9
     if prefilter:
-        xmin, xmax = jnp.where(bounded, cx - hx, -big), jnp.where(bounded, cx + hx, big)
-        ymin, ymax = jnp.where(bounded, cy - hy, -big), jnp.where(bounded, cy + hy, big)
+        # The kernel's support is also cut to the screen ellipse d^T S^-1 d <= SUPPORT_Q around the
+        # centre, S the filtered splat's screen covariance (the affine EWA footprint), d the pixel's
+        # offset. Where the splat is resolved, the plane ellipse lies well inside it and this
+        # changes nothing; near edge-on, P's narrow axis maps a pixel to a long stretch of the plane
+        # and, under perspective, the plane ellipse can reach the horizon (unbounded on screen): a
+        # faint kernel over the whole image, which costs a pair per tile and keeps no coverage the
+        # EWA factor accounts for.
+        sc = lax.stop_gradient(screen)
+        mus = lax.stop_gradient(mu)
+        sx, sy = jnp.sqrt(SUPPORT_Q * sc[:, 0]), jnp.sqrt(SUPPORT_Q * sc[:, 1])
+        xmin = jnp.maximum(jnp.where(bounded, cx - hx, -big), mus[:, 0] - sx)
+        xmax = jnp.minimum(jnp.where(bounded, cx + hx, big), mus[:, 0] + sx)
+        ymin = jnp.maximum(jnp.where(bounded, cy - hy, -big), mus[:, 1] - sy)
+        ymax = jnp.minimum(jnp.where(bounded, cy + hy, big), mus[:, 1] + sy)
         radius = jnp.where(visible, jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, 0.0)
+        support = lax.stop_gradient(inv_screen) / SUPPORT_Q
     else:
         r_lp = jnp.sqrt(0.5 * r2)  # the low-pass disc: 2 |d|^2 <= r2
         mus = lax.stop_gradient(mu)
@@ -365,7 +393,7 @@ def _project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, 
 
     cols = [A, B, Cc, M2, mu, opacity[:, None], color, normal, depth[:, None]]
     if prefilter:
-        cols += [conic, lax.stop_gradient(coverage)[:, None]]
+        cols += [conic, lax.stop_gradient(coverage)[:, None], support]
     packed = jnp.concatenate(cols, axis=-1)
     return dict(packed=packed, depth=depth, visible=visible, bounds=(xmin, xmax, ymin, ymax),
                 radius=jnp.where(jnp.isfinite(radius), radius, big))
@@ -376,6 +404,7 @@ _A, _B, _C, _M2, _MU, _OP, _COL, _NRM, _DEP = (slice(0, 3), slice(3, 6), slice(6
                                                slice(12, 14), 14, slice(15, 18), slice(18, 21), 21)
 _PF = slice(22, 25)  # the prefiltered kernel's quadratic form (p, r, t): q = p u^2 + 2 r u v + t v^2
 _COV = 25  # the prefilter's coverage factor (no gradient): pairs are skipped below ALPHA_MIN times it
+_SUP = slice(26, 29)  # the prefilter's support: S^-1 / SUPPORT_Q (xx, xy, yy; no gradient), see _project
 _PLANE = 9  # the first columns, A, B and C: all a texture lookup reads (see _plane)
 _CN = slice(_COL.start, _NRM.stop)  # colour and normal, adjacent: one product with the weights
 
@@ -672,8 +701,10 @@ def _geometry_terms(pk, x, y, prefilter: bool) -> _Geometry:
     u, v, ok, inv = _uv(*[x * col[i] + y * col[3 + i] + col[6 + i] for i in range(3)])
     if prefilter:
         p, r, t = (col[i] for i in range(_PF.start, _PF.stop))
-        use3 = ok
-        G = jnp.exp(-0.5 * jnp.where(ok, (p * u + 2.0 * r * v) * u + t * v * v, 1e8))
+        a, b, c = (col[i] for i in range(_SUP.start, _SUP.stop))
+        dx, dy = x - col[_MU.start], y - col[_MU.start + 1]
+        use3 = ok & ((a * dx + 2.0 * b * dy) * dx + c * dy * dy <= 1.0)
+        G = jnp.exp(-0.5 * jnp.where(use3, (p * u + 2.0 * r * v) * u + t * v * v, 1e8))
     else:
         rho3d = jnp.where(ok, u * u + v * v, 1e8)
         dx, dy = x - col[_MU.start], y - col[_MU.start + 1]
@@ -747,7 +778,7 @@ def _chunk_geometry_bwd(pk, x, y, geo: _Geometry, g_G, g_z, prefilter: bool = Fa
     out = [abc, jnp.stack(one[:3], -1), g_mu, rest, one[3][..., None]]
     if prefilter:  # d q / d(p, r, t) = (u^2, 2 u v, v^2); the coverage column is a threshold only
         out += [jnp.stack([sums(q)[..., 2] for q in (g_rho3 * u * u, 2.0 * g_rho3 * u * v, g_rho3 * v * v)], -1),
-                jnp.zeros((B, c, 1), pk.dtype)]
+                jnp.zeros((B, c, 1 + _SUP.stop - _SUP.start), pk.dtype)]
     return jnp.concatenate(out, axis=-1)
 
 

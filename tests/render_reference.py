@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+#: The prefilter's screen support (the renderer's SUPPORT_Q, by its definition): twice the radius at
+#: which a fully opaque splat's kernel falls to 1/255.
+SUPPORT_Q = 4.0 * 2.0 * np.log(255.0)
+
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
 C2 = [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
@@ -132,7 +136,8 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
     kernel exp(-0.5 h^T (I + pixel_var J^-1 J^-T)^-1 h) scaled by det(I + pixel_var J^-1 J^-T)^-1/2,
     here from J directly (J^T (J J^T + v I)^-1 J and |det J| / sqrt(det(J J^T + v I))); a pair is
     skipped below 1/255 times that scale. The filter's variance is raised to min_var minus the
-    splat's smallest screen variance where that is more than pixel_var.
+    splat's smallest screen variance where that is more than pixel_var. The kernel is zero outside
+    the screen ellipse d^T (J J^T + v I)^-1 d <= SUPPORT_Q, d the pixel's offset from the centre.
 
     g: dict with means (N,3), scales (N,2), quats (N,4), opacities (N,) (0 for inactive), sh (N,K,3),
        rgb (list of None or (n,n,3)), alpha (list of None or (m,m,1)).
@@ -195,8 +200,10 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
             opacity, a_min = opacity * cov, a_min * cov
             uc, vc = np.where(bad, 0.0, u), np.where(bad, 0.0, v)
             q = Pm[0, 0] * uc * uc + 2 * Pm[0, 1] * uc * vc + Pm[1, 1] * vc * vc
-            G = np.where(bad, 0.0, np.exp(-0.5 * q))
-            z = np.where(bad, pc[2], t)
+            dxy = np.stack([x - mu[0], y - mu[1]])
+            inside = np.sum(dxy * (np.linalg.inv(Sf) @ dxy), axis=0) <= SUPPORT_Q
+            G = np.where(bad | ~inside, 0.0, np.exp(-0.5 * q))
+            z = np.where(bad | ~inside, pc[2], t)
         else:
             rho3 = np.where(bad, np.inf, u * u + v * v)
             rho2 = 2 * ((x - mu[0]) ** 2 + (y - mu[1]) ** 2)

@@ -115,6 +115,25 @@ def test_edge_on_splat_has_no_coverage_and_finite_gradient():
             assert np.all(np.isfinite(np.asarray(leaf)))
 
 
+@pytest.mark.parametrize("tilt", [0.003, 0.01])
+def test_near_edge_on_splat_stays_on_its_screen_footprint(tilt):
+    """Within 0.6 degrees of edge-on, the prefiltered ellipse in the splat's plane reaches behind the
+    camera (on screen it is unbounded: such a splat was listed in all 256 tiles of this image). The
+    kernel is cut to twice its affine screen footprint: a few tiles around the splat's line, and
+    nothing beyond a few pixels of it."""
+    from patexgs_jax.render import count_pairs
+
+    side = 256
+    cam = Camera.from_intrinsics([F, F, side / 2, side / 2], look_at((0.0, 0.0, -Z), (0.0, 0.0, 0.0)), side, side)
+    q = [[np.cos(np.pi / 4 - tilt / 2), np.sin(np.pi / 4 - tilt / 2), 0.0, 0.0]]
+    sc = Scene.from_arrays([[0.0, 0.0, 0.0]], [[0.2, 0.2]], q, [0.9], np.zeros((1, 1, 3)) + 0.3, capacity=C)
+    pairs, _ = count_pairs(sc, cam, PREFILTER)
+    assert int(pairs) <= 12, int(pairs)
+    alpha = np.asarray(_render(sc, cam, PREFILTER).alpha)
+    ys, xs = np.nonzero(alpha > 0)
+    assert alpha.sum() > 1 and ys.min() >= side / 2 - 5 and ys.max() <= side / 2 + 5, (ys.min(), ys.max())
+
+
 def test_wall_of_small_opaque_splats_stays_nearly_opaque():
     """A wall tiled by opaque splats (0.98), each smaller than a pixel zoomed out: compositing k
     splats of coverage c leaves (1 - c)^k of the background where the supersampled render has

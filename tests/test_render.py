@@ -598,17 +598,20 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
 def test_geometry_backward_matches_autodiff(prefilter):
     """:func:`_chunk_geometry_bwd` gives autodiff's cotangent of the packed splats through
     :func:`_chunk_geometry`: for rays that meet the splat planes (the 3D term or the screen-space
-    low-pass winning; or the prefiltered kernel) and rays (nearly) parallel to them, in tiles at
-    different image positions (the pixels share their offsets within the tile, as the renderer's
-    do)."""
+    low-pass winning; or the prefiltered kernel, inside and outside its screen support) and rays
+    (nearly) parallel to them, in tiles at different image positions (the pixels share their
+    offsets within the tile, as the renderer's do)."""
     rng = np.random.default_rng(5)
     B, P, c = 3, 20, 6
-    F = render_mod._COV + 1 if prefilter else render_mod._DEP + 1
+    F = render_mod._SUP.stop if prefilter else render_mod._DEP + 1
     with jax.enable_x64(True):
         pk = rng.normal(size=(B, c, F))
         if prefilter:  # a positive definite quadratic form (p, r, t)
             pk[:, :, render_mod._PF] = np.stack([rng.uniform(0.2, 1.0, (B, c)), rng.uniform(-0.1, 0.1, (B, c)),
                                                  rng.uniform(0.2, 1.0, (B, c))], axis=-1)
+            # The screen support (radius 2 to 5 px about the centre): some pixels fall outside.
+            a = rng.uniform(0.04, 0.25, (B, c))
+            pk[:, :, render_mod._SUP] = np.stack([a, 0.1 * a, a], axis=-1)
         pk[:, :, 0:9] *= 0.05                               # planes: (u, v) of order one
         pk[:, :, 6:8] += rng.normal(size=(B, c, 2))
         pk[:, :, 8] = rng.uniform(0.5, 1.0, (B, c))
@@ -629,6 +632,7 @@ def test_geometry_backward_matches_autodiff(prefilter):
     assert not ok[0].any() and ok[1:].all()
     if prefilter:
         assert np.all(G[0] == 0) and G[1:].max() > 0.1, "no coverage where the ray misses the plane"
+        assert 0 < use3[1:].mean() < 1 and np.all(G[~use3] == 0), "cut outside the screen support"
         assert np.abs(got[..., render_mod._PF]).max() > 0
     else:
         assert 0 < use3.mean() < 1, "both terms of the kernel should win somewhere"
