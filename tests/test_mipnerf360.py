@@ -51,7 +51,8 @@ def test_results_schema_and_values(study):
     out, data = study
     on_disk = json.loads((out / "results.json").read_text())
     assert on_disk == json.loads(json.dumps(data))
-    assert set(on_disk) == {"version", "config", "results"}
+    assert set(on_disk) == {"version", "config", "lpips", "results"}
+    assert on_disk["lpips"] is None  # switched off: no network named
     assert on_disk["version"]["results_schema"] == mn.RESULTS_SCHEMA
     assert on_disk["config"]["preset"] == "tiny" and on_disk["config"]["iters_2dgs"] == 12
     (scene,) = on_disk["results"]
@@ -188,6 +189,29 @@ def test_tables_follow_the_paper_layouts():
     # the alias PSNR beside each zoomed-out scale's metrics ("-" where an entry lacks it)
     assert "| 1/2 PSNR | SSIM | LPIPS | alias PSNR |" in t2
     assert "| 2dgs | 21.00 | 0.800 | 0.200 | 22.00 | 0.850 | - | - | 23.00 | 0.900 | 0.100 | 30.00 |" in t2
+
+
+def test_lpips_network_is_named_and_never_mixed(tmp_path, monkeypatch):
+    from patexgs_jax import lpips as lp
+
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    for net in lp.NETS:
+        lp.save_lpips(weights, lp.random_lpips_params(net, seed=0), net)
+    monkeypatch.setenv(lp.ENV_VAR, str(weights))
+    out, cfg = tmp_path / "out", mn.StudyConfig()
+    study = mn.Study(out, cfg, use_lpips=True, verbose=False)
+    assert study.data["lpips"] == {"version": "0.1", "net": "alex", "trunk": "AlexNet", "weights": "lpips_alex.npz"}
+    assert "LPIPS: v0.1, AlexNet trunk (`alex`, weights lpips_alex.npz)." in mn.tables_markdown(study.data)
+    assert "LPIPS: not computed" in mn.tables_markdown({"results": {}})
+    study.data["results"] = {"a": {"2dgs": {"1": dict(psnr=20.0, ssim=0.5, lpips=0.3)}}}
+    mn._write_json(study.path, study.data)
+    # resuming with the other trunk would mix two networks' figures in one table
+    with pytest.raises(mn.StudyError, match="--lpips-net alex"):
+        mn.Study(out, cfg, use_lpips=True, lpips_net="vgg", verbose=False)
+    assert mn.Study(out, cfg, use_lpips=False, verbose=False).data["lpips"]["net"] == "alex"
+    vgg = mn.Study(tmp_path / "out_vgg", cfg, use_lpips=True, lpips_net="vgg", verbose=False)
+    assert vgg.data["lpips"]["trunk"] == "VGG16" and vgg.lpips._min_side == 16
 
 
 def test_arguments_are_checked(tmp_path):
