@@ -2,8 +2,11 @@
 
 Every function takes a trained :class:`patexgs_jax.Scene`, views from :mod:`patexgs_jax.data` and
 a :class:`patexgs_jax.RenderConfig`. Renders are clipped to [0, 1] before any metric, as in the
-3DGS / Mip-NeRF 360 evaluation protocol. Render capacities are fitted per view (exact pair count),
-so nothing is ever truncated; render timing excludes compilation.
+3DGS / Mip-NeRF 360 evaluation protocol. Views are rendered at a few padded sizes and cropped
+(:class:`patexgs_jax.buckets.ViewRenderer`: the same pixels, one compiled program per size bucket
+instead of one per image size, released when a scene is done), with capacities fitted to the views
+(exact pair counts), so nothing is ever truncated; render timing excludes compilation. LPIPS and
+SSIM, which cannot be padded, keep at most :data:`MAX_METRIC_PROGRAMS` compiled image sizes.
 """
 
 from __future__ import annotations
@@ -15,10 +18,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from patexgs_jax.render import Capacity, RenderConfig, count_pairs, render_jit
+from patexgs_jax import compiled
+from patexgs_jax.buckets import ViewRenderer
+from patexgs_jax.render import RenderConfig
 
 #: The zoom-out factors of the paper's Table 2 (1 = full resolution).
 SCALES = (1, 2, 4, 8)
+
+#: Image sizes whose LPIPS and SSIM programs an evaluation keeps compiled at a time.
+MAX_METRIC_PROGRAMS = 8
 
 
 def usable(view) -> bool:
@@ -29,10 +37,9 @@ def usable(view) -> bool:
 
 
 def render_view(scene, camera, config: RenderConfig, *, active_sh_degree=None):
-    """The :class:`RenderOutput` of one view with an exactly fitted capacity."""
-    needed, _ = count_pairs(scene, camera, config)
-    return render_jit(scene, camera, config=config, capacity=Capacity.fit(float(needed)),
-                      active_sh_degree=active_sh_degree)
+    """The :class:`RenderOutput` of one view with an exactly fitted capacity, rendered at its size
+    bucket and cropped (images as numpy arrays when padded)."""
+    return ViewRenderer(scene, config, active_sh_degree=active_sh_degree)(camera)
 
 
 def render_image(scene, camera, config: RenderConfig, *, active_sh_degree=None) -> np.ndarray:
@@ -116,34 +123,25 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
       unavailable, alias_psnr None at s = 1), plus
       ``"images": {str(s): [(render, gt), ...]}`` when ``keep_images`` > 0.
     """
-    from patexgs_jax.data.dataset import box_downsample
-    from patexgs_jax.metrics import psnr, ssim
+    from patexgs_jax import lpips as lp
+    from patexgs_jax.metrics import ssim
 
+    compiled.release_compiled_code()  # (only past half the memory-map cap, as train() does)
     scales = [int(s) for s in scales]
     acc = {s: dict(psnr=[], ssim=[], lpips=[], alias_psnr=[], kept=[]) for s in scales}
-    for i, v in enumerate([v for v in views if usable(v)]):
-        # This view's full-resolution render: the scale-1 image and the alias reference (one view's
-        # held at a time).
-        full = render_image(scene, v.camera, config, active_sh_degree=active_sh_degree)
-        for s in scales:
-            vs = v if s == 1 else v.scaled(s)
-            gt = np.asarray(vs.image, np.float32)
-            img = full if s == 1 else render_image(scene, vs.camera, config, active_sh_degree=active_sh_degree)
-            a = acc[s]
-            a["psnr"].append(float(psnr(img, gt)))
-            a["ssim"].append(float(ssim(jnp.asarray(img), jnp.asarray(gt))))
-            if s != 1:
-                a["alias_psnr"].append(float(psnr(img, box_downsample(full, s))))
-            if lpips is not None:
-                a["lpips"].append(lpips(img, gt))
-            if i < keep_images:
-                a["kept"].append((img, gt))
+    views = [v for v in views if usable(v)]
+    with ViewRenderer(scene, config, active_sh_degree=active_sh_degree) as renderer:
+        # Every bucket's capacity fitted up front: one program per bucket.
+        renderer.prepare([v.camera if s == 1 else v.camera.scaled(s) for v in views for s in scales])
+        for i, v in enumerate(views):
+            _evaluate_view(renderer, i, v, scales, acc, lpips, keep_images)
+            compiled.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
     result, images = {}, {}
     for s in scales:
         a = acc[s]
-        lp = [x for x in a["lpips"] if x is not None]
+        lp_values = [x for x in a["lpips"] if x is not None]
         result[str(s)] = dict(psnr=_mean(a["psnr"]), ssim=_mean(a["ssim"]),
-                              lpips=_mean(lp) if lp and len(lp) == len(a["lpips"]) else None,
+                              lpips=_mean(lp_values) if lp_values and len(lp_values) == len(a["lpips"]) else None,
                               alias_psnr=_mean(a["alias_psnr"]), views=len(a["psnr"]))
         if keep_images:
             images[str(s)] = a["kept"]
@@ -152,22 +150,46 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
     return result
 
 
+def _evaluate_view(renderer: ViewRenderer, i: int, v, scales, acc: dict, lpips, keep_images: int) -> None:
+    """Adds view ``v``'s metrics at every scale to ``acc`` (see :func:`evaluate_scales`)."""
+    from patexgs_jax.data.dataset import box_downsample
+    from patexgs_jax.metrics import psnr, ssim
+
+    # This view's full-resolution render: the scale-1 image and the alias reference (one view's
+    # held at a time).
+    full = renderer.image(v.camera)
+    for s in scales:
+        vs = v if s == 1 else v.scaled(s)
+        gt = np.asarray(vs.image, np.float32)
+        img = full if s == 1 else renderer.image(vs.camera)
+        a = acc[s]
+        a["psnr"].append(float(psnr(img, gt)))
+        a["ssim"].append(float(ssim(jnp.asarray(img), jnp.asarray(gt))))
+        if s != 1:
+            a["alias_psnr"].append(float(psnr(img, box_downsample(full, s))))
+        if lpips is not None:
+            a["lpips"].append(lpips(img, gt))
+        if i < keep_images:
+            a["kept"].append((img, gt))
+
+
 def render_ms(scene, views: Sequence, config: RenderConfig, *, max_views: int = 8, active_sh_degree=None) -> float | None:
     """Median wall-clock milliseconds of one render (binning, sort, compositing; no compilation).
 
-    Each view's shape is compiled (and capacity counted) before its timed run; the median is over
-    up to ``max_views`` usable views.
+    Views are rendered as evaluation renders them (at their size buckets, see
+    :class:`ViewRenderer`); each bucket is compiled (and capacities counted) before the timed runs;
+    the median is over up to ``max_views`` usable views.
     """
     ts = []
-    for v in [v for v in views if usable(v)][:max_views]:
-        needed, _ = count_pairs(scene, v.camera, config)
-        cap = Capacity.fit(float(needed))
-        run = lambda: render_jit(scene, v.camera, config=config, capacity=cap,  # noqa: E731
-                                 active_sh_degree=active_sh_degree).rgb
-        jax.block_until_ready(run())
-        t = time.perf_counter()
-        jax.block_until_ready(run())
-        ts.append(time.perf_counter() - t)
+    views = [v for v in views if usable(v)][:max_views]
+    with ViewRenderer(scene, config, active_sh_degree=active_sh_degree) as renderer:
+        renderer.prepare([v.camera for v in views])
+        for v in views:
+            run = lambda: renderer.padded(v.camera).rgb  # noqa: E731
+            jax.block_until_ready(run())
+            t = time.perf_counter()
+            jax.block_until_ready(run())
+            ts.append(time.perf_counter() - t)
     return 1e3 * float(np.median(ts)) if ts else None
 
 

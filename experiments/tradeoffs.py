@@ -333,25 +333,25 @@ def _scaled(views, s):
 def render_ms_min(scene, views, render_config, *, max_views=8, repeats=3, active_sh_degree=None) -> float | None:
     """Milliseconds per frame: per view the fastest of ``repeats`` timed renders (compilation and
     capacity counting excluded; the minimum is robust to other processes on the machine), the
-    median over up to ``max_views`` usable views."""
+    median over up to ``max_views`` usable views. Views are rendered as evaluation renders them, at
+    their size buckets (:class:`patexgs_jax.buckets.ViewRenderer`: one program per bucket)."""
     import jax
 
     from experiments.evaluation import usable
-    from patexgs_jax.render import Capacity, count_pairs, render_jit
+    from patexgs_jax.buckets import ViewRenderer
 
     ts = []
-    for v in [v for v in views if usable(v)][:max_views]:
-        needed, _ = count_pairs(scene, v.camera, render_config)
-        cap = Capacity.fit(float(needed))
-        jax.block_until_ready(render_jit(scene, v.camera, config=render_config, capacity=cap,
-                                         active_sh_degree=active_sh_degree).rgb)
-        best = np.inf
-        for _ in range(repeats):
-            t = time.perf_counter()
-            jax.block_until_ready(render_jit(scene, v.camera, config=render_config, capacity=cap,
-                                             active_sh_degree=active_sh_degree).rgb)
-            best = min(best, time.perf_counter() - t)
-        ts.append(best)
+    views = [v for v in views if usable(v)][:max_views]
+    with ViewRenderer(scene, render_config, active_sh_degree=active_sh_degree) as renderer:
+        renderer.prepare([v.camera for v in views])
+        for v in views:
+            jax.block_until_ready(renderer.padded(v.camera).rgb)
+            best = np.inf
+            for _ in range(repeats):
+                t = time.perf_counter()
+                jax.block_until_ready(renderer.padded(v.camera).rgb)
+                best = min(best, time.perf_counter() - t)
+            ts.append(best)
     return 1e3 * float(np.median(ts)) if ts else None
 
 

@@ -1,23 +1,39 @@
 """Keeping a long-lived process within the kernel's limit on memory mappings.
 
 XLA's CPU backend keeps every compiled executable's machine code in memory mappings of its own (about
-20 for a small function, hundreds for a training step) for as long as the executable lives, and JAX's
-caches keep executables alive after the functions that made them are gone. Linux caps the mappings
-of a process (``vm.max_map_count``, 65,530 by default). A process that compiles many distinct
-functions - studies that train many runs in one process, a notebook session, a test suite - reaches
-the cap. The next compile then fails inside XLA, and on the CPU that was seen to end as a crash (or a
-hang) rather than as a Python error.
+20 for a small function, a few hundred for a render, one to three thousand for a training step) for
+as long as the executable lives, and JAX's caches keep executables alive after the functions that
+made them are gone. Linux caps the mappings of a process (``vm.max_map_count``, 65,530 by default).
+A process that compiles many distinct programs - a training run over images of many sizes, an
+evaluation at many sizes, studies that train many runs in one process, a notebook session, a test
+suite - reaches the cap. The next compile then fails inside XLA ("LLVM ERROR: Unable to allocate
+section memory"), and on the CPU that ends as a crash or a segfault rather than as a Python error.
 
-:func:`release_compiled_code` drops JAX's caches when the process holds more than a given share of
-the cap. Functions compiled before are then compiled again when next used. :func:`patexgs_jax.train.train`
-calls it on entry, so in-process studies stay within the cap.
+What keeps the count bounded:
+
+* few programs: views are rendered at a few padded sizes (:mod:`patexgs_jax.buckets`), so a run
+  compiles one program per size bucket, not one per image size;
+* programs of retired layouts are released: :func:`release_programs` drops a jitted function's
+  compiled code (training does it when the scene's shapes or the tile capacity change, evaluation
+  when it is done with a scene), and :func:`trim_programs` bounds the programs a function keeps;
+* a guard (:class:`MapGuard`): above ``release_share`` of the cap, all of JAX's compiled code is
+  dropped (:func:`release_compiled_code`); above ``stop_share`` even so, training checkpoints and
+  stops with :class:`MapLimitReached` instead of crashing in the next compile.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 
 import jax
+
+#: The kernel's default ``vm.max_map_count``.
+DEFAULT_MAP_LIMIT = 65_530
+
+
+class MapLimitReached(OSError):
+    """The process holds nearly as many memory mappings as the kernel allows (see :class:`MapGuard`)."""
 
 
 def memory_maps() -> tuple[int, int] | None:
@@ -42,3 +58,84 @@ def release_compiled_code(threshold: float = 0.5) -> bool:
     jax.clear_caches()
     gc.collect()
     return True
+
+
+def program_count(fn) -> int:
+    """Compiled programs a ``jax.jit`` function holds (0 where JAX does not say)."""
+    size = getattr(fn, "_cache_size", None)
+    return int(size()) if callable(size) else 0
+
+
+def release_programs(*fns) -> None:
+    """Drops the compiled programs of the given ``jax.jit`` functions (they compile again when next
+    called); their mappings are returned to the kernel."""
+    for fn in fns:
+        clear = getattr(fn, "clear_cache", None)
+        if callable(clear):
+            clear()
+
+
+def trim_programs(*fns, max_programs: int = 8) -> bool:
+    """Releases the programs of each function holding more than ``max_programs`` (JAX cannot drop
+    single entries, so all of that function's); returns whether any was released. Bounds what a
+    per-shape cache keeps, e.g. LPIPS or SSIM at every image size of an evaluation."""
+    released = False
+    for fn in fns:
+        if program_count(fn) > max_programs:
+            release_programs(fn)
+            released = True
+    return released
+
+
+@dataclasses.dataclass
+class MapGuard:
+    """Watches this process's mapping count against the cap.
+
+    Attributes:
+      release_share: above this share of the cap, :meth:`check` drops all of JAX's compiled code
+        (and calls ``on_release``, which should drop the caller's own jitted functions).
+      stop_share: above this share even after releasing, :meth:`check` reports that the caller
+        must stop.
+      limit: the cap; None reads ``vm.max_map_count`` (a smaller value simulates a lower cap).
+    """
+
+    release_share: float = 0.5
+    stop_share: float = 0.9
+    limit: int | None = None
+
+    def __post_init__(self):
+        if not 0 < self.release_share <= self.stop_share:
+            raise ValueError(f"MapGuard needs 0 < release_share <= stop_share, got {self.release_share} and "
+                             f"{self.stop_share}.")
+
+    def counts(self) -> tuple[int, int] | None:
+        """(mappings held, the cap this guard applies), or None without /proc."""
+        maps = memory_maps()
+        if maps is None:
+            return None
+        return maps[0], self.limit if self.limit is not None else maps[1]
+
+    def check(self, on_release=None) -> tuple[int, int] | None:
+        """None while the process is within ``stop_share`` of the cap (after releasing compiled code
+        above ``release_share``); else (mappings held, cap): the caller should save and stop."""
+        maps = self.counts()
+        if maps is None or maps[0] <= self.release_share * maps[1]:
+            return None
+        if on_release is not None:
+            on_release()
+        jax.clear_caches()
+        gc.collect()
+        maps = self.counts()
+        if maps is None or maps[0] <= self.stop_share * maps[1]:
+            return None
+        return maps
+
+
+def limit_message(count: int, limit: int, what: str) -> str:
+    """The explanation :class:`MapLimitReached` carries: what happened, ``what`` was done about it
+    (e.g. where the checkpoint is and how to resume), and how to raise the cap."""
+    return (f"this process holds {count:,} memory mappings, close to the kernel's limit of {limit:,} "
+            "(vm.max_map_count): XLA keeps each compiled program's machine code in mappings of its own, and "
+            f"one more compile could crash the process. {what} To allow more, raise the limit, e.g. "
+            "`sudo sysctl -w vm.max_map_count=262144` (persist it in /etc/sysctl.d/), or run fewer runs "
+            "per process.")

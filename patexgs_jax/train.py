@@ -32,6 +32,15 @@ Robustness
   skips the update (never applied, never poisoning the state); overflow grows the capacity and the
   step is retried; ``max_bad_steps`` consecutive non-finite steps stop the run, keeping the last
   good checkpoint.
+
+Compiled programs (see :mod:`patexgs_jax.compiled`)
+  A training view is padded to the renderer's tile grid (:mod:`patexgs_jax.buckets`; the loss is
+  the view's own, the per-splat statistics the unpadded render's), so the step compiles once per
+  distinct tile grid of the training images, not once per image size, and again only when the
+  tile capacity or the scene's shapes change (densification, texture growth); the programs of
+  earlier shapes are then released (and at most a few capacities kept per shapes). Near the kernel's memory-map cap the run releases
+  all compiled code and, if that is not enough, checkpoints and stops with
+  :class:`patexgs_jax.compiled.MapLimitReached` (resume with ``--resume``).
 """
 
 from __future__ import annotations
@@ -49,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from . import buckets
 from . import checkpoint as ckpt
 from . import compiled
 from . import densify as dens
@@ -61,6 +71,18 @@ from .scene import Scene
 
 #: Traces of the jitted training step, per (render config, capacity): tests assert on it.
 STEP_TRACES: collections.Counter = collections.Counter()
+
+#: Steps between two looks at the memory-map count (it is also read after every compile).
+_MAP_CHECK_EVERY = 25
+
+#: Jitted steps (capacities) kept for one scene layout.
+_MAX_STEP_FNS = 4
+
+
+def _layout(scene: Scene) -> tuple:
+    """The shapes of a scene's arrays: what, with the static arguments, selects a compiled step."""
+    return tuple(np.shape(x) for x in jax.tree_util.tree_leaves(scene))
+
 
 FIXED_SIZES = (1, 2, 4, 8, 16, 32)
 
@@ -244,20 +266,25 @@ _GROUPS = ("means", "log_scales", "quats", "opacity_logits", "sh", "rgb", "alpha
 
 
 def _view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_config, capacity, lambda_dssim,
-                         lambda_dist):
+                         lambda_dist, valid_hw=None):
     """One view's loss and gradients: ``((loss, (out, l1, mse)), (g_scene, g_offset))``, g_offset
-    (C, 2) the gradient w.r.t. the renderer's ``screen_offset`` (densification statistics)."""
+    (C, 2) the gradient w.r.t. the renderer's ``screen_offset`` (densification statistics).
+
+    ``camera`` and ``image`` (Hb, Wb, 3) may be padded to a size bucket (:mod:`patexgs_jax.buckets`);
+    ``valid_hw`` ((2,) int, traced) is then the view's own (H, W): the loss is that of the top-left
+    H x W block, so views of every size in one bucket share one compiled step."""
     offset = jnp.zeros((scene.capacity, 2), scene.means.dtype)
+    valid = None if valid_hw is None else buckets.valid_mask(image.shape[:2], valid_hw)
 
     def loss_fn(sc, off):
         out = render_jit(sc, camera, config=render_config, capacity=capacity, screen_offset=off,
                          active_sh_degree=active_sh)
-        photo, l1 = losses.photometric(out.rgb, image, lambda_dssim)
+        photo, l1 = losses.photometric(out.rgb, image, lambda_dssim, valid=valid)
         loss = photo
-        loss = loss + w_normal * losses.normal_consistency(out.normal, out.depth, out.alpha, camera.K)
+        loss = loss + w_normal * losses.normal_consistency(out.normal, out.depth, out.alpha, camera.K, valid=valid)
         if lambda_dist > 0:
-            loss = loss + lambda_dist * losses.distortion(out.distortion)
-        mse = jnp.mean(jnp.square(jnp.clip(out.rgb, 0, 1) - image))
+            loss = loss + lambda_dist * losses.distortion(out.distortion, valid=valid)
+        mse = losses.masked_mean(jnp.square(jnp.clip(out.rgb, 0, 1) - image), valid)
         return loss, (out, l1, mse)
 
     return jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(scene, offset)
@@ -272,12 +299,24 @@ def _finite_groups(g_scene) -> dict:
     return finite
 
 
-def _step(scene, opt_state, stats, camera, image, active_sh, w_normal, *, optimizer, render_config,
+def _step(scene, opt_state, stats, camera, image, valid_hw, active_sh, w_normal, *, optimizer, render_config,
           capacity, lambda_dssim, lambda_dist):
+    """One single-view update.
+
+    Args:
+      camera: the view's camera at its size bucket (``buckets.padded_camera`` with the exact tile
+        grid: every per-splat output equals the unpadded render's).
+      image: (Hb, Wb, 3) float32, the view's image zero-padded to the bucket.
+      valid_hw: (2,) int32, the view's own (H, W).
+      active_sh, w_normal: traced SH degree and normal-consistency weight.
+    Returns:
+      (scene, opt_state, stats, metrics); the update is skipped (state unchanged) on overflow or a
+      non-finite loss or gradient.
+    """
     STEP_TRACES[(render_config, capacity)] += 1
     (loss, (out, l1, mse)), (g_scene, g_off) = _view_loss_and_grads(
         scene, camera, image, active_sh, w_normal, render_config=render_config, capacity=capacity,
-        lambda_dssim=lambda_dssim, lambda_dist=lambda_dist)
+        lambda_dssim=lambda_dssim, lambda_dist=lambda_dist, valid_hw=valid_hw)
     finite = _finite_groups(g_scene)
     all_finite = jnp.isfinite(loss) & jnp.all(jnp.stack(list(finite.values())))
     ok = all_finite & ~out.overflow
@@ -285,7 +324,7 @@ def _step(scene, opt_state, stats, camera, image, active_sh, w_normal, *, optimi
     new_scene = optax.apply_updates(scene, updates)
     keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
     new_stats = dens.accumulate(stats, jnp.where(ok, g_off, 0.0), out.visible & ok, out.radius_px,
-                                camera.width, camera.height)
+                                valid_hw[1], valid_hw[0])
     metrics = dict(loss=loss, l1=l1, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-10)), ok=ok,
                    finite=finite, overflow=out.overflow, pairs_needed=out.pairs_needed,
                    max_tile_count=out.max_tile_count)
@@ -358,8 +397,10 @@ class TrainResult:
 class _Run:
     """The mutable host-side state of one run (everything a checkpoint holds)."""
 
-    def __init__(self, dataset, config: TrainConfig, out_dir: Path | None, verbose: bool):
+    def __init__(self, dataset, config: TrainConfig, out_dir: Path | None, verbose: bool,
+                 map_guard: compiled.MapGuard | None = None):
         self.ds, self.cfg, self.out, self.verbose = dataset, config, out_dir, verbose
+        self.map_guard = map_guard if map_guard is not None else compiled.MapGuard()
         self.train_views = list(dataset.train_views)
         if not self.train_views:
             raise ValueError("the dataset has no training views.")
@@ -380,7 +421,10 @@ class _Run:
         self.texel_budget = None
         self.allocation = None
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
+        # The jitted steps of the current scene layout, per (render config, capacity), each with one
+        # program per size bucket; released when the layout changes (see _compiled_step).
         self._jit_cache = {}
+        self._jit_layout = None
 
     @property
     def render_cfg(self) -> RenderConfig:
@@ -429,17 +473,45 @@ class _Run:
         perm = np.random.default_rng([self.cfg.seed, epoch]).permutation(n)
         return self.train_views[perm[i]]
 
+    def _compiled_step(self, key, make):
+        """The jitted step for ``key`` (render config, capacity, ...) and the scene's current layout,
+        made by ``make()`` when new. Scene layouts only grow within a run (more Gaussians, larger
+        texture buckets), so when the layout changes the steps of the old one are never called
+        again: they are dropped, with the renderer's and pair counter's programs of the old layout,
+        and their memory mappings returned (see :mod:`patexgs_jax.compiled`). Within a layout at most
+        :data:`_MAX_STEP_FNS` steps (capacities) are kept, the oldest dropped first."""
+        layout = _layout(self.scene)
+        if self._jit_layout != layout:
+            if self._jit_cache:
+                self._jit_cache.clear()
+                buckets.release_scene_programs()
+            self._jit_layout = layout
+        if key not in self._jit_cache:
+            while len(self._jit_cache) >= _MAX_STEP_FNS:
+                self._jit_cache.pop(next(iter(self._jit_cache)))
+            self._jit_cache[key] = make()
+        return self._jit_cache[key]
+
     def step_fn(self):
+        """The training step as ``fn(scene, opt_state, stats, camera, image, active_sh, w_normal)``
+        (``image`` (H, W, 3) of the camera's size). The view is padded to its size bucket (the
+        renderer's exact tile grid) on the host, so the views of one bucket share a program."""
         if self.cfg.batch_size > 1:
             return self._batch_step_fn()
-        key = (self.render_cfg, self.capacity)
-        if key not in self._jit_cache:
-            self._jit_cache[key] = jax.jit(
-                lambda sc, st, stats, cam, img, sh, wn: _step(
-                    sc, st, stats, cam, img, sh, wn, optimizer=self.optimizer, render_config=self.render_cfg,
-                    capacity=self.capacity, lambda_dssim=self.cfg.lambda_dssim, lambda_dist=self.cfg.lambda_dist),
-                donate_argnums=(0, 1, 2))
-        return self._jit_cache[key]
+        cfg, render_cfg, capacity = self.cfg, self.render_cfg, self.capacity
+        fn = self._compiled_step((render_cfg, capacity), lambda: jax.jit(
+            lambda sc, st, stats, cam, img, hw, sh, wn: _step(
+                sc, st, stats, cam, img, hw, sh, wn, optimizer=self.optimizer, render_config=render_cfg,
+                capacity=capacity, lambda_dssim=cfg.lambda_dssim, lambda_dist=cfg.lambda_dist),
+            donate_argnums=(0, 1, 2)))
+
+        def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
+            cam = buckets.padded_camera(camera, render_cfg.tile_size)
+            img = buckets.pad_image(image, cam.height, cam.width)
+            hw = np.array([camera.height, camera.width], np.int32)
+            return fn(scene, opt_state, stats, cam, img, hw, active_sh, w_normal)
+
+        return step
 
     def data_mesh(self):
         """The device mesh of the data-parallel step (``batch_size`` > 1), built once per run."""
@@ -450,16 +522,13 @@ class _Run:
         return self._mesh
 
     def _batch_step_fn(self):
-        key = (self.render_cfg, self.capacity, self.cfg.batch_size)
-        if key not in self._jit_cache:
-            mesh = self.data_mesh()
-            self._jit_cache[key] = jax.jit(
-                lambda sc, st, stats, cams, imgs, sh, wn: _batch_step(
-                    sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
-                    render_config=self.render_cfg, capacity=self.capacity, lambda_dssim=self.cfg.lambda_dssim,
-                    lambda_dist=self.cfg.lambda_dist),
-                donate_argnums=(0, 1, 2))
-        return self._jit_cache[key]
+        mesh, render_cfg, capacity, cfg = self.data_mesh(), self.render_cfg, self.capacity, self.cfg
+        return self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
+            lambda sc, st, stats, cams, imgs, sh, wn: _batch_step(
+                sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
+                render_config=render_cfg, capacity=capacity, lambda_dssim=cfg.lambda_dssim,
+                lambda_dist=cfg.lambda_dist),
+            donate_argnums=(0, 1, 2)))
 
     def batch_inputs(self, views, images):
         """Stacked cameras and (B, H, W, 3) images placed over the mesh, the state replicated on it."""
@@ -472,6 +541,8 @@ class _Run:
         return parallel.shard_batch((cams, np.stack([np.asarray(im, np.float32) for im in images[local]])), mesh)
 
     def fit_capacity(self, camera):
+        # Counted at the step's size bucket (the same tile grid: the same count), one program a bucket.
+        camera = camera if self.cfg.batch_size > 1 else buckets.padded_camera(camera, self.render_cfg.tile_size)
         needed, _ = count_pairs(self.scene, camera, self.render_cfg)
         cap = Capacity.fit(float(needed) * 1.25, minimum=self.capacity)
         if cap != self.capacity:
@@ -507,9 +578,10 @@ class _Run:
     def allocate_textures(self):
         """Eq. 6-7: contribution counts over all training views -> initial sizes."""
         counts = []
-        for v in self.train_views:
-            out = self.render_eval(v.camera)
-            counts.append(np.asarray(out.max_contrib_count))
+        with buckets.ViewRenderer(self.scene, self.render_cfg) as renderer:
+            renderer.prepare([v.camera for v in self.train_views])
+            for v in self.train_views:
+                counts.append(np.asarray(renderer(v.camera).max_contrib_count))
         S = np.stack(counts)
         act = np.asarray(self.scene.active) > 0
         h, w = self.train_views[0].camera.height, self.train_views[0].camera.width
@@ -536,11 +608,23 @@ class _Run:
         return sched.GrowthSchedule(t0=t0, t_final=t_final, interval=self.cfg.growth_interval,
                                     tau_preset=self.cfg.tau_preset, max_size=self.cfg.max_texture_size)
 
-    def render_eval(self, camera, config=None):
-        config = config or self.render_cfg
-        needed, _ = count_pairs(self.scene, camera, config)
-        cap = Capacity.fit(float(needed))
-        return render_jit(self.scene, camera, config=config, capacity=cap)
+    def check_memory_maps(self):
+        """Releases compiled code near the memory-map cap; at the guard's stop share even so, saves a
+        checkpoint and raises :class:`compiled.MapLimitReached` (a clear stop, not a crash in XLA)."""
+        maps = self.map_guard.check(on_release=self._jit_cache.clear)
+        if maps is None:
+            return
+        if self.out is None:
+            what = f"Training stopped at step {self.step}; no output directory was given, so nothing was saved."
+        elif self.bad_streak == 0:
+            self.save()
+            what = (f"Training stopped at step {self.step} and saved a checkpoint in {self.out / 'checkpoints'}; "
+                    "continue in a new process with `python -m patexgs_jax.train ... --resume` "
+                    "(train(..., resume=True); a study continues where it stopped when run again).")
+        else:
+            what = (f"Training stopped at step {self.step}, during non-finite steps: the last good checkpoint in "
+                    f"{self.out / 'checkpoints'} is kept; continue from it with --resume (train(..., resume=True)).")
+        raise compiled.MapLimitReached(compiled.limit_message(maps[0], maps[1], what))
 
     # -- main loop -------------------------------------------------------------------------------
     def run(self):
@@ -548,8 +632,14 @@ class _Run:
         total = cfg.total_steps
         t_last = time.perf_counter()
         window = collections.deque(maxlen=max(1, cfg.log_every))
+        compiled_last = True
         while self.step < total:
             step = self.step
+            # Mappings grow only when something compiles (a new bucket, capacity or layout); reading
+            # /proc/self/maps costs milliseconds, so look after compiles and every few steps.
+            if compiled_last or step % _MAP_CHECK_EVERY == 0:
+                self.check_memory_maps()
+            compiled_last = False
             if self.spec["textures"] is not None and step == cfg.iters_2dgs and self.scene.rgb is None:
                 self.save()  # the end of the 2DGS stage is a natural restart point
                 self.start_textures()
@@ -571,12 +661,13 @@ class _Run:
                 traces = sum(STEP_TRACES.values())
                 active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
                 w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from else 0.0)
-                data = ((view.camera, jnp.asarray(image)) if cfg.batch_size == 1
+                data = ((view.camera, image) if cfg.batch_size == 1
                         else self.batch_inputs(views, images))
                 scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)
                 self.scene, self.opt_state, self.stats = scene, opt_state, stats
                 if sum(STEP_TRACES.values()) > traces:
                     self.recompiles += 1
+                    compiled_last = True
                 if bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"])):
                     old = self.capacity
                     self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25,
@@ -705,23 +796,26 @@ def _view_problem(camera, image) -> str | None:
 
 
 def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
-    """Mean PSNR and SSIM over views, renders clipped to [0, 1]."""
+    """Mean PSNR and SSIM over views, renders clipped to [0, 1]. Views are rendered at their size
+    buckets (:class:`patexgs_jax.buckets.ViewRenderer`: a few programs, released at the end)."""
     from .metrics import psnr, ssim
 
     ps, ss = [], []
-    for v in views:
-        if _view_problem(v.camera, v.image) is not None:
-            continue  # as in training: empty or non-finite images and cameras are left out
-        needed, _ = count_pairs(scene, v.camera, render_config)
-        out = render_jit(scene, v.camera, config=render_config, capacity=Capacity.fit(float(needed)))
-        img = np.clip(np.asarray(out.rgb), 0, 1)
-        ps.append(float(psnr(img, v.image)))
-        ss.append(float(ssim(jnp.asarray(img), jnp.asarray(v.image))))
+    # as in training: empty or non-finite images and cameras are left out
+    views = [v for v in views if _view_problem(v.camera, v.image) is None]
+    with buckets.ViewRenderer(scene, render_config) as renderer:
+        renderer.prepare([v.camera for v in views])
+        for v in views:
+            img = renderer.image(v.camera)
+            ps.append(float(psnr(img, v.image)))
+            ss.append(float(ssim(jnp.asarray(img), jnp.asarray(v.image))))
+            # SSIM compiles per image size and cannot be padded: bound what it keeps
+            compiled.trim_programs(ssim)
     return dict(psnr=float(np.mean(ps)) if ps else None, ssim=float(np.mean(ss)) if ss else None)
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,
-          verbose: bool = True, stage1=None) -> TrainResult:
+          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -735,8 +829,13 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         checkpoint file written at step ``config.iters_2dgs`` by a run whose config agrees with
         ``config`` outside :data:`STAGE2_FIELDS` (see :func:`stage1_checkpoint`). The stage-1
         training time is carried over into ``train_seconds``. Ignored when resuming.
+      map_guard: when the process nears the kernel's memory-map cap, compiled code is released and,
+        if that is not enough, the run checkpoints and raises :class:`compiled.MapLimitReached`
+        (default ``compiled.MapGuard()``: release at half the cap, stop at 90%).
     Returns:
       :class:`TrainResult`.
+    Raises:
+      compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
     """
     # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
     # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
@@ -745,7 +844,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     if out is not None:
         ckpt.check_writable(out)
         ckpt.check_writable(out / "checkpoints")
-    run = _Run(dataset, config, out, verbose)
+    run = _Run(dataset, config, out, verbose, map_guard)
     latest = ckpt.latest_checkpoint(out / "checkpoints") if (out is not None and resume) else None
     if latest is not None:
         tree, meta = ckpt.load_checkpoint(latest)

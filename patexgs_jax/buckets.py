@@ -1,0 +1,196 @@
+"""Padding views to a few image sizes, so that a run compiles a handful of programs.
+
+A jitted renderer or training step is compiled once per image size (``Camera.width`` and
+``height`` are static). Undistorted captures have a slightly different size per image (beer at 1/4:
+20 sizes over 62 training views), and evaluation adds every view's zoom-outs, so compiling per size
+fills the process's memory mappings (see :mod:`patexgs_jax.compiled`). Here a view is rendered at a
+bucket size instead, with the same intrinsics, and cropped: pixel (i, j) keeps its centre
+(j + 0.5, i + 0.5) and the renderer composites each tile independently, so the cropped image equals
+the unpadded render.
+
+Buckets: the side is rounded up to whole tiles (the renderer computes whole tiles anyway: the
+padding inside the last tile is free), then the number of tiles t to ``steps_per_octave`` sizes per
+octave: t itself up to ``steps_per_octave`` tiles, above that the next ``m 2^k`` with
+``steps_per_octave <= m < 2 steps_per_octave`` (at most 1/steps_per_octave of extra tiles a side).
+``steps_per_octave=None`` keeps the tile grid exactly: then every per-splat output (visibility,
+radius, pair count) equals the unpadded render's too, which training needs (densification
+statistics); evaluation uses :data:`EVAL_STEPS_PER_OCTAVE`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import compiled
+from .camera import Camera
+
+#: Bucket sizes per octave of tiles used by evaluation: the exact tile grid up to 16 x 16 = 256
+#: pixels a side, at most an eighth of extra tiles above (beer's test views at 1/4 and their
+#: zoom-outs by 2, 4, 8: 5 buckets).
+EVAL_STEPS_PER_OCTAVE = 8
+
+
+def bucket_side(side: int, tile_size: int = 16, steps_per_octave: int | None = None) -> int:
+    """The padded length of an image side of ``side`` pixels (see the module docstring)."""
+    side, tile_size = int(side), int(tile_size)
+    if side < 1 or tile_size < 1:
+        raise ValueError(f"image side and tile size must be positive, got {side} and {tile_size}.")
+    tiles = -(-side // tile_size)
+    if steps_per_octave is not None:
+        steps = int(steps_per_octave)
+        if steps < 1:
+            raise ValueError(f"steps_per_octave must be >= 1 or None, got {steps_per_octave}.")
+        if tiles > steps:
+            k = (tiles - 1).bit_length() - steps.bit_length()  # tiles <= m 2^k with m < 2 steps
+            k = max(k, 0)
+            while -(-tiles // (1 << k)) >= 2 * steps:
+                k += 1
+            tiles = -(-tiles // (1 << k)) * (1 << k)
+    return tiles * tile_size
+
+
+def bucket_shape(height: int, width: int, tile_size: int = 16,
+                 steps_per_octave: int | None = None) -> tuple[int, int]:
+    """(padded height, padded width) of an ``height x width`` image."""
+    return (bucket_side(height, tile_size, steps_per_octave), bucket_side(width, tile_size, steps_per_octave))
+
+
+def padded_camera(camera: Camera, tile_size: int = 16, steps_per_octave: int | None = None) -> Camera:
+    """The same camera (K and pose unchanged: pixel centres stay where they are) at its bucket size."""
+    h, w = bucket_shape(camera.height, camera.width, tile_size, steps_per_octave)
+    if (h, w) == (camera.height, camera.width):
+        return camera
+    return Camera(K=camera.K, world_to_camera=camera.world_to_camera, width=w, height=h)
+
+
+def pad_image(image, height: int, width: int) -> np.ndarray:
+    """(height, width, C) float32 copy of an (H, W, C) image, zeros below and to the right."""
+    image = np.asarray(image, np.float32)
+    H, W = image.shape[:2]
+    if H > height or W > width:
+        raise ValueError(f"cannot pad a {H}x{W} image to {height}x{width}.")
+    out = np.zeros((height, width) + image.shape[2:], np.float32)
+    out[:H, :W] = image
+    return out
+
+
+def valid_mask(shape: tuple[int, int], valid_hw) -> jax.Array:
+    """(Hb, Wb) bool, True on the top-left ``valid_hw = (H, W)`` block (traced values allowed)."""
+    rows = jnp.arange(shape[0])[:, None] < valid_hw[0]
+    cols = jnp.arange(shape[1])[None, :] < valid_hw[1]
+    return rows & cols
+
+
+def crop_output(out, height: int, width: int):
+    """A :class:`patexgs_jax.render.RenderOutput` of a padded render with its images cropped to
+    ``height x width`` (host numpy arrays: cropping on the device would compile a slice per size)
+    and ``max_contrib_count`` counted over the kept pixels only, as the unpadded render counts them.
+    Per-splat outputs (``visible``, ``radius_px``, ``pairs_needed``) are the padded render's: equal
+    to the unpadded ones when the tile grid was kept (``steps_per_octave=None``)."""
+    import dataclasses
+
+    if out.rgb.shape[:2] == (height, width):
+        return out
+    crop = lambda x: np.asarray(x)[:height, :width]  # noqa: E731
+    dominant = crop(out.dominant)
+    best = dominant.reshape(-1)
+    counts = np.bincount(best[best >= 0], minlength=out.max_contrib_count.shape[0]).astype(np.int32)
+    return dataclasses.replace(out, rgb=crop(out.rgb), alpha=crop(out.alpha), depth=crop(out.depth),
+                               normal=crop(out.normal), distortion=crop(out.distortion), dominant=dominant,
+                               max_contrib_count=counts)
+
+
+def _render_module():
+    return importlib.import_module("patexgs_jax.render")
+
+
+class ViewRenderer:
+    """Renders one scene from views of any size with one program per size bucket.
+
+    The tile capacity of a bucket is the largest any of its views needs (:meth:`prepare` counts a
+    list of views up front, so that each bucket compiles once; a view met later grows its bucket's
+    capacity, a new program). Images are never truncated. Use as a context manager (or call
+    :meth:`release`) so that the scene's compiled renderer and pair counter are released when done:
+    another scene has other shapes and never reuses them.
+
+    Args:
+      scene: the :class:`patexgs_jax.Scene`.
+      config: its :class:`patexgs_jax.RenderConfig`.
+      steps_per_octave: the buckets (see :func:`bucket_side`; None: the exact tile grid).
+      active_sh_degree: optional cap on the SH bands.
+    """
+
+    def __init__(self, scene, config, *, steps_per_octave: int | None = EVAL_STEPS_PER_OCTAVE,
+                 active_sh_degree=None):
+        self.scene, self.config, self.steps = scene, config, steps_per_octave
+        self.active_sh_degree = active_sh_degree
+        self.capacities: dict = {}  # (height, width) of a bucket -> Capacity; as many as buckets
+
+    def camera(self, camera: Camera) -> Camera:
+        """``camera`` at its bucket size."""
+        return padded_camera(camera, self.config.tile_size, self.steps)
+
+    def _needed(self, cam: Camera) -> float:
+        R = _render_module()
+        needed, _ = R.count_pairs(self.scene, cam, self.config)
+        return float(needed)
+
+    def prepare(self, cameras: Sequence[Camera]) -> None:
+        """Fits every bucket's capacity to the views ``cameras`` (counted, not rendered)."""
+        R = _render_module()
+        for c in cameras:
+            cam = self.camera(c)
+            key = (cam.height, cam.width)
+            self.capacities[key] = R.Capacity.fit(self._needed(cam), minimum=self.capacities.get(key))
+
+    def padded(self, camera: Camera):
+        """The :class:`RenderOutput` of ``camera`` rendered at its bucket size, uncropped (on the
+        device; what render timing measures)."""
+        R = _render_module()
+        cam = self.camera(camera)
+        key = (cam.height, cam.width)
+        cap = self.capacities.get(key)
+        if cap is None:
+            cap = self.capacities[key] = R.Capacity.fit(self._needed(cam))
+        out = R.render_jit(self.scene, cam, config=self.config, capacity=cap,
+                           active_sh_degree=self.active_sh_degree)
+        if bool(out.overflow):  # a view not prepared for, needing more than its bucket holds
+            cap = self.capacities[key] = R.Capacity.fit(float(out.pairs_needed), minimum=cap)
+            out = R.render_jit(self.scene, cam, config=self.config, capacity=cap,
+                               active_sh_degree=self.active_sh_degree)
+        return out
+
+    def __call__(self, camera: Camera):
+        """The :class:`RenderOutput` of ``camera`` (images ``camera.height x camera.width``, see
+        :func:`crop_output`)."""
+        return crop_output(self.padded(camera), camera.height, camera.width)
+
+    def image(self, camera: Camera) -> np.ndarray:
+        """(H, W, 3) float32 render clipped to [0, 1]."""
+        return np.clip(np.asarray(self(camera).rgb, np.float32), 0.0, 1.0)
+
+    def release(self) -> None:
+        """Releases the compiled renderer and pair counter (see :func:`release_scene_programs`)."""
+        release_scene_programs()
+        self.capacities.clear()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()
+        return False
+
+
+def release_scene_programs() -> None:
+    """Releases the renderer's and the pair counter's compiled programs (one per scene shape, image
+    size and capacity), and the image metrics' (one per image size)."""
+    from . import metrics
+
+    R = _render_module()
+    compiled.release_programs(R.render_jit, R.count_pairs, metrics.ssim)
