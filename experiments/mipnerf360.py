@@ -368,6 +368,7 @@ class Study:
 
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
         from experiments.evaluation import evaluate_scales, render_ms, side_by_side
+        from patexgs_jax.buckets import ViewRenderer
 
         views = list(ds.test_views)
         if not views:
@@ -376,7 +377,11 @@ class Study:
             views = views[: self.cfg.test_views]
         rc = cfg.render_config()
         t = time.perf_counter()
-        ev = evaluate_scales(result.scene, views, rc, scales=SCALES, lpips=self.lpips, keep_images=self.renders)
+        # One renderer for the metrics and the timing: its programs (one per size bucket) serve both.
+        with ViewRenderer(result.scene, rc) as renderer:
+            ev = evaluate_scales(result.scene, views, rc, scales=SCALES, lpips=self.lpips, keep_images=self.renders,
+                                 renderer=renderer)
+            ms = render_ms(result.scene, views, rc, renderer=renderer)
         images = ev.pop("images", {})
         for s in (str(SCALES[0]), str(SCALES[-1])):
             if images.get(s):
@@ -390,7 +395,7 @@ class Study:
         entry = {k: v for k, v in ev.items()}
         entry.update(method=cfg.method, storage_mb=s["storage_mb"], num_gaussians=s["num_gaussians"],
                      texels=s["texels"], train_seconds=s["train_seconds"], steps=s["steps"],
-                     max_gaussians=cfg.max_gaussians, render_ms=render_ms(result.scene, views, rc),
+                     max_gaussians=cfg.max_gaussians, render_ms=ms,
                      eval_seconds=time.perf_counter() - t)
         return entry
 
