@@ -36,8 +36,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
-import os
 import platform
 import time
 
@@ -47,6 +45,11 @@ import numpy as np
 
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
 from patexgs_jax.render import count_pairs, render_jit
+
+from experiments.provenance import write_benchmark_json
+
+#: The layout of the --json file (experiments.provenance's header plus peak_gflops, timing, results).
+SCHEMA = 1
 
 R = importlib.import_module("patexgs_jax.render")  # the module (``patexgs_jax.render`` is the function)
 
@@ -230,9 +233,7 @@ def main(argv=None):
                       f"{r['compile_forward_s'] + r['compile_backward_s']:9.1f} {r['recompiles']:6d} "
                       f"{r['temp_backward_mib']:11.1f}", flush=True)
             if args.json:  # after every case: a long sweep keeps what it measured
-                with open(args.json, "w") as f:
-                    json.dump(dict(machine=platform.platform(), cpus=os.cpu_count(), jax=jax.__version__,
-                                   peak_gflops=peak, timing="interleaved", results=rows), f, indent=1)
+                write_benchmark_json(args.json, rows, SCHEMA, peak_gflops=peak, timing="interleaved")
 
 
 if __name__ == "__main__":

@@ -26,13 +26,16 @@ sharded step). Results go to ``--json`` (as ``experiments.bench_render``) and a 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import time
 import types
 
 from experiments.bench_render import parse_size
+from experiments.provenance import write_benchmark_json
+
+#: The layout of the --json file (experiments.provenance's header plus steps, results).
+SCHEMA = 1
 
 CONFIGS = {  # name: (texture side or None, mip mode, coverage mode)
     "2dgs": (None, "none", "lowpass"),
@@ -162,9 +165,7 @@ def main(argv=None):
               f"{r['devices']} | {r['ms_per_step']:.1f} | {r['ms_per_view']:.1f} | {r['compile_s']:.1f} | "
               f"{r['recompiles_steady']} |")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(dict(machine=platform.platform(), jax=jax.__version__, steps=args.steps, results=rows), f,
-                      indent=1)
+        write_benchmark_json(args.json, rows, SCHEMA, steps=args.steps)
     bad = [r for r in rows if r["recompiles_steady"]]
     return 1 if bad else 0
 

@@ -12,7 +12,11 @@ def test_bench_render_reports_each_effect(tmp_path, capsys):
     out = tmp_path / "render.json"
     bench_render.main(["--gaussians", "300", "--sizes", "48x32", "--repeats", "1", "--no-peak",
                        "--configs", "2dgs,tex8-rgb,tex8-alpha,tex8-mip", "--json", str(out)])
-    rows = json.loads(out.read_text())["results"]
+    data = json.loads(out.read_text())
+    for key in ("schema", "git", "date", "machine", "cpu", "cpus", "jax", "backend", "devices"):
+        assert key in data, key  # where and on what the figures were measured
+    assert data["schema"] == bench_render.SCHEMA and data["timing"] == "interleaved"
+    rows = data["results"]
     assert [r["config"] for r in rows] == ["2dgs", "tex8-rgb", "tex8-alpha", "tex8-mip"]
     for r in rows:
         assert (r["gaussians"], r["width"], r["height"]) == (300, 48, 32)
@@ -34,3 +38,24 @@ def test_bench_render_rejects_unknown_config(capsys):
     with pytest.raises(SystemExit):
         bench_render.main(["--configs", "2dgs,tex9", "--no-peak"])
     assert "tex9" in capsys.readouterr().err
+
+
+def test_provenance_header_names_commit_date_and_machine(tmp_path, monkeypatch):
+    import datetime
+    import subprocess
+
+    from experiments import provenance
+
+    path = provenance.write_benchmark_json(tmp_path / "sub" / "b.json", [{"x": 1}], 3, steps=5)
+    data = json.loads(path.read_text())
+    assert data["schema"] == 3 and data["steps"] == 5 and data["results"] == [{"x": 1}]
+    datetime.datetime.strptime(data["date"], "%Y-%m-%dT%H:%M:%SZ")
+    assert data["cpus"] >= 1 and data["devices"] >= 1 and data["machine"] and data["cpu"]
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=provenance._REPO,
+                          capture_output=True, text=True).stdout.strip()
+    if head:  # a checkout: the commit, marked when tracked files differ from it
+        assert data["git"].split("-")[0] == head
+    # Outside a checkout (an installed copy), or without git, the commit is null, not an error.
+    monkeypatch.setattr(provenance, "_git", lambda *a: None)
+    assert provenance.git_commit() is None
+    assert not list(tmp_path.glob("sub/*.tmp"))
