@@ -97,11 +97,11 @@ def find_scenes(root, names=None) -> dict[str, Path]:
       root: a scene folder or a folder of scene folders.
       names: optional scene names to keep (each must exist).
     """
-    from patexgs_jax.data import DatasetError, detect_format
+    from patexgs_jax.data import DatasetError, detect_format, photos_without_poses_hint
 
     root = Path(root)
     if not root.exists():
-        raise StudyError(f"--data {root} does not exist.")
+        raise StudyError(f"--data {root} does not exist: pass a scene folder or a folder of scene folders.")
 
     def is_scene(p):
         try:
@@ -117,8 +117,10 @@ def find_scenes(root, names=None) -> dict[str, Path]:
         order = [n for n in MIPNERF360_SCENES if n in found] + [n for n in found if n not in MIPNERF360_SCENES]
         scenes = {n: found[n] for n in order}
     if not scenes:
+        photos = photos_without_poses_hint(root)
         raise StudyError(f"no scene under {root}: expected scene folders (COLMAP sparse/0, transforms.json or "
-                         "poses_bounds.npy), e.g. the Mip-NeRF 360 release's bicycle/, garden/, ...")
+                         "poses_bounds.npy), e.g. the Mip-NeRF 360 release's bicycle/, garden/, ..."
+                         + (f" {photos}" if photos else ""))
     if names:
         missing = [n for n in names if n not in scenes]
         if missing:

@@ -227,6 +227,13 @@ def test_arguments_are_checked(tmp_path):
     assert mn.main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "o"), "--no-compile-cache"]) == 2
     with pytest.raises(ValueError, match="unknown method"):
         mn.run(str(tmp_path), methods=["patexgs", "nerf"], out=str(tmp_path / "o"), verbose=False)
+    # Photos without camera poses: the error says how to estimate them.
+    photos = tmp_path / "capture" / "images"
+    photos.mkdir(parents=True)
+    for i in range(3):
+        (photos / f"img{i}.JPG").write_bytes(b"")
+    with pytest.raises(mn.StudyError, match=r"3 photo\(s\).*python -m patexgs_jax\.prepare"):
+        mn.find_scenes(tmp_path / "capture")
 
 
 @pytest.mark.slow

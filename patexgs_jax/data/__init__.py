@@ -76,6 +76,7 @@ from .nerf import find_transforms, load_nerf  # noqa: E402
 __all__ = [
     "load",
     "detect_format",
+    "photos_without_poses_hint",
     "load_colmap",
     "load_llff",
     "load_nerf",
@@ -101,6 +102,20 @@ __all__ = [
 ]
 
 _LOADERS = {"colmap": load_colmap, "llff": load_llff, "nerf": load_nerf}
+
+
+def photos_without_poses_hint(path) -> str | None:
+    """What to do with a folder of photos that has no camera model (the photos directly in ``path``
+    or in ``path/images``): run :mod:`patexgs_jax.prepare`; None when it holds no photos."""
+    p = Path(path)
+    for folder in (p / "images", p):
+        n = sum(1 for f in folder.glob("*") if f.suffix.lower() in (".jpg", ".jpeg", ".png")) if folder.is_dir() else 0
+        if n:
+            out = p.resolve().with_name(p.resolve().name + "_colmap")
+            return (f"It holds {n} photo(s) in {folder} but no camera poses: estimate them with "
+                    f"`python -m patexgs_jax.prepare {folder} {out}` (COLMAP through pycolmap), "
+                    f"then pass {out}.")
+    return None
 
 
 def detect_format(path) -> str:
@@ -132,6 +147,9 @@ def detect_format(path) -> str:
     if (p / "sparse").is_dir():
         hint = (" (sparse/ exists but holds no complete model: it needs cameras, images and points3D, all .bin "
                 "or all .txt, in sparse/0/ or sparse/)")
+    photos = photos_without_poses_hint(p)
+    if photos:
+        raise DatasetError(f"{p} is not a recognised dataset{hint}. {photos}")
     raise DatasetError(
         f"{p} is not a recognised dataset{hint}. Looked for: a COLMAP model (sparse/0/ or sparse/ with "
         "cameras, images, points3D as .bin or .txt, images in images/), an LLFF poses_bounds.npy, or a NeRF "
