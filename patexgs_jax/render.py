@@ -685,7 +685,7 @@ class _Geometry(NamedTuple):
     v: jax.Array
     ok: jax.Array      # the ray meets the plane
     inv: jax.Array     # 1 / s2 (see _uv)
-    use3: jax.Array    # the 3D term wins (rho3d <= rho2d)
+    use3: jax.Array    # the 3D term wins (rho3d <= rho2d); prefilter: a hit within the support
 
 
 def _cols(pk):
