@@ -5,8 +5,9 @@ A jitted renderer or training step is compiled once per image size (``Camera.wid
 20 sizes over 62 training views), and evaluation adds every view's zoom-outs, so compiling per size
 fills the process's memory mappings (see :mod:`patexgs_jax.compiled`). Here a view is rendered at a
 bucket size instead, with the same intrinsics, and cropped: pixel (i, j) keeps its centre
-(j + 0.5, i + 0.5) and the renderer composites each tile independently, so the cropped image equals
-the unpadded render.
+(j + 0.5, i + 0.5) and the renderer composites each tile independently, so the cropped image is the
+unpadded render: bit for bit when the bucket keeps the tile grid, within float rounding (1e-6
+relative, tiles are batched differently) when it adds tiles.
 
 Buckets: the side is rounded up to whole tiles (the renderer computes whole tiles anyway: the
 padding inside the last tile is free), then the number of tiles t to ``steps_per_octave`` sizes per

@@ -332,7 +332,7 @@ def test_repeated_nonfinite_steps_stop_the_run(dataset, tmp_path):
     good = ckpt.latest_checkpoint(out / "checkpoints")
     good_bytes = good.read_bytes()
 
-    def nan_loss(rgb, target, lambda_dssim=0.2):
+    def nan_loss(rgb, target, lambda_dssim=0.2, valid=None):
         l1 = jnp.mean(jnp.abs(rgb - target))
         return l1 * jnp.nan, l1
 
