@@ -18,13 +18,14 @@ Units and conventions
 Re-bucketing (:func:`resize_textures`)
   A texture whose side changes from n to m is resampled exactly as the renderer samples it
   (:mod:`patexgs_jax.textures`): new texel j sits at splat-plane position ``-3 + 6 j / (m - 1)``
-  and takes the bilinear, edge-clamped, align-corners value of the old n x n texture there; an
-  m = 1 texture takes the value at the centre (0, 0) (not the mean), so the whole resampling is
-  one separable linear map ``R_{m,n} X R_{m,n}^T`` with non-negative weights summing to one per
-  row. Growth from 1 x 1 is therefore exact (a constant), and so is any n -> m with (m - 1) a
-  multiple of (n - 1) (the new grid contains the old grid, and the bilinear interpolant is
-  unchanged), e.g. 2 -> any m, 3 -> 5, 5 -> 9. The Adam moments ``mu`` and ``nu`` of the texels
-  are resampled by the same map (``nu`` stays >= 0). A texture appearing (0 -> m) starts as the
+  and, when the texture grows (m > n), takes the bilinear, edge-clamped, align-corners value of
+  the old n x n texture there; when it shrinks (m < n), the mean of that interpolant over the new
+  texel's cell (an area filter that keeps the texture's mean; see :func:`resample_matrix`). Either
+  way the resampling is one separable linear map ``R_{m,n} X R_{m,n}^T`` with non-negative weights
+  summing to one per row. Growth from 1 x 1 is therefore exact (a constant), and so is any n -> m
+  with (m - 1) a multiple of (n - 1) (the new grid contains the old grid, and the bilinear
+  interpolant is unchanged), e.g. 2 -> any m, 3 -> 5, 5 -> 9. The Adam moments ``mu`` and ``nu``
+  of the texels are resampled by the same map (``nu`` stays >= 0). A texture appearing (0 -> m) starts as the
   bank's neutral value (RGB offset 0, alpha multiplier 1: rendering is unchanged) with zero
   moments; a texture disappearing (n -> 0) frees its slot.
 
@@ -87,12 +88,25 @@ _BANKS = ("rgb", "alpha")
 # =============================================================================================
 # Resampling
 # =============================================================================================
-def resample_matrix(n_in: int, n_out: int) -> np.ndarray:
-    """(n_out, n_in) float64 bilinear align-corners resampling matrix (the renderer's sampling).
+def _hat_integral(x: np.ndarray) -> np.ndarray:
+    """``F(x) = integral_{-inf}^{x} max(0, 1 - |s|) ds``: the antiderivative of a unit hat."""
+    x = np.clip(x, -1.0, 1.0)
+    return np.where(x <= 0.0, 0.5 * (x + 1.0) ** 2, 1.0 - 0.5 * (1.0 - x) ** 2)
 
-    Row j holds the weights of the old texels at new texel j's position ``-3 + 6 j / (n_out - 1)``
-    (the centre, 0, when ``n_out == 1``), with the renderer's edge clamp. Weights are exact
-    (integer arithmetic for the positions), non-negative, and each row sums to one.
+
+def resample_matrix(n_in: int, n_out: int) -> np.ndarray:
+    """(n_out, n_in) float64 resampling matrix: non-negative weights, each row summing to one.
+
+    Growing or keeping the side (``n_out >= n_in``): row j holds the bilinear weights of the old
+    texels at new texel j's position ``-3 + 6 j / (n_out - 1)``, with the renderer's edge clamp
+    (the renderer's own sampling; exact integer arithmetic for the positions).
+
+    Shrinking (``n_out < n_in``): an area filter. New texel j is the mean of the old texture's
+    bilinear interpolant over its cell, ``[-3 + 6 (j - 1/2) / (n_out - 1), -3 + 6 (j + 1/2) /
+    (n_out - 1)]`` cut to [-3, 3] (the whole square when ``n_out == 1``). The cells tile the square
+    with the widths the new interpolant's trapezoid rule gives its texels, so the interpolant's mean
+    over the square is kept exactly: a texture that shrinks keeps its mean colour and coverage, and
+    every old texel contributes (point-sampling a 5 x 5 texture at side 2 would read only its corners).
     """
     n_in, n_out = int(n_in), int(n_out)
     if n_in < 1 or n_out < 1:
@@ -101,9 +115,21 @@ def resample_matrix(n_in: int, n_out: int) -> np.ndarray:
     if n_in == 1:
         R[:, 0] = 1.0
         return R
+    if n_out < n_in:
+        # In old-grid units t in [0, n_in - 1]: old texel a is the hat max(0, 1 - |t - a|).
+        last = n_in - 1.0
+        if n_out == 1:
+            lo, hi = np.array([0.0]), np.array([last])
+        else:
+            h = last / (n_out - 1)
+            c = np.arange(n_out) * h
+            lo, hi = np.maximum(c - h / 2, 0.0), np.minimum(c + h / 2, last)
+        a = np.arange(n_in)[None, :]
+        R = (_hat_integral(hi[:, None] - a) - _hat_integral(lo[:, None] - a)) / (hi - lo)[:, None]
+        return R / R.sum(axis=1, keepdims=True)  # (sums are one up to rounding; make them exact-er)
     for j in range(n_out):
-        # Old-grid coordinate t = j (n_in - 1) / (n_out - 1) = a0 + f (centre (n_in - 1)/2 if n_out = 1).
-        num, den = (j * (n_in - 1), n_out - 1) if n_out > 1 else (n_in - 1, 2)
+        # Old-grid coordinate t = j (n_in - 1) / (n_out - 1) = a0 + f.
+        num, den = j * (n_in - 1), n_out - 1
         a0, rem = divmod(num, den)
         f = rem / den
         if a0 >= n_in - 1:  # the last texel: clamp like the renderer (a0 = n - 2, f = 1)

@@ -29,12 +29,33 @@ NEUTRAL = {"rgb": 0.0, "alpha": 1.0}
 
 
 # ----------------------------------------------------------------------------------- helpers
+def ref_area_weights(n: int, m: int, samples: int = 20_000) -> np.ndarray:
+    """(m, n) weights of the mean of the bilinear interpolant over each new texel's cell, by the
+    midpoint rule on ``samples`` points a cell (independent of the closed form)."""
+    last = n - 1.0
+    if m == 1:
+        cells = [(0.0, last)]
+    else:
+        h = last / (m - 1)
+        cells = [(max(j * h - h / 2, 0.0), min(j * h + h / 2, last)) for j in range(m)]
+    W = np.zeros((m, n))
+    for j, (lo, hi) in enumerate(cells):
+        t = lo + (np.arange(samples) + 0.5) * (hi - lo) / samples
+        W[j] = np.maximum(0.0, 1.0 - np.abs(t[:, None] - np.arange(n)[None, :])).mean(axis=0)
+    return W
+
+
 def ref_resample(tex: np.ndarray, m: int) -> np.ndarray:
-    """Independent reference: evaluate the renderer's bilinear lookup (textures.corners, in float64)
-    at the new texel positions -3 + 6 j / (m - 1) (the centre for m = 1), one texel at a time."""
+    """Independent reference. Growing: the renderer's bilinear lookup (textures.corners, in
+    float64) at the new texel positions -3 + 6 j / (m - 1), one texel at a time. Shrinking: the
+    interpolant's mean over each new texel's cell (:func:`ref_area_weights`, separably: the
+    interpolant is a tensor product)."""
     n = tex.shape[0]
     tex = tex.astype(np.float64)
-    pos = np.array([0.0]) if m == 1 else -3.0 + 6.0 * np.arange(m) / (m - 1)
+    if m < n:
+        W = ref_area_weights(n, m)
+        return np.einsum("ma,abc,nb->mnc", W, tex, W)
+    pos = -3.0 + 6.0 * np.arange(m) / (m - 1) if m > 1 else np.array([0.0])
 
     def lookup(u, v):
         last = max(n - 1.0, 0.0)
@@ -49,6 +70,13 @@ def ref_resample(tex: np.ndarray, m: int) -> np.ndarray:
                 + fa * ((1 - fb) * tex[a1, b0] + fb * tex[a1, b1]))
 
     return np.array([[lookup(u, v) for v in pos] for u in pos])
+
+
+def interpolant_mean(tex: np.ndarray) -> np.ndarray:
+    """(ch,) mean of a texture's bilinear interpolant over [-3, 3]^2 (trapezoid weights)."""
+    n = tex.shape[0]
+    w = np.ones(n) if n == 1 else np.r_[0.5, np.ones(n - 2), 0.5] / (n - 1)
+    return np.einsum("a,abc,b->c", w, tex.astype(np.float64), w)
 
 
 def slot_of(bank, i):
@@ -198,11 +226,30 @@ def test_resample_matrix_properties():
             R = resample_matrix(n, m)
             assert R.shape == (m, n) and np.all(R >= 0)
             np.testing.assert_allclose(R.sum(axis=1), 1.0, atol=1e-15)
+            if 1 < m < n:
+                np.testing.assert_allclose(R, ref_area_weights(n, m), atol=1e-8)
     assert np.array_equal(resample_matrix(4, 4), np.eye(4))
-    np.testing.assert_array_equal(resample_matrix(3, 1), [[0.0, 1.0, 0.0]])  # m = 1: the centre
-    np.testing.assert_array_equal(resample_matrix(2, 1), [[0.5, 0.5]])
+    np.testing.assert_allclose(resample_matrix(3, 1), [[0.25, 0.5, 0.25]], atol=1e-15)  # m = 1: the mean
+    np.testing.assert_allclose(resample_matrix(2, 1), [[0.5, 0.5]], atol=1e-15)
+    np.testing.assert_allclose(resample_matrix(5, 2), [[0.25, 0.5, 0.25, 0, 0], [0, 0, 0.25, 0.5, 0.25]],
+                               atol=1e-15)  # every texel of the 5x5 warm-up texture counts
     np.testing.assert_array_equal(resample_matrix(1, 3), [[1.0], [1.0], [1.0]])
     np.testing.assert_array_equal(resample_matrix(2, 3), [[1, 0], [0.5, 0.5], [0, 1]])
+
+
+@settings(max_examples=25)
+@given(sides=st.lists(st.integers(1, 12), min_size=2, max_size=6), seed=st.integers(0, 2**16))
+def test_shrinking_keeps_the_mean(sides, seed):
+    """Any sequence of shrinks keeps the interpolant's mean; a growth keeps it where it is exact."""
+    tex = np.random.default_rng(seed).normal(size=(sides[0], sides[0], 3))
+    mean = interpolant_mean(tex)
+    for m in sides[1:]:
+        n = tex.shape[0]
+        tex = np.einsum("ma,abc,nb->mnc", resample_matrix(n, m), tex, resample_matrix(n, m))
+        if m < n or n == 1 or (m - 1) % (n - 1) == 0:
+            np.testing.assert_allclose(interpolant_mean(tex), mean, rtol=1e-12, atol=1e-12)
+        else:
+            mean = interpolant_mean(tex)
 
 
 def test_slots_are_reused_and_capacity_doubles():
