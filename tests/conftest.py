@@ -20,8 +20,13 @@ sys.path.insert(0, os.path.dirname(__file__))
 # before anything compiles (JAX decides once whether the cache is used). It was once switched off
 # after "a hang in the compile-and-write-cache path"; that hang was the memory-map cap (see
 # patexgs_jax.compiled), which _release_compiled_code below now keeps the session away from.
-_XLA_CACHE = tempfile.mkdtemp(prefix="patexgs_xla_cache_")
-atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
+# The first process to load this file (pytest-xdist's controller, or pytest alone) makes the cache
+# and removes it at exit; xdist's workers inherit its path, so a program one worker compiled loads in
+# the other.
+_XLA_CACHE = os.environ.get("PATEXGS_TEST_XLA_CACHE")
+if not _XLA_CACHE or not os.path.isdir(_XLA_CACHE):
+    _XLA_CACHE = os.environ["PATEXGS_TEST_XLA_CACHE"] = tempfile.mkdtemp(prefix="patexgs_xla_cache_")
+    atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
