@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import collections
 import importlib
-import json
 import platform
 import sys
 import tempfile
@@ -29,6 +28,8 @@ import threading
 import time
 
 DEFAULT_LIMIT = 65_530
+SCHEMA = 1
+MAX_SAMPLES = 400  # samples kept in the JSON file (evenly thinned; the peak is computed from all)
 
 
 class Meter:
@@ -236,8 +237,14 @@ def main(argv=None) -> int:
                methods=args.methods, machine=platform.platform(), out=out, interrupted=meter.interrupted)
     print_report(rep)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rep, f, indent=1)
+        from experiments import provenance
+
+        samples = rep.pop("samples")
+        step = max(1, -(-len(samples) // MAX_SAMPLES))
+        phases = rep.pop("phases")
+        rep.pop("machine")  # the provenance header says it
+        provenance.write_benchmark_json(args.json, [dict(phase=k, **v) for k, v in phases.items()], SCHEMA,
+                                        **rep, samples=samples[::step])
         print(f"written to {args.json}")
     return 0
 
