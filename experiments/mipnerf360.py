@@ -13,7 +13,9 @@ one (4 outdoors, 2 indoors).
 For each scene:
   1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every textured
      method starts from its end-of-stage-1 checkpoint (:func:`patexgs_jax.train.stage1_checkpoint`),
-     so method comparisons start from the same 2DGS model, as in the paper.
+     so method comparisons start from the same 2DGS model, as in the paper. Every method trains
+     the same number of steps: ``2dgs`` continues its stage for the texture stage's steps
+     (``TrainConfig.continue_2dgs``), so a textured method's gain is not extra training.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
      evaluated on the test split (every 8th image) at full resolution and zoomed out by 2, 4 and 8
      (box-downsampled images, scaled cameras): PSNR, SSIM and LPIPS (v0.1 with the AlexNet
@@ -252,9 +254,12 @@ class StudyConfig:
     def train_config(self, method: str, max_gaussians: int | None = None):
         from patexgs_jax.train import preset_config
 
-        return preset_config(self.preset, method=method, iters_2dgs=self.iters_2dgs, iters_tex=self.iters_tex,
-                             max_gaussians=max_gaussians if max_gaussians is not None else self.max_gaussians,
-                             seed=self.seed, **(self.train_overrides or {}))
+        cfg = preset_config(self.preset, method=method, iters_2dgs=self.iters_2dgs, iters_tex=self.iters_tex,
+                            max_gaussians=max_gaussians if max_gaussians is not None else self.max_gaussians,
+                            seed=self.seed, **(self.train_overrides or {}))
+        if method == "2dgs":  # equal steps: the baseline continues its stage for the texture stage's steps
+            cfg = dataclasses.replace(cfg, continue_2dgs=cfg.iters_tex)
+        return cfg
 
     def record(self) -> dict:
         from patexgs_jax.train import _config_dict
@@ -516,14 +521,16 @@ def tables_markdown(data: dict) -> str:
                        f"{_fmt(_mean_over_scenes(results, key, lambda e: e['storage_mb']), 2)} |")
         out.append("")
     out += ["## Cost: what the accuracy costs", "",
-            "| method | PSNR | Gaussians | texels | storage MB | train s | render ms |",
-            "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+            "| method | PSNR | Gaussians | texels | storage MB | steps | train s | render ms |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for key in labels:
         m = lambda f: _mean_over_scenes(results, key, f)  # noqa: E731
         out.append(f"| {key} | {_fmt(metric(key, 1, 'psnr'), 2)} | {_fmt(m(lambda e: e['num_gaussians']), 0)} | "
                    f"{_fmt(m(lambda e: e['texels']), 0)} | {_fmt(m(lambda e: e['storage_mb']), 2)} | "
+                   f"{_fmt(m(lambda e: e.get('steps')), 0)} | "
                    f"{_fmt(m(lambda e: e['train_seconds']), 0)} | {_fmt(m(lambda e: e['render_ms']), 1)} |")
-    out.append("")
+    out += ["", "Every method trains the same number of steps: `2dgs` continues its stage for the texture "
+            "stage's steps.", ""]
     return "\n".join(out)
 
 
@@ -660,7 +667,8 @@ def main(argv=None) -> int:
     ap.add_argument("--budget", default=None, help="Gaussian budget: 10%%, 1%% (of the unbudgeted 2DGS count) or "
                     "a count")
     ap.add_argument("--iters-2dgs", type=int, default=None)
-    ap.add_argument("--iters-tex", type=int, default=None)
+    ap.add_argument("--iters-tex", type=int, default=None,
+                    help="texture-stage steps; the preset's warm-up and growth interval scale with it")
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--test-views", type=int, default=None, help="evaluate at most this many test views")

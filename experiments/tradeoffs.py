@@ -22,8 +22,10 @@ Study (the first form)
 
   Variants that differ only in stage-2 settings (``patexgs_jax.train.STAGE2_FIELDS``: mip, texture
   kind) share one 2DGS stage: each distinct stage 1 is trained once, as a ``2dgs`` run, and the
-  textured runs start from its final checkpoint. ``train_seconds`` of a run counts both stages (the
-  shared stage 1 included; compilation included, as the trainer reports it).
+  textured runs start from its end-of-stage-1 checkpoint. That ``2dgs`` run continues its stage for
+  the texture stage's steps, so every entry of a knob trains the same number of steps.
+  ``train_seconds`` of a run counts both stages (the shared stage 1 included; compilation included,
+  as the trainer reports it).
 
   Each run is evaluated on the test views at zoom-out scales 1, 2, 4, 8 (PSNR, SSIM) and its render
   time measured at each scale (per view the fastest of 3 renders, the median over views;
@@ -52,7 +54,8 @@ Effects (the second form)
     {"schema": 1, "data": str, "preset": str, "scales": [1, 2, 4, 8], "machine": str,
      "base": {TrainConfig as JSON}, "study_seconds": float,
      "runs": {run_id: {"run": run_id, "method": str, "config": {...}, "stage1_run": run_id | null,
-                       "train_seconds": float, "stage1_seconds": float | null, "num_gaussians": int,
+                       "steps": int, "train_seconds": float, "stage1_seconds": float | null,
+                       "num_gaussians": int,
                        "texels": int, "storage_mb": float, "psnr": {scale: float},
                        "ssim": {scale: float}, "alias_psnr": {scale: float | null},
                        "render_ms": {scale: float}, "wall_seconds": float}},
@@ -134,11 +137,13 @@ def scaled_iterations(cfg, fraction: float):
 
 
 def stage1_config(cfg, base):
-    """The ``2dgs`` run whose final checkpoint is ``cfg``'s stage 1 (stage-2 fields from ``base``)."""
+    """The ``2dgs`` run whose end-of-stage-1 checkpoint is ``cfg``'s stage 1 (stage-2 fields from
+    ``base``). It continues its stage for ``base``'s texture steps, so that it is also the study's
+    equal-steps 2DGS entry (its stage-1 checkpoint is kept, see ``train.stage1_checkpoint``)."""
     from patexgs_jax.train import STAGE2_FIELDS
 
-    fields = {f: getattr(base, f) for f in STAGE2_FIELDS if f != "method"}
-    return dataclasses.replace(cfg, method="2dgs", **fields)
+    fields = {f: getattr(base, f) for f in STAGE2_FIELDS if f not in ("method", "continue_2dgs")}
+    return dataclasses.replace(cfg, method="2dgs", continue_2dgs=base.iters_tex, **fields)
 
 
 def plan(base, knobs: Sequence[str], *, base_gaussians: int | None = None, fixed_sizes=FIXED_SIZES,
@@ -219,7 +224,8 @@ def markdown(study: dict) -> str:
     runs, pareto = study["runs"], study.get("pareto") or pareto_sets(study["runs"], study["scales"])
     lines = [f"# Accuracy vs time ({Path(str(study['data'])).name}, preset {study['preset']})", "",
              f"Machine: {study.get('machine', '?')}. Test views at zoom-out scales {', '.join(scales)}; "
-             "train s = both stages' training steps (a shared 2DGS stage counted in full); render ms = "
+             "train s = both stages' training steps (a shared 2DGS stage counted in full; 2DGS continues its "
+             "stage for the texture steps: equal steps); render ms = "
              "per frame (per view the fastest of 3 renders, median over views; no compilation); PSNR against "
              "the ground truth; alias x s = the render at 1/s against the run's own full-resolution render "
              "box-downsampled by s. Pareto: T = on the PSNR-vs-training-time front and "
@@ -421,16 +427,20 @@ class Study:
         s1_id, s1_seconds, stage1 = None, None, None
         if cfg.method != "2dgs":
             s1 = stage1_config(cfg, self.base)
-            _, s1_summary = self._train(s1)
-            s1_id, s1_seconds = run_id(s1), float(s1_summary["train_seconds"])
+            self._train(s1)
+            s1_id = run_id(s1)
             stage1 = stage1_checkpoint(self.run_dir(s1), cfg)
             if stage1 is None and not (self.run_dir(cfg) / "checkpoints").is_dir():
                 raise RuntimeError(f"no end-of-stage-1 checkpoint in {self.run_dir(s1)} for {rid}.")
+            if stage1 is not None:  # the 2DGS stage's own time (the 2dgs run went on after it)
+                from patexgs_jax import checkpoint as ckpt
+
+                s1_seconds = float(ckpt.load_checkpoint(stage1)[0]["t_train"])
         scene, summary = self._train(cfg, stage1)
         self.say(f"--- evaluating {rid} at scales {self.scales}")
         m = measure(scene, self.ds.test_views, cfg.render_config(), self.scales, max_views=self.render_views)
         rec = dict(run=rid, method=cfg.method, config=config_json(cfg), stage1_run=s1_id,
-                   train_seconds=float(summary["train_seconds"]), stage1_seconds=s1_seconds,
+                   steps=int(summary["steps"]), train_seconds=float(summary["train_seconds"]), stage1_seconds=s1_seconds,
                    num_gaussians=int(summary["num_gaussians"]), texels=int(summary["texels"]),
                    storage_mb=float(summary["storage_mb"]), wall_seconds=time.perf_counter() - t0, **m)
         self.state["runs"][rid] = rec

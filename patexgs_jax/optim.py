@@ -1,10 +1,19 @@
 """The optimiser: Adam with per-parameter-group learning rates, over a whole :class:`Scene`.
 
-The optimiser state is ``(ScaleByAdamState(count, mu, nu), GroupLRState(count))`` where ``mu`` and
-``nu`` are Scenes of the same structure and shapes as the parameters. Anything that reshapes the
-scene between steps (densification, texture growth and re-bucketing, capacity growth) applies the
-same host-side change to ``mu`` and ``nu`` (see :func:`map_moments`), so no moment is lost or mixed
-between Gaussians.
+The optimiser state is ``(AdamState(count, mu, nu, age), GroupLRState(count))`` where ``mu``,
+``nu`` and ``age`` are Scenes of the same structure and shapes as the parameters. Anything that
+reshapes the scene between steps (densification, texture growth and re-bucketing, capacity growth)
+applies the same host-side change to all three (see :func:`map_moments`), so no moment is lost or
+mixed between Gaussians.
+
+Texels have their own bias correction. Adam divides ``mu`` by ``1 - b1^t`` and ``nu`` by
+``1 - b2^t``, with t the global step count. A texture that appears in the middle of a run starts
+with zero moments while t is large, so without correction its first updates would be up to
+``(1 - b1^k) / sqrt(1 - b2^k)`` = 3.2 (k = 1) to 6.5 (k = 10) times the nominal rate, for hundreds
+of steps. ``age`` counts the steps each texel has been trained (0 for a new texture, carried
+through a resize by the same resampling as the moments, which keeps a texture's age because the
+weights of each new texel sum to one), and texels are corrected with their own age; every other
+group uses the global count, as plain Adam (``age`` stays zero there).
 
 Groups and learning rates (2DGS / 3DGS defaults):
   means: 1.6e-4 x scene radius, decayed exponentially to 1.6e-6 x radius over ``means_steps``;
@@ -89,13 +98,78 @@ def scale_by_group_lr(lr: LearningRates, scene_radius: float, step_offset: int =
     return optax.GradientTransformation(init_fn, update_fn)
 
 
+class AdamState(NamedTuple):
+    """Adam's state with per-texel ages (see the module docstring).
+
+    Attributes:
+      count: () int32, steps taken (the bias correction of every group but the texels).
+      mu, nu: first and second moments, laid out like the parameters.
+      age: like the parameters, float32: steps each texel has been trained (zero elsewhere).
+    """
+
+    count: jax.Array
+    mu: object
+    nu: object
+    age: object
+
+
+def _is_texel_path(path) -> bool:
+    return _group(path) in ("texture_rgb", "texture_alpha")
+
+
+def scale_by_adam_with_texel_age(b1: float = 0.9, b2: float = 0.999, eps: float = 1e-15
+                                 ) -> optax.GradientTransformation:
+    """Adam's normalised update ``mu_hat / (sqrt(nu_hat) + eps)``, bias-corrected with the global
+    step count, except texels, which are corrected with their own age (see the module docstring)."""
+
+    def init_fn(params):
+        def zeros(dtype=None):  # a new tree each time: the training step donates the state's buffers
+            return jax.tree_util.tree_map(lambda x: jnp.zeros_like(x, dtype), params)
+
+        return AdamState(count=jnp.zeros([], jnp.int32), mu=zeros(), nu=zeros(), age=zeros(jnp.float32))
+
+    def update_fn(updates, state, params=None):
+        del params
+        mu = jax.tree_util.tree_map(lambda g, m: b1 * m + (1 - b1) * g, updates, state.mu)
+        nu = jax.tree_util.tree_map(lambda g, v: b2 * v + (1 - b2) * jnp.square(g), updates, state.nu)
+        count = optax.safe_int32_increment(state.count)
+        t = count.astype(jnp.float32)
+        age = jax.tree_util.tree_map_with_path(lambda path, a: a + 1.0 if _is_texel_path(path) else a, state.age)
+
+        def normalised(path, m, v, a):
+            steps = a if _is_texel_path(path) else t
+            c1 = 1.0 - jnp.power(jnp.float32(b1), steps)
+            c2 = 1.0 - jnp.power(jnp.float32(b2), steps)
+            return ((m / c1) / (jnp.sqrt(v / c2) + eps)).astype(m.dtype)
+
+        out = jax.tree_util.tree_map_with_path(normalised, mu, nu, age)
+        return out, AdamState(count=count, mu=mu, nu=nu, age=age)
+
+    return optax.GradientTransformation(init_fn, update_fn)
+
+
 def make_optimizer(scene_radius: float, lr: LearningRates = LearningRates(),
                    step_offset: int = 0) -> optax.GradientTransformation:
-    """Adam (eps 1e-15, as 3DGS) followed by per-group learning rates.
+    """Adam (eps 1e-15, as 3DGS; texels with their own bias correction) followed by per-group
+    learning rates.
 
     ``step_offset`` shifts the means' learning-rate decay (for a stage that continues a run).
     """
-    return optax.chain(optax.scale_by_adam(eps=1e-15), scale_by_group_lr(lr, scene_radius, step_offset))
+    return optax.chain(scale_by_adam_with_texel_age(eps=1e-15), scale_by_group_lr(lr, scene_radius, step_offset))
+
+
+def upgrade_state(opt_state):
+    """An optimiser state from a checkpoint of an earlier version (optax's ``ScaleByAdamState``,
+    without ages) as :func:`make_optimizer` makes it now: every texel's age is the global count,
+    which is the bias correction that state was trained with. Other states are returned as they are."""
+    adam, group = opt_state
+    if isinstance(adam, AdamState) or not isinstance(adam, optax.ScaleByAdamState):
+        return opt_state
+    count = jnp.asarray(adam.count)
+    age = jax.tree_util.tree_map_with_path(
+        lambda path, m: jnp.full(jnp.shape(m), count, jnp.float32) if _is_texel_path(path)
+        else jnp.zeros(jnp.shape(m), jnp.float32), adam.mu)
+    return (AdamState(count=count, mu=adam.mu, nu=adam.nu, age=age), group)
 
 
 def adam_moments(opt_state):
@@ -104,11 +178,13 @@ def adam_moments(opt_state):
 
 
 def map_moments(opt_state, fn: Callable[[Scene], Scene]):
-    """Applies a host-side Scene -> Scene function to both Adam moment trees (mu and nu).
+    """Applies a host-side Scene -> Scene function to every Scene-shaped tree of Adam's state (mu,
+    nu and, with :class:`AdamState`, the texel ages).
 
-    ``fn`` must treat a moment tree as data laid out like the parameters (it is the same change the
+    ``fn`` must treat such a tree as data laid out like the parameters (it is the same change the
     caller applies to the parameters, e.g. gathering rows for a prune or moving texels between
-    buckets); index leaves of moment trees hold zeros and should be produced as zeros.
+    buckets); index leaves of these trees hold zeros and should be produced as zeros.
     """
     adam, group = opt_state
-    return (adam._replace(mu=fn(adam.mu), nu=fn(adam.nu)), group)
+    trees = {k: fn(getattr(adam, k)) for k in ("mu", "nu", "age") if isinstance(getattr(adam, k, None), Scene)}
+    return (adam._replace(**trees), group)

@@ -65,12 +65,15 @@ from . import densify as dens
 from . import losses
 from . import schedule as sched
 from .metrics import storage_mb
-from .optim import LearningRates, make_optimizer
+from .optim import LearningRates, make_optimizer, upgrade_state
 from .render import Capacity, RenderConfig, count_pairs, render_jit
 from .scene import Scene
 
 #: Traces of the jitted training step, per (render config, capacity): tests assert on it.
 STEP_TRACES: collections.Counter = collections.Counter()
+
+#: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see _Run.save_stage1).
+STAGE1_DIR = "stage1"
 
 #: Steps between two looks at the memory-map count (it is also read after every compile).
 _MAP_CHECK_EVERY = 25
@@ -94,6 +97,10 @@ class TrainConfig:
     Attributes:
       method: see the module docstring.
       iters_2dgs, iters_tex: steps of the two stages (``iters_tex`` unused by ``2dgs``).
+      continue_2dgs: ``2dgs`` only: steps that continue the 2DGS stage after ``iters_2dgs`` (its
+        schedules as at the end of the stage: no densification, the final position learning rate).
+        Set to ``iters_tex`` for a 2DGS baseline that trains as many steps as the textured methods
+        (the studies do).
       warmup_tex: stage-2 warm-up steps before the Eq. 7 allocation (patexgs methods).
       growth_interval: steps between Eq. 8-10 growth events.
       growth_stop: fraction of stage 2 after which textures stop growing (t_final).
@@ -127,6 +134,7 @@ class TrainConfig:
     method: str = "patexgs"
     iters_2dgs: int = 30_000
     iters_tex: int = 30_000
+    continue_2dgs: int = 0
     warmup_tex: int = 1_000
     growth_interval: int = 100
     growth_stop: float = 0.5
@@ -159,12 +167,24 @@ class TrainConfig:
             raise ValueError(f"batch_size and devices must be >= 1, got {self.batch_size} and {self.devices}.")
         if self.iters_2dgs < 1 or self.iters_tex < 0:
             raise ValueError("iters_2dgs must be >= 1 and iters_tex >= 0.")
+        if self.continue_2dgs < 0 or (self.continue_2dgs and self.method != "2dgs"):
+            raise ValueError(f"continue_2dgs (steps that continue the 2DGS stage) must be >= 0 and is for method "
+                             f"'2dgs' only, got {self.continue_2dgs} with method {self.method!r}.")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}.")
+        if self.growth_interval < 1 or self.warmup_tex < 0:
+            raise ValueError(f"growth_interval must be >= 1 and warmup_tex >= 0, got {self.growth_interval} and "
+                             f"{self.warmup_tex}.")
+        if method_spec(self.method)["textures"] == "adaptive" and self.warmup_tex >= self.iters_tex:
+            raise ValueError(
+                f"method {self.method!r} allocates its texture sizes (Eq. 7) after the {self.warmup_tex}-step "
+                f"texture warm-up, but the texture stage has only {self.iters_tex} steps: the allocation would never "
+                "happen. Give more texture steps (iters_tex, --iters-tex) or a shorter warm-up (warmup_tex); "
+                "preset_config scales the warm-up with an iters_tex override.")
 
     @property
     def total_steps(self) -> int:
-        return self.iters_2dgs + (0 if self.method == "2dgs" else self.iters_tex)
+        return self.iters_2dgs + (self.continue_2dgs if self.method == "2dgs" else self.iters_tex)
 
     def render_config(self, stage: int = 2) -> RenderConfig:
         """The renderer's settings in ``stage`` (1: the 2DGS stage, the same for every method so that
@@ -193,12 +213,30 @@ PRESETS = {
 }
 
 
+#: Texture-stage fields that :func:`preset_config` scales with an ``iters_tex`` override.
+TEXTURE_SCHEDULE_FIELDS = ("warmup_tex", "growth_interval")
+
+
 def preset_config(preset: str = "paper", **overrides) -> TrainConfig:
-    """A :class:`TrainConfig` from a named preset, with keyword overrides (None values ignored)."""
+    """A :class:`TrainConfig` from a named preset, with keyword overrides (None values ignored).
+
+    An ``iters_tex`` override scales the preset's texture schedule with it: ``warmup_tex`` and
+    ``growth_interval`` (unless given too) keep their share of the stage, so that the warm-up,
+    the Eq. 7 allocation and the growth events all still happen (the paper preset's 1,000-step
+    warm-up would otherwise outlast a 600-step texture stage). :class:`TrainConfig` refuses a
+    schedule whose warm-up leaves no room for Eq. 7.
+    """
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}.")
     kw = dict(PRESETS[preset])
-    kw.update({k: v for k, v in overrides.items() if v is not None})
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if "iters_tex" in given:
+        base = kw.get("iters_tex", TrainConfig.iters_tex)
+        f = given["iters_tex"] / base
+        for name in TEXTURE_SCHEDULE_FIELDS:
+            if name not in given:
+                given[name] = max(1, round(f * kw.get(name, getattr(TrainConfig, name))))
+    kw.update(given)
     return TrainConfig(**kw)
 
 
@@ -420,6 +458,8 @@ class _Run:
         self.t_train = 0.0
         self.texel_budget = None
         self.allocation = None
+        self.growth_events = []  # one dict per Eq. 8-10 event that grew textures (summary.json)
+        self.stage1_saved = False
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
         # program per size bucket; released when the layout changes (see _compiled_step).
@@ -447,10 +487,12 @@ class _Run:
                     # None (refit before the next step) after a densification that grew the scene: 0.
                     capacity=np.array([0 if self.capacity is None else self.capacity.pairs]),
                     counters=np.array([self.step, self.skipped, self.recompiles]),
-                    t_train=np.array(self.t_train), allocation=self.allocation)
+                    t_train=np.array(self.t_train), allocation=self.allocation,
+                    growth_events=list(self.growth_events))
 
     def load_state(self, tree):
-        self.scene, self.opt_state, self.stats = tree["scene"], tree["opt_state"], tree["stats"]
+        self.scene, self.stats = tree["scene"], tree["stats"]
+        self.opt_state = upgrade_state(tree["opt_state"])
         if tree["tex_sizes"] is not None:
             c = tree["tex_counters"]
             self.tex_state = sched.TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
@@ -458,6 +500,7 @@ class _Run:
         self.step, self.skipped, self.recompiles = (int(v) for v in tree["counters"])
         self.t_train = float(tree["t_train"])
         self.allocation = tree.get("allocation")
+        self.growth_events = list(tree.get("growth_events") or [])
 
     def save(self):
         if self.out is None:
@@ -465,6 +508,18 @@ class _Run:
         path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
         ckpt.save_checkpoint(path, self.state_tree(), dict(config=_config_dict(self.cfg), step=self.step),
                              keep=2)
+
+    def save_stage1(self):
+        """At the end of the 2DGS stage of a run that goes on: a checkpoint (a restart point) and a
+        copy kept in ``checkpoints/stage1/`` (out of the rotation), from which other methods can
+        start (:func:`stage1_checkpoint`)."""
+        self.stage1_saved = True
+        if self.out is None or self.step >= self.cfg.total_steps:
+            return
+        self.save()
+        meta = dict(config=_config_dict(self.cfg), step=self.step)
+        ckpt.save_checkpoint(ckpt.checkpoint_path(self.out / "checkpoints" / STAGE1_DIR, self.step),
+                             self.state_tree(), meta, keep=1)
 
     # -- helpers ---------------------------------------------------------------------------------
     def view(self, step):
@@ -596,7 +651,7 @@ class _Run:
         self.scene, self.opt_state, info = sched.resize_textures(self.scene, self.opt_state, sides, sides)
         self.texel_budget = budget
         self.allocation = dict(step=self.step, sigma=float(sigma), texels=int(np.sum(sides[act] ** 2)),
-                               budget_texels=budget)
+                               budget_texels=budget, sides=_side_histogram(sides, act))
         self.log(dict(event="allocation", **self.allocation))
         self.say(f"[stage 2] Eq. 7 allocation (sigma {sigma:.4g}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
                  f"{int(np.sum(sides[act] ** 2))} RGBA texels")
@@ -640,8 +695,9 @@ class _Run:
             if compiled_last or step % _MAP_CHECK_EVERY == 0:
                 self.check_memory_maps()
             compiled_last = False
+            if step == cfg.iters_2dgs and self.scene.rgb is None and not self.stage1_saved:
+                self.save_stage1()
             if self.spec["textures"] is not None and step == cfg.iters_2dgs and self.scene.rgb is None:
-                self.save()  # the end of the 2DGS stage is a natural restart point
                 self.start_textures()
             if (self.spec["textures"] == "adaptive" and self.tex_state is None
                     and step == cfg.iters_2dgs + cfg.warmup_tex):
@@ -731,17 +787,25 @@ class _Run:
             if schedule.is_growth_step(step):
                 grad = self.stats.mean_grad()
                 act = np.asarray(self.scene.active) > 0
+                before = self.tex_state.sides(self.cfg.max_texture_size)
                 new_state, sides, sel = self.tex_state.step(grad, step, schedule, active=act,
                                                             texel_budget=self.texel_budget)
                 self.tex_state = new_state
                 if sel.any():
                     self.scene, self.opt_state, info = sched.resize_textures(self.scene, self.opt_state, sides, sides)
+                    event = dict(step=step, grown=int(np.sum(sides[act] > before[act])),
+                                 texels_added=int(np.sum(sides[act] ** 2) - np.sum(before[act] ** 2)),
+                                 texels=int(np.sum(sides[act] ** 2)))
+                    self.growth_events.append(event)
+                    self.log(dict(event="growth", **event))
+                    self.say(f"[stage 2] Eq. 8-10 growth at step {step}: {event['grown']} Gaussians grew, "
+                             f"+{event['texels_added']} RGBA texels ({event['texels']} in all)")
                 self.stats = dens.DensifyStats.zeros(self.scene.capacity)
 
 
 #: Fields that only matter after the 2DGS stage: runs that agree on every other field have the same
 #: stage 1, which :func:`train` can take from another run's end-of-stage-1 checkpoint.
-STAGE2_FIELDS = frozenset({"method", "iters_tex", "warmup_tex", "growth_interval", "growth_stop", "tau_preset",
+STAGE2_FIELDS = frozenset({"method", "iters_tex", "continue_2dgs", "warmup_tex", "growth_interval", "growth_stop", "tau_preset",
                            "sigma", "texture_budget_mb", "max_texture_size", "lambda_mip", "checkpoint_every",
                            "log_every", "max_bad_steps"})
 
@@ -749,6 +813,12 @@ STAGE2_FIELDS = frozenset({"method", "iters_tex", "warmup_tex", "growth_interval
 #: Fields that change how a run executes, not what it computes: a run may resume (or take its stage 1
 #: from a run) with other values of these.
 RUNTIME_FIELDS = frozenset({"devices", "checkpoint_every", "log_every"})
+
+
+def _side_histogram(sides, active) -> dict:
+    """``{side: number of active Gaussians with that texture side}`` (str keys, as JSON writes them)."""
+    values, counts = np.unique(np.asarray(sides)[np.asarray(active)].astype(int), return_counts=True)
+    return {str(int(v)): int(c) for v, c in zip(values, counts)}
 
 
 def _comparable(saved: dict) -> dict:
@@ -769,9 +839,12 @@ def stage1_key(cfg: TrainConfig) -> dict:
 
 
 def stage1_checkpoint(run_dir, config: TrainConfig) -> Path | None:
-    """The end-of-2DGS-stage checkpoint in ``run_dir/checkpoints`` usable by ``config``, or None."""
+    """The end-of-2DGS-stage checkpoint of the run in ``run_dir`` usable by ``config``, or None: the
+    run's final checkpoint if it ended there, else the copy kept in ``checkpoints/stage1/``."""
     directory = Path(run_dir) / "checkpoints"
-    for path in reversed(ckpt.list_checkpoints(directory)) if directory.is_dir() else ():
+    paths = list(reversed(ckpt.list_checkpoints(directory))) + list(reversed(ckpt.list_checkpoints(
+        directory / STAGE1_DIR)))
+    for path in paths:
         try:
             meta = ckpt.read_metadata(path)
         except ckpt.CheckpointError:
@@ -877,6 +950,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
                    texels_rgb=texels["rgb"], texels_alpha=texels["alpha"],
                    storage_mb=storage_mb(scene.num_active(), int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]),
                    recompiles=run.recompiles, skipped_steps=run.skipped, allocation=run.allocation,
+                   growth_events=run.growth_events,
+                   sides_final=None if scene.rgb is None else _side_histogram(
+                       np.asarray(scene.rgb.size), np.asarray(scene.active) > 0),
                    stage1_from=None if stage1 is None else str(stage1))
     train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
     test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
@@ -925,7 +1001,8 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="paper", choices=sorted(PRESETS),
                     help="iteration schedule (default: paper); --iters-* override it")
     ap.add_argument("--iters-2dgs", type=int, default=None)
-    ap.add_argument("--iters-tex", type=int, default=None)
+    ap.add_argument("--iters-tex", type=int, default=None,
+                    help="texture-stage steps; the preset's warm-up and growth interval scale with it")
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--texture-budget-mb", type=float, default=None)
     ap.add_argument("--seed", type=int, default=0)

@@ -10,7 +10,6 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 from hypothesis import given, settings, strategies as st
 
@@ -18,7 +17,7 @@ from patexgs_jax import Scene, random_scene
 from patexgs_jax.densify import (DensifyConfig, DensifyStats, accumulate, densify_and_prune,
                                  prune_gaussians, reset_opacity, resize_capacity, resize_opt_state)
 from patexgs_jax.math import quat_to_rotmat
-from patexgs_jax.optim import GroupLRState, adam_moments, make_optimizer
+from patexgs_jax.optim import AdamState, GroupLRState, adam_moments, make_optimizer
 
 
 def tagged_scene(scales, opacities, capacity, seed=0, sh_degree=1):
@@ -61,7 +60,7 @@ def tagged_state(scene):
         return jax.tree_util.tree_map_with_path(f, scene)
 
     # The structure make_optimizer(...).init(scene) has (built directly: no per-shape compiles).
-    return (optax.ScaleByAdamState(count=np.zeros([], np.int32), mu=fill(1.0), nu=fill(1000.0)),
+    return (AdamState(count=np.zeros([], np.int32), mu=fill(1.0), nu=fill(1000.0), age=fill(2000.0)),
             GroupLRState(count=np.zeros([], np.int32)))
 
 
@@ -124,7 +123,7 @@ def test_hand_built_clone_split_prune():
         np.testing.assert_array_equal(np.asarray(getattr(s2, f)[6]), np.asarray(getattr(scene, f)[0]))
     # Moments: untouched rows keep theirs, new / split / pruned rows are zero, count kept.
     mu, nu = adam_moments(st2)
-    for m, base in ((mu, 1.0), (nu, 1000.0)):
+    for m, base in ((mu, 1.0), (nu, 1000.0), (st2[0].age, 2000.0)):  # every tree of Adam's state follows
         got = np.asarray(m.means)[:, 0]
         np.testing.assert_array_equal(got, [base + 0, 0, base + 2, 0, 0, 0, 0, 0])
         np.testing.assert_array_equal(np.asarray(m.opacity_logits), got)

@@ -491,3 +491,59 @@ def test_add_textures_then_update_step():
     s5, st5, _ = add_textures(scene, state, None, None, np.full(C, 5))
     assert s5.rgb is None and not np.any(np.asarray(adam_moments(st5)[0].alpha.buckets[3]))
     assert add_textures(scene, None, None, np.ones(C, int), None)[1] is None
+
+
+def test_new_texels_have_their_own_bias_correction():
+    """A texture that appears late is corrected with its own age (its first update is the nominal
+    learning rate, not 3.2x it); a resize carries each texture's age; other groups use the count;
+    an optax state from an older checkpoint upgrades to the same structure."""
+    from patexgs_jax.optim import AdamState, LearningRates, upgrade_state
+
+    C = 4
+    scene = random_scene(6, C)
+    opt = make_optimizer(1.0)
+    state = opt.init(scene)
+    rng = np.random.default_rng(1)
+
+    def random_like(tree):
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype), tree)
+
+    for _ in range(20):  # a 2DGS stage: the global count reaches 20
+        updates, state = opt.update(random_like(scene), state, scene)
+        scene = optax.apply_updates(scene, updates)
+    s2, st2, _ = add_textures(scene, state, opt, np.array([1, 2, 0, 1]), np.array([5, 5, 0, 5]))
+    assert int(st2[0].count) == 20
+    grads = random_like(s2)
+    updates, st3 = opt.update(grads, st2, s2)
+    lr = LearningRates()
+    for i in (0, 1, 3):
+        np.testing.assert_allclose(tex_of(updates.rgb, s2.rgb, i), -lr.texture_rgb * np.sign(tex_of(grads.rgb, s2.rgb, i)),
+                                   rtol=1e-5)
+        np.testing.assert_allclose(tex_of(updates.alpha, s2.alpha, i),
+                                   -lr.texture_alpha * np.sign(tex_of(grads.alpha, s2.alpha, i)), rtol=1e-5)
+    age = st3[0].age
+    for i in (0, 1, 3):
+        assert np.all(tex_of(age.rgb, s2.rgb, i) == 1.0) and np.all(tex_of(age.alpha, s2.alpha, i) == 1.0)
+    for leaf in ("means", "log_scales", "quats", "opacity_logits", "sh", "active"):
+        assert not np.any(np.asarray(getattr(age, leaf)))  # the count corrects these
+    for bank in (age.rgb, age.alpha):
+        assert not np.any(np.asarray(bank.bucket)) and not np.any(np.asarray(bank.size))
+    # Two more steps, then a resize: grown and shrunk textures keep their age 3, a new one starts at 0.
+    s3 = optax.apply_updates(s2, updates)
+    for _ in range(2):
+        updates, st3 = opt.update(random_like(s3), st3, s3)
+        s3 = optax.apply_updates(s3, updates)
+    s4, st4, _ = resize_textures(s3, st3, np.array([3, 1, 2, 1]), np.array([2, 5, 3, 5]))
+    age4 = st4[0].age
+    for i in (0, 1, 3):
+        np.testing.assert_allclose(tex_of(age4.rgb, s4.rgb, i), 3.0, rtol=1e-6)
+        np.testing.assert_allclose(tex_of(age4.alpha, s4.alpha, i), 3.0, rtol=1e-6)
+    assert np.all(tex_of(age4.rgb, s4.rgb, 2) == 0.0) and np.all(tex_of(age4.alpha, s4.alpha, 2) == 0.0)
+    # An optax Adam state (no ages) upgrades with every texel's age at the count.
+    adam = st4[0]
+    old = (optax.ScaleByAdamState(count=adam.count, mu=adam.mu, nu=adam.nu), st4[1])
+    new = upgrade_state(old)
+    assert isinstance(new[0], AdamState)
+    assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(st4)
+    assert np.all(tex_of(new[0].age.rgb, s4.rgb, 2) == 23.0) and not np.any(np.asarray(new[0].age.means))
+    assert upgrade_state(st4) is st4

@@ -212,6 +212,20 @@ def test_both_stages_improve(run_p):
     assert all_finite(scene)
     log = [json.loads(line) for line in (run_p["out"] / "log.jsonl").read_text().splitlines()]
     assert [r for r in log if r.get("event") == "allocation"] == [dict(event="allocation", **alloc)]
+    # What the schedule did: the Eq. 7 sides, each growth event that grew textures, the final sides.
+    assert sum(alloc["sides"].values()) == s["num_gaussians"]
+    assert sum(int(k) ** 2 * v for k, v in alloc["sides"].items()) == alloc["texels"]
+    events = s["growth_events"]
+    assert [r for r in log if r.get("event") == "growth"] == [dict(event="growth", **e) for e in events]
+    assert len(events) >= 1 and all(e["step"] in (36, 39, 42, 45, 48) and e["grown"] > 0 for e in events)
+    assert sum(e["grown"] for e in events) == counters[2]
+    texels = alloc["texels"]
+    for e in events:
+        assert e["texels_added"] > 0 and e["texels"] == texels + e["texels_added"]
+        texels = e["texels"]
+    assert texels == s["texels_rgb"]
+    assert s["sides_final"] == {str(int(k)): int(v) for k, v in zip(*np.unique(np.asarray(scene.rgb.size)[act],
+                                                                        return_counts=True))}
     assert log[-1]["step"] == 54 and log[-1]["texels"] == s["texels"]
 
 
@@ -240,7 +254,8 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     for key in ("opt_state", "stats", "tex_sizes", "tex_counters", "capacity"):
         assert_trees_equal(final[key], run_p["final"][key], key)
     assert np.asarray(final["counters"])[0] == 54
-    assert result.summary["allocation"] == run_p["result"].summary["allocation"]
+    for key in ("allocation", "growth_events", "sides_final"):
+        assert result.summary[key] == run_p["result"].summary[key], key
     # A finished run resumes to itself; without resume the directory is refused.
     again = T.train(dataset, cfg, out, resume=True, verbose=False)
     assert_trees_equal(again.scene, result.scene, "scene after a no-op resume")
@@ -426,6 +441,42 @@ def test_method_names_parse(method):
 def test_bad_method_names(method):
     with pytest.raises(ValueError, match="method|textured-fixed-N"):
         T.TrainConfig(method=method)
+
+
+def test_iteration_overrides_scale_the_texture_schedule_or_are_refused():
+    """--iters-tex scales the preset's warm-up and growth interval (Eq. 7 and growth still happen);
+    an explicit schedule whose warm-up outlasts the texture stage is refused with the fix."""
+    tiny = T.PRESETS["tiny"]
+    cfg = T.preset_config("tiny", iters_tex=2 * tiny["iters_tex"])
+    assert (cfg.warmup_tex, cfg.growth_interval) == (2 * tiny["warmup_tex"], 2 * tiny["growth_interval"])
+    paper = T.preset_config("paper", iters_tex=600)  # the paper's 1,000-step warm-up, scaled to 20
+    assert (paper.warmup_tex, paper.growth_interval) == (20, 2) and paper.warmup_tex < paper.iters_tex
+    kept = T.preset_config("tiny", iters_tex=60, warmup_tex=7)  # given fields are kept
+    assert (kept.warmup_tex, kept.growth_interval) == (7, 8)
+    assert T.preset_config("tiny") == T.TrainConfig(**tiny)
+    with pytest.raises(ValueError, match=r"warm-up.*only 30 steps.*--iters-tex"):
+        T.TrainConfig(method="patexgs", iters_tex=30, warmup_tex=30)
+    T.TrainConfig(method="textured-fixed-4", iters_tex=30, warmup_tex=30)  # no Eq. 7: nothing to skip
+    with pytest.raises(ValueError, match="growth_interval"):
+        T.TrainConfig(growth_interval=0)
+
+
+def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_path):
+    """continue_2dgs: the 2DGS baseline trains as many steps as a textured run (no densification
+    after its stage), and keeps its end-of-stage-1 checkpoint out of the rotation for the others."""
+    cfg = tiny_config(method="2dgs", iters_2dgs=6, continue_2dgs=4, checkpoint_every=2)  # densify at 3 (and 9)
+    assert cfg.total_steps == 10
+    res = T.train(dataset, cfg, tmp_path / "2dgs", verbose=False)
+    assert res.summary["steps"] == 10 and res.summary["texels"] == 0
+    assert ckpt_step(tmp_path / "2dgs") == 10
+    tex = tiny_config(method="textured-fixed-2", iters_2dgs=6, iters_tex=4, checkpoint_every=2)
+    s1 = T.stage1_checkpoint(tmp_path / "2dgs", tex)
+    assert s1 is not None and s1.parent.name == T.STAGE1_DIR and ckpt.read_metadata(s1)["step"] == 6
+    tree, _ = ckpt.load_checkpoint(s1)
+    assert tree["scene"].num_active() == res.scene.num_active()  # not densified after stage 1 (step 9)
+    assert 0 < float(tree["t_train"]) < res.summary["train_seconds"]
+    with pytest.raises(ValueError, match="continue_2dgs.*'2dgs' only"):
+        tiny_config(method="patexgs", continue_2dgs=4)
 
 
 def test_textured_fixed_8(dataset):
