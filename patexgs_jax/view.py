@@ -268,8 +268,7 @@ class Viewer:
         state = _Client(handle=client)
         self.clients[client.client_id] = state
 
-        @client.camera.on_update
-        def _(camera) -> None:
+        def update(camera) -> None:
             state.camera = (np.array(camera.wxyz), np.array(camera.position), float(camera.fov),
                             int(camera.image_width), int(camera.image_height))
             state.version += 1
@@ -277,6 +276,9 @@ class Viewer:
             with self.wake:
                 self.wake.notify_all()
 
+        client.camera.on_update(update)
+        # viser connects a client on its first camera message, which reached no callback yet.
+        update(client.camera)
         self.log(f"client {client.client_id}: connected")
 
     def _disconnect(self, client) -> None:

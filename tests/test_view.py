@@ -209,8 +209,18 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def subprocess_env(**extra) -> dict:
+    """The environment of a viewer subprocess: this checkout first, and the session's XLA cache (the
+    server's programs, shared by the tests that start one)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT), **extra)
+    cache = jax.config.jax_compilation_cache_dir
+    if cache:
+        env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1")
+    return env
+
+
 def run_cli(*args, timeout=120):
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env = subprocess_env()
     return subprocess.run([sys.executable, "-m", "patexgs_jax.view", *map(str, args)], capture_output=True,
                           text=True, timeout=timeout, env=env, cwd=ROOT)
 
@@ -238,7 +248,7 @@ def test_cli_bad_input(run_dir, tmp_path):
 # The server
 # ------------------------------------------------------------------------------------------------
 def start_viewer(path, port, *extra):
-    env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONUNBUFFERED="1")
+    env = subprocess_env(PYTHONUNBUFFERED="1")
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
     proc = subprocess.Popen([sys.executable, "-m", "patexgs_jax.view", str(path), "--port", str(port), *extra],
                             stdout=log, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT)
