@@ -14,7 +14,7 @@ nearest neighbour), coverage mode, view (see :mod:`patexgs_jax.viewing`), run.
 
 Safety: it binds to 127.0.0.1 unless ``--host`` says otherwise (with a warning: the viewer has no
 authentication). The browser only picks from lists made at start-up (runs, modes, views, scales,
-training views): nothing it sends names a file. A closed tab or several tabs never stop the server;
+training views): nothing it sends names a file. viser's public share link is switched off. A closed tab or several tabs never stop the server;
 Ctrl-C (SIGINT) or SIGTERM ends it.
 
 Needs the ``viewer`` extra: ``pip install -e ".[viewer]"`` (viser).
@@ -23,14 +23,18 @@ Needs the ``viewer`` extra: ``pip install -e ".[viewer]"`` (viser).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import errno
+import io
 import math
+import os
 import signal
 import socket
 import sys
 import threading
 import time
+import warnings
 
 import numpy as np
 
@@ -106,13 +110,15 @@ class Viewer:
         self.clients: dict[int, _Client] = {}
         self.settings = dict(run=0, mode="patexgs", view="rgb", scale=1)
         self.settings_version = 0
-        self.last_ms = None
+        self.last_ms: dict = {}  # "final" / "preview" -> ms of the newest frame that compiled nothing
         self.server = None
         self.run = None
         self.frames = None
         self._thread = None
         self._status_time = 0.0
-        self.load(0)
+        # A study opens on a PATexGS run when it has one.
+        names = [r.name.rsplit("/", 1)[-1] for r in self.runs]
+        self.load(names.index("patexgs") if "patexgs" in names else 0)
 
     # -- the scene ---------------------------------------------------------------------------------
     def load(self, index: int) -> None:
@@ -134,10 +140,16 @@ class Viewer:
         import viser
 
         check_port(host, port)
-        server = viser.ViserServer(host=host, port=port, label="patexgs-jax", verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: main() prints the URL
+            server = viser.ViserServer(host=host, port=port, label="patexgs-jax", verbose=False)
         if server.get_port() != port:  # taken between the check and the bind
             server.stop()
             raise vw.ViewerError(f"port {port} on {host} is already in use: pass another one, e.g. --port {port + 1}.")
+        # A browser may ask viser for a public share link (a tunnel through an outside server): never.
+        server.request_share_url = lambda *a, **k: self.log("ignored a browser's request for a public share link")
+        server.gui.configure_theme(show_share_button=False)
+        # A tab that closes while its frame is sent: that frame is dropped, as it should be.
+        warnings.filterwarnings("ignore", message="Queued a BackgroundImageMessage on a closed connection")
         self.server = server
         self._gui(server)
         self._cameras(server)
@@ -154,12 +166,14 @@ class Viewer:
         if self._thread is not None:
             self._thread.join(timeout)
         if self.server is not None:
-            self.server.stop()
+            with contextlib.redirect_stdout(io.StringIO()):  # viser's "Server stopped": main() says it
+                self.server.stop()
 
     def _gui(self, server) -> None:
         gui = server.gui
         if len(self.runs) > 1:
-            self.gui_run = gui.add_dropdown("Run", options=[r.name for r in self.runs], initial_value=self.runs[0].name)
+            self.gui_run = gui.add_dropdown("Run", options=[r.name for r in self.runs],
+                                            initial_value=self.runs[self.settings["run"]].name)
             self.gui_run.on_update(lambda _: self._pick_run(self.gui_run.value))
         self.gui_mode = gui.add_dropdown("Coverage", options=list(vw.MODES.values()),
                                          initial_value=vw.MODES[self.settings["mode"]])
@@ -208,9 +222,10 @@ class Viewer:
 
     def _status(self) -> str:
         s = self.stats
-        ms = "-" if self.last_ms is None else f"{self.last_ms:.0f}"
+        ms = lambda k: f"{self.last_ms[k]:.0f}" if k in self.last_ms else "-"  # noqa: E731
         return (f"**{self.runs[self.settings['run']].name}** ({self.run.method}): {s['gaussians']:,} Gaussians, "
-                f"{s['texels']:,} texels, {s['storage_mb']:.2f} MB; {ms} ms per frame")
+                f"{s['texels']:,} texels, {s['storage_mb']:.2f} MB; {ms('final')} ms per frame "
+                f"({ms('preview')} ms while moving)")
 
     # -- training cameras --------------------------------------------------------------------------
     def _cameras(self, server) -> None:
@@ -219,6 +234,7 @@ class Viewer:
         views = list(self.dataset.train_views)
         step = max(1, math.ceil(len(views) / self.max_cameras))
         self.train_views = views[::step]
+        self.frustums, self.hidden = [], None
         centres = np.array([v.camera.center for v in self.train_views])
         spread = np.median(np.linalg.norm(centres - np.median(centres, axis=0), axis=1)) if len(centres) > 1 else 1.0
         size = 0.08 * float(spread) if spread > 0 else 0.1
@@ -233,11 +249,21 @@ class Viewer:
                                                 scale=size, image=thumb, wxyz=wxyz, position=pos,
                                                 color=(40, 160, 255))
             h.on_click(lambda event, i=i: self._snap(event.client, i))
+            self.frustums.append(h)
+        # The browser opens at the first training view, whose frustum (in front of the camera) is hidden.
         wxyz, pos, fov = vw.viewer_pose(self.train_views[0].camera)
         server.initial_camera.position = tuple(pos)
         look = pos + vw.quat_to_matrix(wxyz)[:, 2] * float(spread if spread > 0 else 1.0)
         server.initial_camera.look_at = tuple(look)
         server.initial_camera.fov = fov
+        self._hide_frustum(0)
+
+    def _hide_frustum(self, i: int) -> None:
+        """Shows every training frustum but ``i`` (the view snapped to: its image plane would cover it)."""
+        if self.hidden is not None:
+            self.frustums[self.hidden].visible = True
+        self.frustums[i].visible = False
+        self.hidden = i
 
     def _snap(self, client, i: int) -> None:
         """Moves ``client``'s camera to training view ``i`` and shows its render beside the ground
@@ -248,6 +274,7 @@ class Viewer:
             return
         v = self.train_views[i]
         wxyz, pos, fov = vw.viewer_pose(v.camera)
+        self._hide_frustum(i)
         with client.atomic():
             client.camera.wxyz = wxyz
             client.camera.position = pos
@@ -328,19 +355,21 @@ class Viewer:
             else:
                 frame = self.frames.render(cam, mode=s["mode"], view=s["view"], scale=scale)
         client = state.handle
+        if state is not self.clients.get(client.client_id):
+            return  # the tab closed while its frame rendered
         client.scene.set_background_image(frame.image, format="jpeg", jpeg_quality=90 if job == "final" else 70)
         client.flush()
         state.sent, state.final = key, job == "final"
         state.frames += 1
-        if job == "final":
-            self.last_ms = frame.ms
+        if not frame.compiled:
+            self.last_ms[job] = frame.ms
         if state.frames == 1:
             self.log(f"client {client.client_id}: first frame, {frame.rendered[0]}x{frame.rendered[1]} rendered "
                      f"in {frame.ms:.0f} ms")
         if frame.grew:
             self.log(f"tile capacity grown for a {frame.rendered[0]}x{frame.rendered[1]} view (one new program)")
         now = time.monotonic()
-        if job == "final" and now - self._status_time > 0.5:
+        if now - self._status_time > 0.5:
             self._status_time = now
             self.gui_status.content = self._status()
 
@@ -395,7 +424,7 @@ def main(argv=None) -> int:
                 dataset = load(args.data, factor=args.factor)
             except (DatasetError, OSError) as e:
                 raise vw.ViewerError(f"--data {args.data}: {e}") from None
-        viewer = Viewer(runs, dataset)
+        viewer = Viewer(runs, dataset, max_side=args.max_side, preview=args.preview, settle=args.settle)
         viewer.start(args.host, args.port)
     except vw.ViewerError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -413,8 +442,12 @@ def main(argv=None) -> int:
             pass
     except KeyboardInterrupt:
         pass
-    viewer.stop()
+    viewer.stop(timeout=10.0)
     print("viewer: stopped", flush=True)
+    if viewer._thread is not None and viewer._thread.is_alive():
+        # A frame still compiling: ending the interpreter under XLA's running thread aborts the process.
+        sys.stderr.flush()
+        os._exit(0)
     return 0
 
 

@@ -336,12 +336,14 @@ class Frame:
     """One rendered frame: ``image`` (H, W, 3) uint8 (enlarged to the canvas when asked),
     ``rendered`` (width, height) of the render, ``ms`` the time from the camera to the image
     (render, the view's per-pixel quantities, colouring), ``grew`` whether a tile capacity had to
-    grow (a new compiled program)."""
+    grow (a new program), ``compiled`` whether any program was compiled for it (then ``ms``
+    includes the compile)."""
 
     image: np.ndarray
     rendered: tuple[int, int]
     ms: float
     grew: bool
+    compiled: bool = False
 
 
 class FrameRenderer:
@@ -372,6 +374,7 @@ class FrameRenderer:
             raise ViewerError(f"unknown view {view!r}; choose one of {', '.join(VIEWS)}.")
         scale = int(scale)
         t0 = time.perf_counter()
+        programs = _programs()
         cam = camera if scale == 1 else camera.scaled(scale)
         r = self.renderer(mode)
         before = dict(r.capacities)
@@ -379,11 +382,12 @@ class FrameRenderer:
         grew = any(before.get(k) not in (None, v) for k, v in r.capacities.items())
         img = self._colour(out, r, cam, view)
         ms = 1e3 * (time.perf_counter() - t0)
+        fresh = _programs() != programs
         if enlarge and scale > 1:
             img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
             img = np.pad(img, ((0, camera.height - img.shape[0]), (0, camera.width - img.shape[1]), (0, 0)),
                          mode="edge")
-        return Frame(image=img, rendered=(cam.width, cam.height), ms=ms, grew=grew)
+        return Frame(image=img, rendered=(cam.width, cam.height), ms=ms, grew=grew, compiled=fresh)
 
     def _colour(self, out, r: ViewRenderer, cam: Camera, view: str) -> np.ndarray:
         H, W = cam.height, cam.width
@@ -431,6 +435,16 @@ class FrameRenderer:
         from .compiled import release_programs
 
         release_programs(dominant_mip_level)
+
+
+def _programs() -> tuple:
+    """Traces of the renderer and programs of the pair counter and the mip-level function: a frame
+    that changes them compiled something."""
+    from . import compiled
+    from .render import TRACE_COUNTS, count_pairs
+
+    return (sum(TRACE_COUNTS.values()), compiled.program_count(count_pairs),
+            compiled.program_count(dominant_mip_level))
 
 
 def scene_stats(scene) -> dict:

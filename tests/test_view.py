@@ -4,7 +4,8 @@ client (a protocol-level client here, headless Chromium in the last tests), stop
 input gets one line naming the fix.
 
 The scene is a small random textured scene saved as a run folder (a checkpoint with its training
-configuration, as training writes it); its views are 64 x 48 and 128 x 96 pixels.
+configuration, as training writes it); in-process frames are 64 x 48 pixels, and the servers
+render at most 96 pixels a side (``--max-side``): the tests measure behaviour, not speed.
 """
 
 from __future__ import annotations
@@ -43,15 +44,11 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 def textured_scene(seed: int = 0, n: int = 300) -> Scene:
-    """A random scene of n splats around the origin, each with an RGB texture of side 1 to 32 and a
-    4 x 4 alpha texture."""
-    scene = random_scene(seed, n, sh_degree=1, extent=1.0, scale_range=(0.03, 0.25))
-    rng = np.random.default_rng(seed)
-    sides = rng.choice([1, 2, 4, 8, 16, 32], size=n)
-    rgb = [rng.uniform(-0.3, 0.3, size=(k, k, 3)).astype(np.float32) for k in sides]
-    alpha = [np.ones((4, 4, 1), np.float32) for _ in range(n)]
-    return scene.replace(rgb=TextureBank.from_list(rgb, scene.capacity, 3, 0.0),
-                         alpha=TextureBank.from_list(alpha, scene.capacity, 1, 1.0))
+    """A random scene of n splats around the origin with 2 x 2 or 8 x 8 RGB textures and 4 x 4 alpha
+    textures (few texture buckets: cheap to compile)."""
+    sides = np.random.default_rng(seed).choice([2, 8], size=n)
+    return random_scene(seed, n, sh_degree=1, extent=1.0, scale_range=(0.03, 0.25), rgb_sizes=sides,
+                        alpha_sizes=[4] * n)
 
 
 def write_run(folder: Path, scene: Scene, method: str = "patexgs") -> Path:
@@ -61,14 +58,26 @@ def write_run(folder: Path, scene: Scene, method: str = "patexgs") -> Path:
     return folder
 
 
-def orbit_camera(angle: float, width: int = 128, height: int = 96, radius: float = 3.5) -> Camera:
+#: The canvas of the in-process tests: one size bucket (and its 1/4 preview), shared through
+#: ``frames``, so the renderer compiles for it once.
+W, H = 64, 48
+
+
+def orbit_camera(angle: float, width: int = W, height: int = H, radius: float = 3.5) -> Camera:
     eye = (radius * np.sin(angle), -0.6, -radius * np.cos(angle))
-    return Camera.from_intrinsics((100.0, 100.0, width / 2, height / 2), look_at(eye, (0.0, 0.0, 0.0)), width, height)
+    f = 0.8 * width
+    return Camera.from_intrinsics((f, f, width / 2, height / 2), look_at(eye, (0.0, 0.0, 0.0)), width, height)
 
 
 @pytest.fixture(scope="module")
 def scene():
     return textured_scene()
+
+
+@pytest.fixture(scope="module")
+def frames(scene):
+    """The viewer's renderer of ``scene`` in PATexGS's own mode."""
+    return vw.FrameRenderer(scene, R.RenderConfig(coverage="prefilter"))
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +99,7 @@ def test_quaternion_round_trip():
         np.testing.assert_allclose(vw.matrix_to_quat(R_), q, atol=1e-10)
 
 
-def test_training_view_through_the_viewer_renders_as_render(scene):
+def test_training_view_through_the_viewer_renders_as_render(scene, frames):
     """A view's pose and field of view, sent the way the browser sends them, give the same Camera and
     the same image as ``render`` of that view."""
     cam = orbit_camera(0.7)
@@ -98,43 +107,42 @@ def test_training_view_through_the_viewer_renders_as_render(scene):
     back = vw.camera_from_viewer(wxyz, pos, fov, cam.width, cam.height)
     np.testing.assert_allclose(np.asarray(back.K), np.asarray(cam.K), rtol=1e-6, atol=1e-4)
     np.testing.assert_allclose(np.asarray(back.world_to_camera), np.asarray(cam.world_to_camera), atol=1e-6)
-    config = vw.mode_config(R.RenderConfig(coverage="prefilter"), "patexgs")
-    ref = np.clip(np.asarray(R.render(scene, cam, config).rgb), 0, 1)
-    frame = vw.FrameRenderer(scene, config).render(back, mode="patexgs", view="rgb")
-    assert frame.image.shape == (cam.height, cam.width, 3)
+    frame = frames.render(back, mode="patexgs", view="rgb")
+    r = frames.renderer("patexgs")
+    # render() with the viewer's capacity (the image does not depend on it): the same program
+    ref = np.clip(np.asarray(R.render(scene, cam, r.config, capacity=r.capacities[(H, W)]).rgb), 0, 1)
+    assert frame.image.shape == (H, W, 3)
     assert ref.std() > 0.05  # the view sees the scene
     np.testing.assert_allclose(frame.image / 255.0, ref, atol=1.0 / 255 + 1e-6)
 
 
-def test_camera_moves_never_compile(scene):
+def test_camera_moves_never_compile(frames):
     """After the first frame at a canvas size (full and preview size), frames of other poses at that
     size compile nothing: neither the renderer nor the mip-level function."""
-    fr = vw.FrameRenderer(scene, R.RenderConfig(coverage="prefilter"))
     fns = (R.render_jit, R.count_pairs, vw.dominant_mip_level)
     for view in ("rgb", "mip level"):
-        fr.render(orbit_camera(0.0, 160, 120), view=view)
-        fr.render(orbit_camera(0.0, 160, 120), view=view, scale=4, enlarge=False)
+        frames.render(orbit_camera(0.0), view=view)
+        frames.render(orbit_camera(0.0), view=view, scale=4, enlarge=False)
     traces = sum(R.TRACE_COUNTS.values())
     programs = [compiled.program_count(f) for f in fns]
     for k, angle in enumerate(np.linspace(0.2, 2.5, 6)):
-        cam = orbit_camera(angle, 160, 120, radius=3.2 + 0.15 * k)
+        cam = orbit_camera(angle, radius=3.2 + 0.15 * k)
         for view in ("rgb", "mip level"):
-            assert not fr.render(cam, view=view).grew
-            assert not fr.render(cam, view=view, scale=4, enlarge=False).grew
+            for f in (frames.render(cam, view=view), frames.render(cam, view=view, scale=4, enlarge=False)):
+                assert not f.grew and not f.compiled
     assert sum(R.TRACE_COUNTS.values()) == traces
     assert [compiled.program_count(f) for f in fns] == programs
 
 
-def test_every_view_and_scale(scene):
-    fr = vw.FrameRenderer(scene, R.RenderConfig(coverage="prefilter"))
-    cam = orbit_camera(0.3, 64, 48)
+def test_every_view_and_scale(frames):
+    cam = orbit_camera(0.3)
     for view in vw.VIEWS:
-        img = fr.render(cam, view=view).image
-        assert img.shape == (48, 64, 3) and img.dtype == np.uint8
+        img = frames.render(cam, view=view).image
+        assert img.shape == (H, W, 3) and img.dtype == np.uint8
         assert img.std() > 5, view  # something is drawn
-    small = fr.render(cam, scale=4, enlarge=False).image
-    big = fr.render(cam, scale=4).image
-    assert small.shape == (12, 16, 3) and big.shape == (48, 64, 3)
+    small = frames.render(cam, scale=4, enlarge=False).image
+    big = frames.render(cam, scale=4).image
+    assert small.shape == (H // 4, W // 4, 3) and big.shape == (H, W, 3)
     np.testing.assert_array_equal(big[::4, ::4], small)  # nearest neighbour
     np.testing.assert_array_equal(big[3::4, 3::4], small)
 
@@ -151,11 +159,12 @@ def test_mip_level_follows_eq11():
                               np.zeros((1, 1, 3)), capacity=1)
     scene = scene.replace(rgb=TextureBank.from_list(tex, 1, 3, 0.0))
     cam = Camera.from_intrinsics((f, f, 32.0, 32.0), look_at((0, 0, -z), (0, 0, 0)), 64, 64)
+    bare = scene.replace(rgb=None)  # the same dominant splat, cheaper to compile
     for coverage, lam in (("prefilter", 1 / 6),):
         cfg = R.RenderConfig(coverage=coverage)
         for factor in (1, 2):
             c = cam if factor == 1 else cam.scaled(factor)
-            out = R.render(scene, c, cfg)
+            out = R.render(bare, c, cfg)
             lev = np.asarray(vw.dominant_mip_level(scene, c, out.dominant, bank="rgb", lambda_mip=lam, use_mip=True))
             want = int(np.clip(np.floor(np.log2(lam * 32 * D * factor)), 0, 5))
             centre = lev[c.height // 2, c.width // 2]
@@ -319,14 +328,14 @@ def test_server_serves_page_answers_camera_and_stops(run_dir):
     from PIL import Image
 
     port = free_port()
-    proc, log = start_viewer(run_dir, port)
+    proc, log = start_viewer(run_dir, port, "--max-side", "96")
     try:
         page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30).read().decode()
         assert "<html" in page.lower()
         poses = [vw.viewer_pose(orbit_camera(a, 160, 120)) for a in (0.3, 0.5)]
         images = client_frames(port, 160, 120, poses)
         first = np.asarray(Image.open(io.BytesIO(images[0])))
-        assert first.shape == (120, 160, 3) and first.std() > 5
+        assert first.shape == (72, 96, 3) and first.std() > 5  # the canvas at --max-side
         # A second tab while the first one has closed: the server still answers.
         images = client_frames(port, 96, 64, poses[:1])
         assert np.asarray(Image.open(io.BytesIO(images[0]))).shape == (64, 96, 3)
@@ -353,9 +362,11 @@ def test_non_loopback_host_warns(run_dir):
 # ------------------------------------------------------------------------------------------------
 # In a real browser
 # ------------------------------------------------------------------------------------------------
-def chromium_screenshot(url: str, out: Path, size=(800, 600), wait_for=None, timeout: float = 120.0) -> None:
+def chromium_screenshot(url: str, out: Path, size=(800, 600), wait_for=None, timeout: float = 120.0,
+                        script: str | None = None) -> None:
     """Loads ``url`` in headless Chromium and saves a PNG screenshot once ``wait_for()`` is true (then
-    one more second for the frame to be drawn), driving it through the DevTools protocol."""
+    one more second for the frame to be drawn), driving it through the DevTools protocol; ``script``
+    (JavaScript) runs in the page before the screenshot."""
     from websockets.sync.client import connect
 
     profile = Path(tempfile.mkdtemp(prefix="chromium-profile-"))
@@ -390,6 +401,9 @@ def chromium_screenshot(url: str, out: Path, size=(800, 600), wait_for=None, tim
                 assert time.monotonic() < deadline, "the page never showed a frame"
                 time.sleep(0.2)
             time.sleep(1.0)
+            if script:
+                call("Runtime.evaluate", expression=script)
+                time.sleep(0.5)
             shot = call("Page.captureScreenshot", format="png")
             out.write_bytes(base64.b64decode(shot["data"]))
     finally:
@@ -407,7 +421,7 @@ def test_in_headless_chromium(run_dir, tmp_path):
     from PIL import Image
 
     port = free_port()
-    proc, log = start_viewer(run_dir, port)
+    proc, log = start_viewer(run_dir, port, "--max-side", "96")
     try:
         shot = tmp_path / "viewer.png"
         chromium_screenshot(f"http://127.0.0.1:{port}/", shot, wait_for=lambda: "first frame" in log.read_text())
