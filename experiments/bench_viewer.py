@@ -75,7 +75,7 @@ def synthetic_model(n: int):
 
     scene = make_scene(n, 8)
     cam = Camera.from_intrinsics([0.9 * 640, 0.9 * 640, 320, 240], look_at((0.0, 0.0, -5.0), (0.0, 0.0, 0.0)), 640, 480)
-    return f"{n // 1000}k", scene, RenderConfig(coverage="prefilter"), vw.viewer_pose(cam)
+    return "synthetic", scene, RenderConfig(coverage="prefilter"), vw.viewer_pose(cam)
 
 
 def orbit(pose, k: int, step_deg: float = 2.0):
@@ -126,7 +126,7 @@ def bench(name, scene, config, pose, sizes, repeats: int, preview: int) -> list[
         r["fps"] = 1e3 / (r["frame_ms"] + r["jpeg_ms"])
         r["preview_fps"] = 1e3 / r["preview_ms"]
         rows.append(r)
-        print(f"{name:5s} {r['gaussians']:7d} {f'{w}x{h}':>9s} {r['frame_ms']:9.1f} {r['jpeg_ms']:7.1f} "
+        print(f"{name:9s} {r['gaussians']:7d} {f'{w}x{h}':>9s} {r['frame_ms']:9.1f} {r['jpeg_ms']:7.1f} "
               f"{r['fps']:6.1f} {f'{w // p}x{h // p}':>9s} {r['preview_ms']:9.1f} {r['preview_fps']:6.1f} "
               f"{t_compile / 1e3:8.1f} {recompiles:6d}", flush=True)
     fr.release()
@@ -148,7 +148,7 @@ def main(argv=None) -> int:
         ap.error("--models takes tiny and/or synthetic; --repeats and --preview must be >= 1")
     load = os.getloadavg()
     print(f"load average {load[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'model':5s} {'N':>7s} {'size':>9s} {'frame ms':>9s} {'jpeg ms':>7s} {'fps':>6s} {'preview':>9s} "
+    print(f"{'model':9s} {'N':>7s} {'size':>9s} {'frame ms':>9s} {'jpeg ms':>7s} {'fps':>6s} {'preview':>9s} "
           f"{'prev. ms':>9s} {'fps':>6s} {'first s':>8s} {'recomp':>6s}")
     rows = []
     if "tiny" in models:

@@ -435,3 +435,42 @@ def test_in_headless_chromium(run_dir, tmp_path):
     region = img[100:500, 50:400]
     assert region.std() > 10, region.std()
     assert (np.abs(region - region.mean(axis=(0, 1))).sum(-1) > 30).mean() > 0.05
+
+
+def test_browser_input_only_picks_from_lists(run_dir, tmp_path):
+    """Values a browser sends are looked up in the lists made at start-up; anything else (a path, a
+    made-up mode) is logged and ignored."""
+    from patexgs_jax.view import Viewer
+
+    lines = []
+    viewer = Viewer(vw.find_runs(run_dir.parents[1]), log=lines.append)
+
+    class Legend:
+        content = ""
+
+    viewer.gui_legend = Legend()
+    before = dict(viewer.settings)
+    viewer._pick_run(str(tmp_path / "elsewhere"))
+    viewer._pick("mode", {v: k for k, v in vw.MODES.items()}, "../../etc/passwd")
+    viewer._pick("scale", {"1": 1, "1/2": 2}, "1/3")
+    assert viewer.settings == before
+    assert sum("ignored" in line for line in lines) == 3, lines
+    viewer._pick("view", {v: v for v in vw.VIEWS}, "depth")
+    assert viewer.settings["view"] == "depth" and "Depth" in viewer.gui_legend.content
+
+
+def test_bench_viewer_reports_frames(tmp_path, capsys):
+    from experiments import bench_viewer
+
+    out = tmp_path / "viewer.json"
+    bench_viewer.main(["--models", "synthetic", "--gaussians", "400", "--sizes", "32x32", "--repeats", "2",
+                       "--json", str(out)])
+    data = json.loads(out.read_text())
+    for key in ("schema", "git", "date", "machine", "cpus", "jax", "load_average_before"):
+        assert key in data, key
+    (row,) = data["results"]
+    assert (row["model"], row["gaussians"], row["width"], row["height"]) == ("synthetic", 400, 32, 32)
+    assert row["recompiles"] == 0 and row["preview_size"] == [8, 8]
+    for key in ("frame_ms", "preview_ms", "jpeg_ms", "fps", "preview_fps"):
+        assert np.isfinite(row[key]) and row[key] > 0, key
+    assert "32x32" in capsys.readouterr().out
