@@ -41,6 +41,9 @@ import numpy as np
 from . import viewing as vw
 
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
+#: Seconds after a full-size frame at which a resting camera's frame is sent again: viser's browser
+#: client drops its background when its 3D view is re-created (seen when it shows a notification).
+_RESEND = (1.0, 3.0, 7.0)
 _SCALE_LABELS = {"1": 1, "1/2": 2, "1/4": 4, "1/8": 8}
 
 
@@ -83,6 +86,9 @@ class _Client:
     sent: tuple | None = None        # (camera version, settings version) of the newest frame sent
     final: bool = False              # the newest frame sent was full size
     frames: int = 0
+    image: np.ndarray | None = None  # the newest full-size frame, and when it was sent
+    sent_at: float = 0.0
+    resent: int = 0                  # how many times it was sent again (see _RESEND)
 
 
 class Viewer:
@@ -94,15 +100,17 @@ class Viewer:
       max_side: the longest side of a frame (a larger canvas is rendered at this size and stretched).
       preview: while the camera moves, frames are rendered this many times smaller a side.
       settle: seconds without a camera message after which the full-size frame is rendered.
+      verbose: log every frame sent (size, time, whether it compiled).
       log: where status lines go.
     """
 
     def __init__(self, runs, dataset=None, *, max_side: int = 1280, preview: int = 4, settle: float = 0.2,
-                 max_cameras: int = 300, log=None):
+                 max_cameras: int = 300, verbose: bool = False, log=None):
         self.runs = list(runs)
         self.dataset = dataset
         self.max_side, self.preview, self.settle = int(max_side), int(preview), float(settle)
         self.max_cameras = int(max_cameras)
+        self.verbose = verbose
         self.log = log or (lambda msg: print(msg, flush=True))
         self.lock = threading.RLock()          # the scene, its renderers and the settings
         self.wake = threading.Condition()
@@ -328,18 +336,26 @@ class Viewer:
                         state.sent = (state.version, self.settings_version)
 
     def _job(self, state: _Client) -> str | None:
-        """"preview", "final" or None: what ``state``'s tab needs next."""
+        """"preview", "final", "resend" or None: what ``state``'s tab needs next."""
         if state.camera is None:
             return None
         key = (state.version, self.settings_version)
         if state.sent != key:
             moved = state.sent is not None and state.sent[0] != state.version
             return "preview" if moved else "final"
-        if not state.final and time.monotonic() - state.moved >= self.settle:
+        now = time.monotonic()
+        if not state.final and now - state.moved >= self.settle:
             return "final"
+        if state.final and state.resent < len(_RESEND) and now - state.sent_at >= _RESEND[state.resent]:
+            return "resend"
         return None
 
     def _send(self, state: _Client, job: str) -> None:
+        if job == "resend":
+            state.resent += 1
+            state.handle.scene.set_background_image(state.image, format="jpeg", jpeg_quality=90)
+            state.handle.flush()
+            return
         wxyz, pos, fov, w, h = state.camera
         key = (state.version, self.settings_version)
         w, h = vw.fit_canvas(w, h, self.max_side)
@@ -361,8 +377,13 @@ class Viewer:
         client.flush()
         state.sent, state.final = key, job == "final"
         state.frames += 1
+        if job == "final":
+            state.image, state.sent_at, state.resent = frame.image, time.monotonic(), 0
         if not frame.compiled:
             self.last_ms[job] = frame.ms
+        if self.verbose:
+            self.log(f"client {client.client_id}: {job} frame {frame.rendered[0]}x{frame.rendered[1]}, "
+                     f"{frame.ms:.0f} ms{' (compiled)' if frame.compiled else ''}")
         if state.frames == 1:
             self.log(f"client {client.client_id}: first frame, {frame.rendered[0]}x{frame.rendered[1]} rendered "
                      f"in {frame.ms:.0f} ms")
@@ -406,6 +427,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-side", type=int, default=1280, help="longest side of a rendered frame (default 1280)")
     ap.add_argument("--preview", type=int, default=4, help="frames while moving are this many times smaller a side")
     ap.add_argument("--settle", type=float, default=0.2, help="seconds at rest before the full-size frame")
+    ap.add_argument("--verbose", action="store_true", help="log every frame sent")
     args = ap.parse_args(argv)
     try:
         if args.max_side < 16 or args.preview < 1 or args.settle < 0:
@@ -424,7 +446,8 @@ def main(argv=None) -> int:
                 dataset = load(args.data, factor=args.factor)
             except (DatasetError, OSError) as e:
                 raise vw.ViewerError(f"--data {args.data}: {e}") from None
-        viewer = Viewer(runs, dataset, max_side=args.max_side, preview=args.preview, settle=args.settle)
+        viewer = Viewer(runs, dataset, max_side=args.max_side, preview=args.preview, settle=args.settle,
+                        verbose=args.verbose)
         viewer.start(args.host, args.port)
     except vw.ViewerError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -362,11 +362,9 @@ def test_non_loopback_host_warns(run_dir):
 # ------------------------------------------------------------------------------------------------
 # In a real browser
 # ------------------------------------------------------------------------------------------------
-def chromium_screenshot(url: str, out: Path, size=(800, 600), wait_for=None, timeout: float = 120.0,
-                        script: str | None = None) -> None:
+def chromium_screenshot(url: str, out: Path, size=(800, 600), wait_for=None, timeout: float = 120.0) -> None:
     """Loads ``url`` in headless Chromium and saves a PNG screenshot once ``wait_for()`` is true (then
-    one more second for the frame to be drawn), driving it through the DevTools protocol; ``script``
-    (JavaScript) runs in the page before the screenshot."""
+    one more second for the frame to be drawn), driving it through the DevTools protocol."""
     from websockets.sync.client import connect
 
     profile = Path(tempfile.mkdtemp(prefix="chromium-profile-"))
@@ -401,9 +399,6 @@ def chromium_screenshot(url: str, out: Path, size=(800, 600), wait_for=None, tim
                 assert time.monotonic() < deadline, "the page never showed a frame"
                 time.sleep(0.2)
             time.sleep(1.0)
-            if script:
-                call("Runtime.evaluate", expression=script)
-                time.sleep(0.5)
             shot = call("Page.captureScreenshot", format="png")
             out.write_bytes(base64.b64decode(shot["data"]))
     finally:
