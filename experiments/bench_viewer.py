@@ -12,6 +12,9 @@ PATexGS coverage, RGB view): for each canvas size, the median over ``--repeats``
 orbit (a moving camera: new poses, no compile) of
 
   * ``frame_ms``: a full-size frame, camera to uint8 image (render at the size bucket, colouring);
+  * ``frame_cpu_ms``: the CPU time this process spent on it, over all its threads (on a machine
+    shared with other jobs the wall time grows, the CPU time much less: on an idle 2-core machine
+    a frame takes between half of it and all of it);
   * ``preview_ms``: the frame rendered ``--preview`` times smaller a side (what a moving camera gets);
   * ``jpeg_ms``: encoding the full-size frame as a quality-90 JPEG with Pillow (what viser sends
     without OpenCV installed);
@@ -108,25 +111,30 @@ def bench(name, scene, config, pose, sizes, repeats: int, preview: int) -> list[
         p = preview
         while p > 1 and min(w, h) // p < 8:
             p //= 2
-        full, small, enc, recompiles = [], [], [], 0
+        full, small, enc, cpu, recompiles = [], [], [], [], 0
         for k, cam in enumerate(cams):
+            c0 = time.process_time()
             f = fr.render(cam, mode=mode)
+            c1 = time.process_time()
             s = fr.render(cam, mode=mode, scale=p, enlarge=False)
             if k == 0:
                 t_compile = f.ms + s.ms
                 continue  # the first frame compiles
             recompiles += int(f.compiled or s.compiled)
             full.append(f.ms)
+            cpu.append(1e3 * (c1 - c0))
             small.append(s.ms)
             enc.append(jpeg_ms(f.image))
         r = dict(model=name, gaussians=stats["gaussians"], texels=stats["texels"], storage_mb=stats["storage_mb"],
-                 width=w, height=h, frame_ms=float(np.median(full)), preview_ms=float(np.median(small)),
+                 width=w, height=h, frame_ms=float(np.median(full)), frame_cpu_ms=float(np.median(cpu)),
+                 preview_ms=float(np.median(small)),
                  preview_size=[w // p, h // p], jpeg_ms=float(np.median(enc)), first_frame_ms=t_compile,
                  recompiles=recompiles, repeats=repeats)
         r["fps"] = 1e3 / (r["frame_ms"] + r["jpeg_ms"])
         r["preview_fps"] = 1e3 / r["preview_ms"]
         rows.append(r)
-        print(f"{name:9s} {r['gaussians']:7d} {f'{w}x{h}':>9s} {r['frame_ms']:9.1f} {r['jpeg_ms']:7.1f} "
+        print(f"{name:9s} {r['gaussians']:7d} {f'{w}x{h}':>9s} {r['frame_ms']:9.1f} {r['frame_cpu_ms']:8.1f} "
+              f"{r['jpeg_ms']:7.1f} "
               f"{r['fps']:6.1f} {f'{w // p}x{h // p}':>9s} {r['preview_ms']:9.1f} {r['preview_fps']:6.1f} "
               f"{t_compile / 1e3:8.1f} {recompiles:6d}", flush=True)
     fr.release()
@@ -148,7 +156,7 @@ def main(argv=None) -> int:
         ap.error("--models takes tiny and/or synthetic; --repeats and --preview must be >= 1")
     load = os.getloadavg()
     print(f"load average {load[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'model':9s} {'N':>7s} {'size':>9s} {'frame ms':>9s} {'jpeg ms':>7s} {'fps':>6s} {'preview':>9s} "
+    print(f"{'model':9s} {'N':>7s} {'size':>9s} {'frame ms':>9s} {'CPU ms':>8s} {'jpeg ms':>7s} {'fps':>6s} {'preview':>9s} "
           f"{'prev. ms':>9s} {'fps':>6s} {'first s':>8s} {'recomp':>6s}")
     rows = []
     if "tiny" in models:

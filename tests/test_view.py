@@ -466,6 +466,6 @@ def test_bench_viewer_reports_frames(tmp_path, capsys):
     (row,) = data["results"]
     assert (row["model"], row["gaussians"], row["width"], row["height"]) == ("synthetic", 400, 32, 32)
     assert row["recompiles"] == 0 and row["preview_size"] == [8, 8]
-    for key in ("frame_ms", "preview_ms", "jpeg_ms", "fps", "preview_fps"):
+    for key in ("frame_ms", "frame_cpu_ms", "preview_ms", "jpeg_ms", "fps", "preview_fps"):
         assert np.isfinite(row[key]) and row[key] > 0, key
     assert "32x32" in capsys.readouterr().out
