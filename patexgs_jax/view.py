@@ -465,7 +465,7 @@ def main(argv=None) -> int:
             pass
     except KeyboardInterrupt:
         pass
-    viewer.stop(timeout=10.0)
+    viewer.stop(timeout=3.0)  # a frame still compiling is not waited for (see below)
     print("viewer: stopped", flush=True)
     if viewer._thread is not None and viewer._thread.is_alive():
         # A frame still compiling: ending the interpreter under XLA's running thread aborts the process.

@@ -234,8 +234,11 @@ def run_cli(*args, timeout=120):
                           text=True, timeout=timeout, env=env, cwd=ROOT)
 
 
-def test_cli_bad_input(run_dir, tmp_path):
-    """Each gets one line naming the fix, exit status 2, no traceback."""
+def test_cli_bad_input(run_dir, tmp_path, capsys):
+    """Each gets one line naming the fix and exit status 2 (in-process; the command line's own exit
+    status and the absence of a traceback in a subprocess, for a port in use)."""
+    from patexgs_jax.view import main
+
     with socket.socket() as held:
         held.bind(("127.0.0.1", 0))
         held.listen()
@@ -244,13 +247,15 @@ def test_cli_bad_input(run_dir, tmp_path):
                  ((tmp_path,), "no trained run"),
                  ((run_dir, "--port", busy), f"port {busy} on 127.0.0.1 is already in use: pass another one"),
                  ((run_dir, "--port", 70000), "is not a TCP port"),
-                 ((run_dir, "--host", "no.such.host.invalid"), "is not an address of this machine")]
+                 ((run_dir, "--host", "no.such.host.invalid"), "is not an address of this machine"),
+                 ((run_dir, "--max-side", 4), "--max-side must be at least 16")]
         for args, message in cases:
-            r = run_cli(*args)
-            assert r.returncode == 2, (args, r.stdout, r.stderr)
-            lines = r.stderr.strip().splitlines()
-            assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], (args, r.stderr)
-            assert "Traceback" not in r.stderr + r.stdout
+            assert main([str(a) for a in args]) == 2, args
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], (args, err)
+        r = run_cli(run_dir, "--port", busy)
+    assert r.returncode == 2 and r.stderr.startswith("error: port") and len(r.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in r.stderr + r.stdout
 
 
 # ------------------------------------------------------------------------------------------------
@@ -322,30 +327,34 @@ def client_frames(port: int, width: int, height: int, poses, timeout: float = 12
     return images
 
 
-def test_server_serves_page_answers_camera_and_stops(run_dir):
+@pytest.fixture(scope="module")
+def server(run_dir):
+    """(process, log file, port) of one viewer serving ``run_dir`` (frames at most 96 pixels a side),
+    shared by the server tests; ``test_server_stops_on_sigint`` ends it."""
+    port = free_port()
+    proc, log = start_viewer(run_dir, port, "--max-side", "96")
+    yield proc, log, port
+    if proc.poll() is None:
+        proc.kill()
+
+
+def test_server_serves_page_and_answers_cameras(server):
     import io
 
     from PIL import Image
 
-    port = free_port()
-    proc, log = start_viewer(run_dir, port, "--max-side", "96")
-    try:
-        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30).read().decode()
-        assert "<html" in page.lower()
-        poses = [vw.viewer_pose(orbit_camera(a, 160, 120)) for a in (0.3, 0.5)]
-        images = client_frames(port, 160, 120, poses)
-        first = np.asarray(Image.open(io.BytesIO(images[0])))
-        assert first.shape == (72, 96, 3) and first.std() > 5  # the canvas at --max-side
-        # A second tab while the first one has closed: the server still answers.
-        images = client_frames(port, 96, 64, poses[:1])
-        assert np.asarray(Image.open(io.BytesIO(images[0]))).shape == (64, 96, 3)
-        assert proc.poll() is None
-    finally:
-        took = stop_viewer(proc)
-    text = log.read_text()
-    assert proc.returncode == 0 and "Traceback" not in text, text
-    assert took < 10, took
-    assert text.count("first frame") >= 2 and "viewer: stopped" in text, text
+    proc, log, port = server
+    page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=30).read().decode()
+    assert "<html" in page.lower()
+    poses = [vw.viewer_pose(orbit_camera(a, 160, 120)) for a in (0.3, 0.5)]
+    images = client_frames(port, 160, 120, poses)
+    first = np.asarray(Image.open(io.BytesIO(images[0])))
+    assert first.shape == (72, 96, 3) and first.std() > 5  # the canvas at --max-side
+    # A second tab while the first one has closed: the server still answers.
+    images = client_frames(port, 96, 64, poses[:1])
+    assert np.asarray(Image.open(io.BytesIO(images[0]))).shape == (64, 96, 3)
+    assert proc.poll() is None
+    assert log.read_text().count("first frame") >= 2
 
 
 def test_non_loopback_host_warns(run_dir):
@@ -412,24 +421,31 @@ def chromium_screenshot(url: str, out: Path, size=(800, 600), wait_for=None, tim
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium: apt-get install -y chromium (Debian) to run the "
                                              "browser test")
-def test_in_headless_chromium(run_dir, tmp_path):
+def test_in_headless_chromium(server, tmp_path):
     from PIL import Image
 
-    port = free_port()
-    proc, log = start_viewer(run_dir, port, "--max-side", "96")
-    try:
-        shot = tmp_path / "viewer.png"
-        chromium_screenshot(f"http://127.0.0.1:{port}/", shot, wait_for=lambda: "first frame" in log.read_text())
-        assert proc.poll() is None
-    finally:
-        stop_viewer(proc)
-    text = log.read_text()
-    assert "client 0: connected" in text and "client 0: first frame" in text, text
+    proc, log, port = server
+    before = log.read_text()
+    shot = tmp_path / "viewer.png"
+    chromium_screenshot(f"http://127.0.0.1:{port}/", shot,
+                        wait_for=lambda: log.read_text().count("first frame") > before.count("first frame"))
+    assert proc.poll() is None
+    new = log.read_text()[len(before):]
+    assert ": connected" in new and ": first frame" in new, new
     img = np.asarray(Image.open(shot).convert("RGB"), np.float32)
     # The scene fills the canvas left of the control panel: not blank, and not one flat colour.
     region = img[100:500, 50:400]
     assert region.std() > 10, region.std()
     assert (np.abs(region - region.mean(axis=(0, 1))).sum(-1) > 30).mean() > 0.05
+
+
+def test_server_stops_on_sigint(server):
+    proc, log, _ = server
+    took = stop_viewer(proc)
+    text = log.read_text()
+    assert proc.returncode == 0 and "Traceback" not in text, text
+    assert took < 10, took
+    assert text.rstrip().endswith("viewer: stopped"), text
 
 
 def test_browser_input_only_picks_from_lists(run_dir, tmp_path):
@@ -469,3 +485,36 @@ def test_bench_viewer_reports_frames(tmp_path, capsys):
     for key in ("frame_ms", "frame_cpu_ms", "preview_ms", "jpeg_ms", "fps", "preview_fps"):
         assert np.isfinite(row[key]) and row[key] > 0, key
     assert "32x32" in capsys.readouterr().out
+
+
+def test_training_views_snap_and_compare(run_dir, scene):
+    """With a dataset, the training cameras are frustums; snapping a tab to one moves its camera to
+    the view's pose and shows the render beside the ground truth with the PSNR."""
+    import contextlib
+    import types
+
+    from patexgs_jax.view import Viewer
+
+    cams = [orbit_camera(a) for a in (0.2, 1.0, 2.0)]
+    gt = vw.FrameRenderer(scene, R.RenderConfig(coverage="prefilter"))
+    views = [types.SimpleNamespace(camera=c, name=f"view{i}", image=gt.render(c).image / np.float32(255))
+             for i, c in enumerate(cams)]
+    lines = []
+    viewer = Viewer(vw.find_runs(run_dir), types.SimpleNamespace(train_views=views), log=lines.append)
+    viewer.start("127.0.0.1", free_port())
+    try:
+        assert len(viewer.frustums) == 3 and not viewer.frustums[0].visible  # the opening view's
+        client = types.SimpleNamespace(client_id=7, atomic=contextlib.nullcontext,
+                                       camera=types.SimpleNamespace(wxyz=None, position=None, fov=None))
+        viewer._snap(client, 1)
+        wxyz, pos, fov = vw.viewer_pose(cams[1])
+        np.testing.assert_allclose(client.camera.wxyz, wxyz, atol=1e-12)
+        np.testing.assert_allclose(client.camera.position, pos, atol=1e-12)
+        assert client.camera.fov == pytest.approx(fov)
+        assert viewer.frustums[0].visible and not viewer.frustums[1].visible
+        assert "view1" in viewer.gui_gt_text.content and "PSNR" in viewer.gui_gt_text.content
+        assert viewer.gui_gt.image.shape == (H, 2 * W + 4, 3)
+        psnr = float(viewer.gui_gt_text.content.split("PSNR ")[1].split(" dB")[0])
+        assert psnr > 40  # the ground truth is this render (uint8-rounded)
+    finally:
+        viewer.stop()
