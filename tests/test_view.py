@@ -474,14 +474,15 @@ def test_bench_viewer_reports_frames(tmp_path, capsys):
     from experiments import bench_viewer
 
     out = tmp_path / "viewer.json"
+    # --preview 1: the preview is the frame's own size bucket, one program to compile
     bench_viewer.main(["--models", "synthetic", "--gaussians", "400", "--sizes", "32x32", "--repeats", "2",
-                       "--json", str(out)])
+                       "--preview", "1", "--json", str(out)])
     data = json.loads(out.read_text())
     for key in ("schema", "git", "date", "machine", "cpus", "jax", "load_average_before"):
         assert key in data, key
     (row,) = data["results"]
     assert (row["model"], row["gaussians"], row["width"], row["height"]) == ("synthetic", 400, 32, 32)
-    assert row["recompiles"] == 0 and row["preview_size"] == [8, 8]
+    assert row["recompiles"] == 0 and row["preview_size"] == [32, 32]
     for key in ("frame_ms", "frame_cpu_ms", "preview_ms", "jpeg_ms", "fps", "preview_fps"):
         assert np.isfinite(row[key]) and row[key] > 0, key
     assert "32x32" in capsys.readouterr().out
