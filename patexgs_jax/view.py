@@ -38,6 +38,7 @@ import warnings
 
 import numpy as np
 
+from . import compiled
 from . import viewing as vw
 
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -387,6 +388,8 @@ class Viewer:
         if state.frames == 1:
             self.log(f"client {client.client_id}: first frame, {frame.rendered[0]}x{frame.rendered[1]} rendered "
                      f"in {frame.ms:.0f} ms")
+        if frame.compiled:  # a long session compiles many programs: keep within the memory-map cap
+            compiled.release_compiled_code()
         if frame.grew:
             self.log(f"tile capacity grown for a {frame.rendered[0]}x{frame.rendered[1]} view (one new program)")
         now = time.monotonic()

@@ -82,7 +82,11 @@ def frames(scene):
 
 @pytest.fixture(scope="module")
 def run_dir(scene, tmp_path_factory):
-    return write_run(tmp_path_factory.mktemp("viewer") / "runs" / "toy" / "patexgs", scene)
+    """A study's folder with two runs of one scene: ``runs/toy/patexgs`` (returned) and
+    ``runs/toy/2dgs`` (a smaller scene, without textures)."""
+    study = tmp_path_factory.mktemp("viewer")
+    write_run(study / "runs" / "toy" / "2dgs", random_scene(1, 50), method="2dgs")
+    return write_run(study / "runs" / "toy" / "patexgs", scene)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -192,7 +196,6 @@ def test_modes():
 # ------------------------------------------------------------------------------------------------
 def test_find_runs(run_dir, tmp_path):
     study = run_dir.parents[2]
-    write_run(study / "runs" / "toy" / "2dgs", textured_scene(1, 50))
     names = [r.name for r in vw.find_runs(study)]
     assert names == ["toy/2dgs", "toy/patexgs"]
     assert [r.name for r in vw.find_runs(run_dir)] == ["patexgs"]
@@ -501,7 +504,8 @@ def test_training_views_snap_and_compare(run_dir, scene):
     views = [types.SimpleNamespace(camera=c, name=f"view{i}", image=gt.render(c).image / np.float32(255))
              for i, c in enumerate(cams)]
     lines = []
-    viewer = Viewer(vw.find_runs(run_dir), types.SimpleNamespace(train_views=views), log=lines.append)
+    viewer = Viewer(vw.find_runs(run_dir.parents[2]), types.SimpleNamespace(train_views=views), log=lines.append)
+    assert viewer.run.name == "toy/patexgs"  # a study opens on its patexgs run
     viewer.start("127.0.0.1", free_port())
     try:
         assert len(viewer.frustums) == 3 and not viewer.frustums[0].visible  # the opening view's
@@ -517,5 +521,10 @@ def test_training_views_snap_and_compare(run_dir, scene):
         assert viewer.gui_gt.image.shape == (H, 2 * W + 4, 3)
         psnr = float(viewer.gui_gt_text.content.split("PSNR ")[1].split(" dB")[0])
         assert psnr > 40  # the ground truth is this render (uint8-rounded)
+        # Switching runs (by the name the browser lists) loads the other one, in its own mode.
+        viewer._pick_run("toy/2dgs")
+        assert viewer.run.method == "2dgs" and viewer.stats["gaussians"] == 50
+        assert viewer.settings["mode"] == "literal" and viewer.gui_mode.value == vw.MODES["literal"]
+        assert "toy/2dgs" in viewer.gui_status.content
     finally:
         viewer.stop()
