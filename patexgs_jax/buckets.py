@@ -124,12 +124,18 @@ class ViewRenderer:
       config: its :class:`patexgs_jax.RenderConfig`.
       steps_per_octave: the buckets (see :func:`bucket_side`; None: the exact tile grid).
       active_sh_degree: optional cap on the SH bands.
+      headroom: a bucket first met in :meth:`padded` gets the capacity of ``headroom`` times the
+        view's need, so that nearby views (an interactive camera) fit it without a new program; the
+        sort runs over the whole capacity, so headroom costs render time.
     """
 
     def __init__(self, scene, config, *, steps_per_octave: int | None = EVAL_STEPS_PER_OCTAVE,
-                 active_sh_degree=None):
+                 active_sh_degree=None, headroom: float = 1.0):
+        if not headroom >= 1.0:
+            raise ValueError(f"headroom must be >= 1, got {headroom}.")
         self.scene, self.config, self.steps = scene, config, steps_per_octave
         self.active_sh_degree = active_sh_degree
+        self.headroom = float(headroom)
         self.capacities: dict = {}  # (height, width) of a bucket -> Capacity; as many as buckets
 
     def camera(self, camera: Camera) -> Camera:
@@ -157,7 +163,7 @@ class ViewRenderer:
         key = (cam.height, cam.width)
         cap = self.capacities.get(key)
         if cap is None:
-            cap = self.capacities[key] = R.Capacity.fit(self._needed(cam))
+            cap = self.capacities[key] = R.Capacity.fit(self.headroom * self._needed(cam))
         out = R.render_jit(self.scene, cam, config=self.config, capacity=cap,
                            active_sh_degree=self.active_sh_degree)
         if bool(out.overflow):  # a view not prepared for, needing more than its bucket holds
