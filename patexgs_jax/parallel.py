@@ -408,7 +408,20 @@ def process_allgather_ints(values) -> np.ndarray:
     local = np.asarray(values, np.int32).reshape(-1)
     if jax.process_count() == 1:
         return local[None]
-    return np.asarray(multihost_utils.process_allgather(local)).reshape(jax.process_count(), -1)
+    try:
+        return np.asarray(multihost_utils.process_allgather(local)).reshape(jax.process_count(), -1)
+    except Exception as e:  # a failed collective surfaces as XLA's runtime error
+        raise lost_process("exchanging values with the other processes", e) from e
+
+
+def lost_process(during: str, error: BaseException) -> DistributedError:
+    """The error for a collective that failed ``during`` something: in a run of several processes
+    that almost always means another process stopped (XLA's message, ``error``, says which peer)."""
+    text = str(error).strip()
+    first = text.splitlines()[0] if text else type(error).__name__
+    return DistributedError(f"{during} failed in this run of {jax.process_count()} processes ({first}); another "
+                            "process has probably stopped: its output says why. Checkpoints are kept: start all "
+                            "processes again with --resume.")
 
 
 def tree_checksum(tree) -> int:

@@ -554,11 +554,7 @@ class _Run:
             try:
                 out = jax.block_until_ready(fn(sc, st, stats, cams, imgs, sh, wn))
             except Exception as e:  # a failed all-reduce surfaces here as XLA's runtime error
-                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-                raise parallel.DistributedError(
-                    f"the training step at step {self.step} failed in this run of {jax.process_count()} processes "
-                    f"({first}); another process has probably stopped: its output says why. Checkpoints are kept: "
-                    "start all processes again with --resume.") from e
+                raise parallel.lost_process(f"the training step {self.step}", e) from e
             return parallel.to_local(out, mesh)
 
         return step
@@ -1018,6 +1014,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--checkpoint-every", type=int, default=None, help="steps between checkpoints (default: the "
                     "preset's; one is always written at the end)")
+    ap.add_argument("--log-every", type=int, default=None, help="steps between progress lines and log.jsonl "
+                    "records (default: the preset's)")
     ap.add_argument("--batch-size", type=int, default=None,
                     help="views per step (default 1); > 1 trains data-parallel (see patexgs_jax.parallel)")
     ap.add_argument("--devices", type=int, default=None,
@@ -1051,7 +1049,7 @@ def _train_cli(args) -> int:
         cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                             iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
                             texture_budget_mb=args.texture_budget_mb, seed=args.seed,
-                            checkpoint_every=args.checkpoint_every, batch_size=args.batch_size,
+                            checkpoint_every=args.checkpoint_every, log_every=args.log_every, batch_size=args.batch_size,
                             devices=args.devices)
         ds = load(args.data, factor=args.factor)
         train(ds, cfg, args.out, resume=args.resume)
