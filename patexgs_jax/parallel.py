@@ -276,8 +276,8 @@ def sum_over_views(fn: Callable, mesh: Mesh) -> Callable:
 #: kept for bad arguments and data).
 EXIT_DISTRIBUTED = 3
 
-#: Seconds to wait for every process to join (and, on a normal exit, for process 0 to finish its
-#: outputs) before giving up.
+#: Seconds to wait for every process to join (and for the others at ``jax.distributed``'s shutdown)
+#: before giving up.
 DEFAULT_TIMEOUT = 300.0
 
 

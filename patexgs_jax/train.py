@@ -2,6 +2,11 @@
 
     python -m patexgs_jax.train --data PATH --method patexgs --out DIR [--factor F]
         [--iters-2dgs N] [--iters-tex N] [--max-gaussians N] [--resume]
+        [--batch-size B [--devices D]] [--coordinator HOST:PORT --num-processes N --process-id I]
+
+``--batch-size`` trains data-parallel over devices and, with the last three flags (or under SLURM
+``srun`` / Open MPI ``mpirun``), over several processes: see :mod:`patexgs_jax.parallel` and
+docs/parallel.md.
 
 Without ``--data`` it trains on the embedded synthetic scene (generated once into the cache).
 
@@ -884,7 +889,8 @@ def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,
-          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None) -> TrainResult:
+          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
+          evaluate_everywhere: bool = False, end_distributed: bool = False) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -901,10 +907,19 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
       map_guard: when the process nears the kernel's memory-map cap, compiled code is released and,
         if that is not enough, the run checkpoints and raises :class:`compiled.MapLimitReached`
         (default ``compiled.MapGuard()``: release at half the cap, stop at 90%).
+      evaluate_everywhere, end_distributed: with several processes (``jax.distributed``, see
+        :mod:`patexgs_jax.parallel`) every process trains and process 0 alone writes the outputs
+        and, by default, evaluates (the others' summaries have None metrics). With
+        ``evaluate_everywhere`` every process evaluates (the processes stay in step for what
+        follows); with ``end_distributed`` ``jax.distributed`` is shut down once training is done,
+        so the other processes can exit while process 0 evaluates and writes (the command line's
+        choice; nothing cross-process can follow).
     Returns:
       :class:`TrainResult`.
     Raises:
       compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
+      parallel.DistributedError: with several processes, they do not start from the same state, or
+        one of them stopped (the message says what to do).
     """
     # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
     # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
@@ -956,7 +971,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
                    storage_mb=storage_mb(scene.num_active(), int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]),
                    recompiles=run.recompiles, skipped_steps=run.skipped, allocation=run.allocation,
                    stage1_from=None if stage1 is None else str(stage1))
-    if main:
+    if end_distributed and jax.process_count() > 1:
+        jax.distributed.shutdown()  # the processes are done with each other (every one calls this)
+    if main or evaluate_everywhere:
         train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
         test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
     else:  # evaluation and outputs are process 0's
@@ -1052,7 +1069,7 @@ def _train_cli(args) -> int:
                             checkpoint_every=args.checkpoint_every, log_every=args.log_every, batch_size=args.batch_size,
                             devices=args.devices)
         ds = load(args.data, factor=args.factor)
-        train(ds, cfg, args.out, resume=args.resume)
+        train(ds, cfg, args.out, resume=args.resume, end_distributed=True)
     except parallel.DistributedError as e:
         print(f"error: {e}", file=sys.stderr)
         return parallel.EXIT_DISTRIBUTED
