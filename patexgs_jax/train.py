@@ -477,13 +477,17 @@ class _Run:
         if self.out is None:
             return
         tree = self.state_tree()
-        same = {k: v for k, v in tree.items() if k != "t_train"}  # (wall-clock time differs between processes)
-        parallel.check_same(f"the training state at step {self.step} (a checksum of every array; the host-side "
-                            "work must give the same result on every process)", [self.step, parallel.tree_checksum(same)])
+        several = jax.process_count() > 1
+        if several:
+            same = {k: v for k, v in tree.items() if k != "t_train"}  # (wall-clock time differs between processes)
+            parallel.check_same(f"the training state at step {self.step} (a checksum of every array; the host-side "
+                                "work must give the same result on every process)",
+                                [self.step, parallel.tree_checksum(same)])
         if self.main:
             path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
             ckpt.save_checkpoint(path, tree, dict(config=_config_dict(self.cfg), step=self.step), keep=2)
-        parallel.check_same(f"the checkpoint of step {self.step} being written", [self.step])
+        if several:  # the others wait until it is written (a study reads it next)
+            parallel.check_same(f"the checkpoint of step {self.step} being written", [self.step])
 
     # -- helpers ---------------------------------------------------------------------------------
     def view(self, step):
@@ -958,10 +962,10 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     if out is not None and main:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
         ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
             np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
-    # Every process must start from the same state: the same data, and the same checkpoint when resuming.
-    parallel.check_same("the starting state (step and a checksum of the scene); every process needs the same "
-                        "--data and, to resume, must see process 0's --out folder (a shared filesystem)",
-                        [run.step, parallel.tree_checksum(run.scene)])
+    if jax.process_count() > 1:  # every process starts from the same state (data; checkpoint when resuming)
+        parallel.check_same("the starting state (step and a checksum of the scene); every process needs the same "
+                            "--data and, to resume, must see process 0's --out folder (a shared filesystem)",
+                            [run.step, parallel.tree_checksum(run.scene)])
     run.run()
     scene = run.scene
     texels = scene.texel_count()
@@ -1066,8 +1070,8 @@ def _train_cli(args) -> int:
         cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                             iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
                             texture_budget_mb=args.texture_budget_mb, seed=args.seed,
-                            checkpoint_every=args.checkpoint_every, log_every=args.log_every, batch_size=args.batch_size,
-                            devices=args.devices)
+                            checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+                            batch_size=args.batch_size, devices=args.devices)
         ds = load(args.data, factor=args.factor)
         train(ds, cfg, args.out, resume=args.resume, end_distributed=True)
     except parallel.DistributedError as e:

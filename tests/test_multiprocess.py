@@ -51,8 +51,9 @@ def _free_port() -> int:
 
 def _env(cache: Path) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device per process
-    env.update(JAX_PLATFORMS="cpu", PYTHONPATH=os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep),
-               JAX_COMPILATION_CACHE_DIR=str(cache), PYTHONUNBUFFERED="1")
+    # The repository first on the path: the processes import this checkout wherever the package is installed.
+    path = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
+    env.update(JAX_PLATFORMS="cpu", PYTHONPATH=path, JAX_COMPILATION_CACHE_DIR=str(cache), PYTHONUNBUFFERED="1")
     return env
 
 
