@@ -38,10 +38,14 @@ Running it
     (:func:`process_slice`: the rows of the batch its devices hold) and :func:`shard_batch`
     assembles the global batch from those shares (``jax.make_array_from_process_local_data``).
     Between steps each process keeps its own copy of the state on its own devices
-    (:func:`to_local`), so host-side work (densification, texture growth, capacity counts,
-    checkpoints) never waits for another process; it gives the same result on every process
-    because every process runs the same deterministic code on the same all-reduced gradients,
-    which :func:`check_same` verifies at start and at every checkpoint. Only process 0 writes.
+    (:func:`to_local`), so host-side work (densification, texture growth, capacity counts) never
+    waits for another process; it gives the same result on every process because every process
+    runs the same deterministic code on the same all-reduced gradients, which :func:`check_same`
+    verifies at start and at every checkpoint. Only process 0 writes.
+    Failures end the run instead of hanging it: :func:`initialize` gives up after its time-out
+    (with the reason), a failed cross-process exchange becomes a :class:`DistributedError`
+    (:func:`lost_process`), and :func:`end_process` exits without ``jax.distributed``'s shutdown
+    barrier, which would wait for the processes that are gone. docs/parallel.md has the table.
 
 Costs to know
   Between steps the state stays replicated, so host-side jitted work on it (capacity counts, the
