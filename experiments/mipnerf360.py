@@ -2,7 +2,12 @@
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
         [--preset tiny|small|paper] [--factor F] [--out DIR] [--budget 10%|1%|N] [--renders K]
-        [--lpips-net alex|vgg] [--no-lpips]
+        [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
+        [--coordinator HOST:PORT --num-processes N --process-id I]
+
+``--batch-size`` trains data-parallel (part of the protocol); the last three flags (or SLURM
+``srun`` / Open MPI ``mpirun``) run the study over several processes: every process trains and
+evaluates in step, process 0 writes (docs/parallel.md; ``--out`` on a filesystem all of them see).
 
 ROOT holds Mip-NeRF 360 scene folders (``bicycle/``, ``garden/``, ... each in COLMAP layout) or is
 one scene (any format :func:`patexgs_jax.data.load` reads). Without ``--data`` the study runs on the
