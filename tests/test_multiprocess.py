@@ -231,7 +231,8 @@ def test_resume_with_two_processes(runs):
 
 
 def test_join_failures_end_with_a_clear_error(tmp_path):
-    """No coordinator within the time-out; processes started with different process counts."""
+    """No coordinator within the time-out; processes started with different process counts; a
+    malformed coordinator address (the study's command line)."""
     cache = tmp_path / "cache"
     port = _free_port()
     args = [*TRAIN_ARGS, "--out", tmp_path / "a", "--coordinator", f"127.0.0.1:{port}", "--num-processes", 2,
@@ -253,3 +254,8 @@ def test_join_failures_end_with_a_clear_error(tmp_path):
         assert rcs[i] == 3, (rcs, err[-2000:])
         assert "different --num-processes (process 0: 2, process 1: 3" in err and "Traceback" not in err
     assert not (tmp_path / "b").exists()  # nothing written
+    # The study's command line takes the same flags and checks them the same way.
+    bad = subprocess.run([sys.executable, "-m", "experiments.mipnerf360", "--out", tmp_path / "c", "--coordinator",
+                          "no-port", "--num-processes", "2", "--process-id", "0"], cwd=REPO, env=_env(cache),
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 3 and "--coordinator must be HOST:PORT" in bad.stderr and "Traceback" not in bad.stderr
