@@ -259,3 +259,36 @@ def test_join_failures_end_with_a_clear_error(tmp_path):
                           "no-port", "--num-processes", "2", "--process-id", "0"], cwd=REPO, env=_env(cache),
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 3 and "--coordinator must be HOST:PORT" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_processes_join_from_a_slurm_environment(tmp_path):
+    """Without the flags, the coordinator, process count and id come from the variables SLURM's
+    ``srun`` sets (read by JAX; the coordinator port is derived from the job id)."""
+    port = next(p for p in range(65535, 61439, -1) if _port_is_free(p))
+    script = ("import jax; from patexgs_jax import parallel; several = parallel.initialize(timeout=60); "
+              "print('JOINED', several, jax.process_index(), jax.process_count(), len(jax.devices()))")
+    procs = []
+    try:
+        for i in (0, 1):
+            env = dict(_env(tmp_path / "cache"), SLURM_JOB_ID=str(port - 61440), SLURM_STEP_NODELIST="localhost",
+                       SLURM_NTASKS="2", SLURM_PROCID=str(i), SLURM_LOCALID=str(i), SLURM_STEP_NUM_NODES="1")
+            procs.append(subprocess.Popen([sys.executable, "-c", script], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                                          stderr=subprocess.PIPE, text=True))
+        outs = [p.communicate(timeout=120) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait(timeout=30)
+    for i, (out, err) in enumerate(outs):
+        assert procs[i].returncode == 0, err[-3000:]
+        assert f"JOINED True {i} 2 2" in out, (out, err[-3000:])
+
+
+def _port_is_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
