@@ -2,7 +2,12 @@
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
         [--preset tiny|small|paper] [--factor F] [--out DIR] [--budget 10%|1%|N] [--renders K]
-        [--lpips-net alex|vgg] [--no-lpips]
+        [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
+        [--coordinator HOST:PORT --num-processes N --process-id I]
+
+``--batch-size`` trains data-parallel (part of the protocol); the last three flags (or SLURM
+``srun`` / Open MPI ``mpirun``) run the study over several processes: every process trains and
+evaluates in step, process 0 writes (docs/parallel.md; ``--out`` on a filesystem all of them see).
 
 ROOT holds Mip-NeRF 360 scene folders (``bicycle/``, ``garden/``, ... each in COLMAP layout) or is
 one scene (any format :func:`patexgs_jax.data.load` reads). Without ``--data`` the study runs on the
@@ -271,11 +276,18 @@ class Study:
     """One output directory: its results, and the training/evaluation of (scene, method) entries."""
 
     def __init__(self, out_dir, config: StudyConfig, *, renders: int = 3, use_lpips: bool = True,
-                 lpips_net: str = "alex", verbose: bool = True):
+                 lpips_net: str = "alex", verbose: bool = True, devices: int | None = None):
+        import jax
+
         from patexgs_jax import checkpoint as ckpt
 
         self.out = Path(out_dir)
-        ckpt.check_writable(self.out)
+        # With several processes (jax.distributed) every process trains and evaluates, in step;
+        # process 0 alone writes and prints.
+        self.main = jax.process_index() == 0
+        self.devices = devices  # how the batch is split: not part of the protocol
+        if self.main:
+            ckpt.check_writable(self.out)
         self.cfg = config
         self.renders = renders
         self.verbose = verbose
@@ -313,13 +325,15 @@ class Study:
             self.data.setdefault("lpips", None)
 
     def say(self, msg: str) -> None:
-        if self.verbose:
+        if self.verbose and self.main:
             print(msg, flush=True)
 
     def done(self, scene: str, key: str) -> bool:
         return key in self.data["results"].get(scene, {})
 
     def save(self) -> None:
+        if not self.main:
+            return
         _write_json(self.path, self.data)
         (self.out / "tables.md").write_text(tables_markdown(self.data))
         try:
@@ -345,16 +359,17 @@ class Study:
                 max_g = budget[1]
             else:
                 self.say(f"[{name}] unbudgeted 2DGS run, for the Gaussian count the budget is a fraction of")
-                ref = train(ds, self.cfg.train_config("2dgs"), runs / "2dgs", resume=True, verbose=self.verbose)
+                ref = train(ds, self._train_config("2dgs"), runs / "2dgs", resume=True, verbose=self.verbose,
+                            evaluate_everywhere=True)
                 max_g = max(1, int(round(budget[1] * ref.summary["num_gaussians"])))
             self.say(f"[{name}] budget {self.cfg.budget}: at most {max_g} Gaussians")
-        s1_cfg = self.cfg.train_config("2dgs", max_g)
+        s1_cfg = self._train_config("2dgs", max_g)
         s1_dir = runs / label("2dgs", self.cfg.budget)
         self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(todo)}")
-        s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose)
+        s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True)
         for method in todo:
             key = label(method, self.cfg.budget)
-            cfg = self.cfg.train_config(method, max_g)
+            cfg = self._train_config(method, max_g)
             if method == "2dgs":
                 result = s1
             else:
@@ -363,7 +378,8 @@ class Study:
                     raise StudyError(f"no end-of-stage-1 checkpoint in {s1_dir}/checkpoints for {method}; "
                                      "delete that run folder to train stage 1 again.")
                 self.say(f"[{name}] {key}")
-                result = train(ds, cfg, runs / key, resume=True, verbose=self.verbose, stage1=ck)
+                result = train(ds, cfg, runs / key, resume=True, verbose=self.verbose, stage1=ck,
+                               evaluate_everywhere=True)
             entry = self.evaluate(name, key, result, ds, cfg)
             self.data["results"].setdefault(name, {})[key] = entry
             self.save()
@@ -372,6 +388,9 @@ class Study:
                      f"1/2, 1/4, 1/8 (alias PSNR {' / '.join(_fmt(entry[str(s)]['alias_psnr'], 2) for s in SCALES[1:])}); SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
                      f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
                      f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
+
+    def _train_config(self, method: str, max_gaussians: int | None = None):
+        return dataclasses.replace(self.cfg.train_config(method, max_gaussians), devices=self.devices)
 
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
         from experiments.evaluation import evaluate_scales, render_ms, side_by_side
@@ -389,7 +408,7 @@ class Study:
             ev = evaluate_scales(result.scene, views, rc, scales=SCALES, lpips=self.lpips, keep_images=self.renders,
                                  renderer=renderer)
             ms = render_ms(result.scene, views, rc, renderer=renderer)
-        images = ev.pop("images", {})
+        images = ev.pop("images", {}) if self.main else {}
         for s in (str(SCALES[0]), str(SCALES[-1])):
             if images.get(s):
                 _save_png(self.out / "renders" / scene / f"{key}_x{s}.png", side_by_side(images[s]))
@@ -397,7 +416,8 @@ class Study:
                 _save_png(first / f"{key}_x{s}.png", _to_uint8(images[s][0][0]))
                 if not (first / f"ground-truth_x{s}.png").exists():  # the same for every method
                     _save_png(first / f"ground-truth_x{s}.png", _to_uint8(images[s][0][1]))
-        write_comparison(self.out / "renders" / scene, [k for k in self.data["results"].get(scene, {})] + [key])
+        if self.main:
+            write_comparison(self.out / "renders" / scene, [k for k in self.data["results"].get(scene, {})] + [key])
         s = result.summary
         entry = {k: v for k, v in ev.items()}
         entry.update(method=cfg.method, storage_mb=s["storage_mb"], num_gaussians=s["num_gaussians"],
@@ -609,7 +629,7 @@ def _enable_compile_cache() -> None:
 
 
 def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders: int = 3, use_lpips: bool = True,
-        lpips_net: str = "alex", verbose: bool = True, **config) -> dict:
+        lpips_net: str = "alex", verbose: bool = True, devices: int | None = None, **config) -> dict:
     """Runs the study (the command line in Python); returns the results dictionary.
 
     Args:
@@ -620,6 +640,8 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
       renders: test views kept as side-by-side PNGs per method and scale (0: none).
       use_lpips: compute LPIPS when its weights are installed.
       lpips_net: its trunk, ``"alex"`` (AlexNet) or ``"vgg"`` (VGG16).
+      devices: devices a batch of views is split over (``TrainConfig.devices``; not part of the
+        protocol); the batch size is ``train_overrides={"batch_size": B}``.
       **config: :class:`StudyConfig` fields (preset, factor, budget, iters_2dgs, iters_tex,
         max_gaussians, seed, test_views, train_overrides).
     """
@@ -642,12 +664,13 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     parse_budget(config.get("budget"))
     found = find_scenes(root, scenes)
     cfg = StudyConfig(**config)
-    study = Study(out, cfg, renders=renders, use_lpips=use_lpips, lpips_net=lpips_net, verbose=verbose)
+    study = Study(out, cfg, renders=renders, use_lpips=use_lpips, lpips_net=lpips_net, verbose=verbose,
+                  devices=devices)
     t = time.perf_counter()
     for name, path in found.items():
         study.run_scene(name, path, methods)
     study.save()
-    if verbose:
+    if verbose and study.main:
         print(f"\n{tables_markdown(study.data)}\nwritten to {study.out} ({time.perf_counter() - t:.0f} s)")
     return study.data
 
@@ -677,8 +700,32 @@ def main(argv=None) -> int:
                     help="LPIPS trunk: alex (AlexNet, default) or vgg (VGG16)")
     ap.add_argument("--no-lpips", action="store_true")
     ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs")
+    ap.add_argument("--batch-size", type=int, default=None, help="views per training step (default 1); > 1 trains "
+                    "data-parallel (part of the protocol)")
+    ap.add_argument("--devices", type=int, default=None, help="devices the batch is split over (default: as many "
+                    "as divide it); on CPU this many CPU devices are created")
+    from patexgs_jax import parallel
+
+    parallel.add_cli_arguments(ap)
     args = ap.parse_args(argv)
+    try:
+        several = parallel.initialize_from_args(args)
+    except parallel.DistributedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return parallel.EXIT_DISTRIBUTED
+    if args.devices is not None and not several:
+        parallel.request_cpu_devices(args.devices)
+    code = _study_cli(args)
+    if several and code != 0:
+        parallel.end_process(code)  # the message is out; skip the shutdown barrier (see end_process)
+    return code
+
+
+def _study_cli(args) -> int:
+    import jax
+
     from patexgs_jax import checkpoint as ckpt
+    from patexgs_jax import parallel
 
     if not args.no_compile_cache:
         _enable_compile_cache()
@@ -687,12 +734,25 @@ def main(argv=None) -> int:
                                     iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
                                     max_gaussians=args.max_gaussians, seed=args.seed,
                                     test_views=args.test_views).items() if v is not None}
+    if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
+        config["train_overrides"] = dict(batch_size=args.batch_size)
     try:
         run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
-            renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, **config)
+            renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
+            **config)
+    except parallel.DistributedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return parallel.EXIT_DISTRIBUTED
     except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except BaseException:
+        if jax.process_count() == 1:
+            raise
+        import traceback
+
+        traceback.print_exc()  # an unexpected error: its traceback, then this process ends (no hang)
+        return 1
     return 0
 
 

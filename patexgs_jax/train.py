@@ -2,6 +2,11 @@
 
     python -m patexgs_jax.train --data PATH --method patexgs --out DIR [--factor F]
         [--iters-2dgs N] [--iters-tex N] [--max-gaussians N] [--resume]
+        [--batch-size B [--devices D]] [--coordinator HOST:PORT --num-processes N --process-id I]
+
+``--batch-size`` trains data-parallel over devices and, with the last three flags (or under SLURM
+``srun`` / Open MPI ``mpirun``), over several processes: see :mod:`patexgs_jax.parallel` and
+docs/parallel.md.
 
 Without ``--data`` it trains on the embedded synthetic scene (generated once into the cache).
 
@@ -165,6 +170,9 @@ class TrainConfig:
         method_spec(self.method)
         if self.batch_size < 1 or (self.devices is not None and self.devices < 1):
             raise ValueError(f"batch_size and devices must be >= 1, got {self.batch_size} and {self.devices}.")
+        if self.checkpoint_every < 1 or self.log_every < 1:
+            raise ValueError(f"checkpoint_every and log_every must be >= 1, got {self.checkpoint_every} and "
+                             f"{self.log_every}.")
         if self.iters_2dgs < 1 or self.iters_tex < 0:
             raise ValueError("iters_2dgs must be >= 1 and iters_tex >= 0.")
         if self.continue_2dgs < 0 or (self.continue_2dgs and self.method != "2dgs"):
@@ -460,6 +468,8 @@ class _Run:
         self.allocation = None
         self.growth_events = []  # one dict per Eq. 8-10 event that grew textures (summary.json)
         self.stage1_saved = False
+        # With several processes (jax.distributed) only process 0 writes and prints progress.
+        self.main = jax.process_index() == 0
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
         # program per size bucket; released when the layout changes (see _compiled_step).
@@ -503,11 +513,24 @@ class _Run:
         self.growth_events = list(tree.get("growth_events") or [])
 
     def save(self):
+        """Writes a checkpoint (process 0); with several processes, first checks that every process
+        holds the same state (the replicated state must never diverge), then waits until it is written."""
+        from . import parallel
+
         if self.out is None:
             return
-        path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
-        ckpt.save_checkpoint(path, self.state_tree(), dict(config=_config_dict(self.cfg), step=self.step),
-                             keep=2)
+        tree = self.state_tree()
+        several = jax.process_count() > 1
+        if several:
+            same = {k: v for k, v in tree.items() if k != "t_train"}  # (wall-clock time differs between processes)
+            parallel.check_same(f"the training state at step {self.step} (a checksum of every array; the host-side "
+                                "work must give the same result on every process)",
+                                [self.step, parallel.tree_checksum(same)])
+        if self.main:
+            path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
+            ckpt.save_checkpoint(path, tree, dict(config=_config_dict(self.cfg), step=self.step), keep=2)
+        if several:  # the others wait until it is written (a study reads it next)
+            parallel.check_same(f"the checkpoint of step {self.step} being written", [self.step])
 
     def save_stage1(self):
         """At the end of the 2DGS stage of a run that goes on: a checkpoint (a restart point) and a
@@ -517,9 +540,10 @@ class _Run:
         if self.out is None or self.step >= self.cfg.total_steps:
             return
         self.save()
-        meta = dict(config=_config_dict(self.cfg), step=self.step)
-        ckpt.save_checkpoint(ckpt.checkpoint_path(self.out / "checkpoints" / STAGE1_DIR, self.step),
-                             self.state_tree(), meta, keep=1)
+        if self.main:
+            meta = dict(config=_config_dict(self.cfg), step=self.step)
+            ckpt.save_checkpoint(ckpt.checkpoint_path(self.out / "checkpoints" / STAGE1_DIR, self.step),
+                                 self.state_tree(), meta, keep=1)
 
     # -- helpers ---------------------------------------------------------------------------------
     def view(self, step):
@@ -577,23 +601,47 @@ class _Run:
         return self._mesh
 
     def _batch_step_fn(self):
+        from . import parallel
+
         mesh, render_cfg, capacity, cfg = self.data_mesh(), self.render_cfg, self.capacity, self.cfg
-        return self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
+        fn = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
             lambda sc, st, stats, cams, imgs, sh, wn: _batch_step(
                 sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
                 render_config=render_cfg, capacity=capacity, lambda_dssim=cfg.lambda_dssim,
                 lambda_dist=cfg.lambda_dist),
-            donate_argnums=(0, 1, 2)))
+            out_shardings=parallel.replicated(mesh), donate_argnums=(0, 1, 2)))
+        if jax.process_count() == 1:
+            return fn
+
+        def step(scene, opt_state, stats, cams, imgs, active_sh, w_normal):
+            # Each process passes (and gets back) its own copy of the replicated state: see parallel.to_global.
+            sc, st, stats, sh, wn = parallel.to_global((scene, opt_state, stats, active_sh, w_normal), mesh)
+            try:
+                out = jax.block_until_ready(fn(sc, st, stats, cams, imgs, sh, wn))
+            except Exception as e:  # a failed all-reduce surfaces here as XLA's runtime error
+                raise parallel.lost_process(f"the training step {self.step}", e) from e
+            return parallel.to_local(out, mesh)
+
+        return step
+
+    def batch_share(self) -> range:
+        """Positions in each batch of the views this process loads (all of them with one process)."""
+        from . import parallel
+
+        return range(self.cfg.batch_size)[parallel.process_slice(self.cfg.batch_size, self.data_mesh())]
 
     def batch_inputs(self, views, images):
-        """Stacked cameras and (B, H, W, 3) images placed over the mesh, the state replicated on it."""
+        """Stacked cameras and (B, H, W, 3) images placed over the mesh, the state replicated on it.
+        ``images``: the batch's images; only those at :meth:`batch_share` are read (with several
+        processes the others are not loaded and may be None)."""
         from . import parallel
 
         mesh = self.data_mesh()
-        self.scene, self.opt_state, self.stats = parallel.replicate((self.scene, self.opt_state, self.stats), mesh)
-        local = parallel.process_slice(len(views))  # all B views with one process
-        cams = parallel.stack_cameras([v.camera for v in views[local]])
-        return parallel.shard_batch((cams, np.stack([np.asarray(im, np.float32) for im in images[local]])), mesh)
+        self.scene, self.opt_state, self.stats = parallel.replicate((self.scene, self.opt_state, self.stats),
+                                                                    parallel.local_mesh(mesh))
+        share = self.batch_share()
+        cams = parallel.stack_cameras([views[j].camera for j in share])
+        return parallel.shard_batch((cams, np.stack([np.asarray(images[j], np.float32) for j in share])), mesh)
 
     def fit_capacity(self, camera):
         # Counted at the step's size bucket (the same tile grid: the same count), one program a bucket.
@@ -604,12 +652,12 @@ class _Run:
             self.capacity = cap
 
     def log(self, record):
-        if self.log_path is not None:
+        if self.log_path is not None and self.main:
             with open(self.log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
     def say(self, msg):
-        if self.verbose:
+        if self.verbose and self.main:
             print(msg, flush=True)
 
     # -- stage transitions -----------------------------------------------------------------------
@@ -666,8 +714,14 @@ class _Run:
     def check_memory_maps(self):
         """Releases compiled code near the memory-map cap; at the guard's stop share even so, saves a
         checkpoint and raises :class:`compiled.MapLimitReached` (a clear stop, not a crash in XLA)."""
+        from . import parallel
+
         maps = self.map_guard.check(on_release=self._jit_cache.clear)
-        if maps is None:
+        other = None
+        if jax.process_count() > 1:  # the processes stop together: the checkpoint below is collective
+            hit = parallel.process_allgather_ints([maps is not None])[:, 0]
+            other = None if not hit.any() else int(np.argmax(hit))
+        if maps is None and other is None:
             return
         if self.out is None:
             what = f"Training stopped at step {self.step}; no output directory was given, so nothing was saved."
@@ -679,6 +733,9 @@ class _Run:
         else:
             what = (f"Training stopped at step {self.step}, during non-finite steps: the last good checkpoint in "
                     f"{self.out / 'checkpoints'} is kept; continue from it with --resume (train(..., resume=True)).")
+        if maps is None:
+            raise compiled.MapLimitReached(f"process {other} of this run neared its memory-map cap, so every process "
+                                           f"stops. {what}")
         raise compiled.MapLimitReached(compiled.limit_message(maps[0], maps[1], what))
 
     # -- main loop -------------------------------------------------------------------------------
@@ -704,8 +761,20 @@ class _Run:
                 self.allocate_textures()
             # Step s takes views s B .. s B + B - 1 of the stream of per-epoch permutations.
             views = [self.view(step * cfg.batch_size + j) for j in range(cfg.batch_size)]
-            images = [v.image for v in views]
-            problems = [_view_problem(v.camera, im) for v, im in zip(views, images)]
+            # Each process loads only its share of the batch (all of it with one process); the
+            # cameras, known to every process, are checked everywhere.
+            share = self.batch_share() if cfg.batch_size > 1 else range(1)
+            images = [views[j].image if j in share else None for j in range(len(views))]
+            problems = [_camera_problem(v.camera) for v in views]
+            for j in share:
+                problems[j] = problems[j] or _image_problem(images[j])
+                if problems[j] is not None and jax.process_count() > 1:
+                    # The other processes cannot see this image: it goes into the step as NaNs, which
+                    # makes the step skip its update on every process.
+                    print(f"[step {step}, process {jax.process_index()}] view {views[j].name!r}: {problems[j]}; "
+                          "the update is skipped", flush=True)
+                    images[j], problems[j] = np.full((views[j].camera.height, views[j].camera.width, 3), np.nan,
+                                                     np.float32), None
             bad_view = next((i for i, p in enumerate(problems) if p is not None), 0)
             view, image, problem = views[bad_view], images[bad_view], problems[bad_view]
             if problem is None:
@@ -859,13 +928,23 @@ def _config_dict(cfg: TrainConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
 
 
-def _view_problem(camera, image) -> str | None:
-    """Why a view cannot be used (empty or non-finite image, non-finite camera), or None."""
+def _image_problem(image) -> str | None:
+    """Why an image cannot be trained on (empty or non-finite), or None."""
     if image is None or np.size(image) == 0 or not np.all(np.isfinite(image)):
         return "image is empty or not finite"
+    return None
+
+
+def _camera_problem(camera) -> str | None:
+    """Why a camera cannot be trained on (non-finite), or None."""
     if not (np.all(np.isfinite(np.asarray(camera.K))) and np.all(np.isfinite(np.asarray(camera.world_to_camera)))):
         return "camera is not finite"
     return None
+
+
+def _view_problem(camera, image) -> str | None:
+    """Why a view cannot be used (empty or non-finite image, non-finite camera), or None."""
+    return _image_problem(image) or _camera_problem(camera)
 
 
 def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
@@ -888,7 +967,8 @@ def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,
-          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None) -> TrainResult:
+          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
+          evaluate_everywhere: bool = False, end_distributed: bool = False) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -905,16 +985,30 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
       map_guard: when the process nears the kernel's memory-map cap, compiled code is released and,
         if that is not enough, the run checkpoints and raises :class:`compiled.MapLimitReached`
         (default ``compiled.MapGuard()``: release at half the cap, stop at 90%).
+      evaluate_everywhere, end_distributed: with several processes (``jax.distributed``, see
+        :mod:`patexgs_jax.parallel`) every process trains and process 0 alone writes the outputs
+        and, by default, evaluates (the others' summaries have None metrics). With
+        ``evaluate_everywhere`` every process evaluates (the processes stay in step for what
+        follows); with ``end_distributed`` ``jax.distributed`` is shut down once training is done,
+        so the other processes can exit while process 0 evaluates and writes (the command line's
+        choice; nothing cross-process can follow).
     Returns:
       :class:`TrainResult`.
     Raises:
       compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
+      parallel.DistributedError: with several processes, they do not start from the same state, or
+        one of them stopped (the message says what to do).
     """
     # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
     # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
+    from . import parallel
+
     compiled.release_compiled_code()
+    if jax.process_count() > 1:  # the batch must split evenly over every process's devices
+        parallel.num_batch_devices(config.batch_size, config.devices)
     out = None if out_dir is None else Path(out_dir)
-    if out is not None:
+    main = parallel.is_main_process()
+    if out is not None and main:
         ckpt.check_writable(out)
         ckpt.check_writable(out / "checkpoints")
     run = _Run(dataset, config, out, verbose, map_guard)
@@ -939,9 +1033,13 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
             _load_stage1(run, Path(stage1), config)
         else:
             run.fresh()
-    if out is not None:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
+    if out is not None and main:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
         ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
             np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
+    if jax.process_count() > 1:  # every process starts from the same state (data; checkpoint when resuming)
+        parallel.check_same("the starting state (step and a checksum of the scene); every process needs the same "
+                            "--data and, to resume, must see process 0's --out folder (a shared filesystem)",
+                            [run.step, parallel.tree_checksum(run.scene)])
     run.run()
     scene = run.scene
     texels = scene.texel_count()
@@ -954,18 +1052,23 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
                    sides_final=None if scene.rgb is None else _side_histogram(
                        np.asarray(scene.rgb.size), np.asarray(scene.active) > 0),
                    stage1_from=None if stage1 is None else str(stage1))
-    train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
-    test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
+    if end_distributed and jax.process_count() > 1:
+        jax.distributed.shutdown()  # the processes are done with each other (every one calls this)
+    if main or evaluate_everywhere:
+        train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
+        test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
+    else:  # evaluation and outputs are process 0's
+        train_eval = test_eval = dict(psnr=None, ssim=None)
     summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],
                    config=_config_dict(config))
-    if out is not None:
+    if out is not None and main:
         from .export import export_ply
 
         export_ply(scene, out / "scene.ply")
         tmp = out / "summary.json.tmp"
         tmp.write_text(json.dumps(summary, indent=1))
         tmp.replace(out / "summary.json")
-    if verbose:
+    if verbose and main:
         print(f"done: train PSNR {summary['train_psnr']:.2f}, test PSNR "
               f"{summary['test_psnr'] if summary['test_psnr'] is None else round(summary['test_psnr'], 2)}, "
               f"{summary['num_gaussians']} Gaussians, {summary['texels']} texels, "
@@ -991,6 +1094,8 @@ def _load_stage1(run: _Run, path: Path, config: TrainConfig) -> None:
 
 
 def main(argv=None) -> int:
+    from . import parallel
+
     ap = argparse.ArgumentParser(prog="python -m patexgs_jax.train", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=None, help="scene folder (COLMAP, LLFF or transforms.json); "
@@ -1006,33 +1111,60 @@ def main(argv=None) -> int:
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--texture-budget-mb", type=float, default=None)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--checkpoint-every", type=int, default=None, help="steps between checkpoints (default: the "
+                    "preset's; one is always written at the end)")
+    ap.add_argument("--log-every", type=int, default=None, help="steps between progress lines and log.jsonl "
+                    "records (default: the preset's)")
     ap.add_argument("--batch-size", type=int, default=None,
                     help="views per step (default 1); > 1 trains data-parallel (see patexgs_jax.parallel)")
     ap.add_argument("--devices", type=int, default=None,
                     help="devices the batch is split over (must divide --batch-size; default: as many as "
                          "divide it); on CPU this many CPU devices are created")
     ap.add_argument("--resume", action="store_true")
+    parallel.add_cli_arguments(ap)
     args = ap.parse_args(argv)
-    if args.devices is not None:
-        from .parallel import request_cpu_devices
+    try:
+        several = parallel.initialize_from_args(args)
+    except parallel.DistributedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return parallel.EXIT_DISTRIBUTED
+    if args.devices is not None and not several:
+        parallel.request_cpu_devices(args.devices)
+    code = _train_cli(args)
+    if several and code != 0:
+        parallel.end_process(code)  # the message is out; skip the shutdown barrier (see end_process)
+    return code
 
-        request_cpu_devices(args.devices)
+
+def _train_cli(args) -> int:
+    from . import parallel
     from .data import load
 
-    if args.data is None:
-        from .data.synthetic import ensure_default_scene
-
-        args.data = str(ensure_default_scene())
     try:
+        if args.data is None:
+            from .data.synthetic import ensure_default_scene
+
+            args.data = str(ensure_default_scene())
         cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                             iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
                             texture_budget_mb=args.texture_budget_mb, seed=args.seed,
+                            checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                             batch_size=args.batch_size, devices=args.devices)
         ds = load(args.data, factor=args.factor)
-        train(ds, cfg, args.out, resume=args.resume)
+        train(ds, cfg, args.out, resume=args.resume, end_distributed=True)
+    except parallel.DistributedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return parallel.EXIT_DISTRIBUTED
     except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except BaseException:
+        if jax.process_count() == 1:
+            raise
+        import traceback
+
+        traceback.print_exc()  # an unexpected error: its traceback, then this process ends (no hang)
+        return 1
     return 0
 
 
