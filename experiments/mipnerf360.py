@@ -55,7 +55,7 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
      "results": {scene: {label: {
          "1": {"psnr", "ssim", "lpips", "alias_psnr", "views"}, "2": {...}, "4": {...}, "8": {...},
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
-         "max_gaussians", "steps"}}}}
+         "max_gaussians", "steps", "eval_seconds"}}}}
 
 Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground
 truth (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same
