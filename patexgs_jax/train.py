@@ -815,7 +815,8 @@ def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,
-          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None) -> TrainResult:
+          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
+          check_memory: bool = True) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -832,10 +833,13 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
       map_guard: when the process nears the kernel's memory-map cap, compiled code is released and,
         if that is not enough, the run checkpoints and raises :class:`compiled.MapLimitReached`
         (default ``compiled.MapGuard()``: release at half the cap, stop at 90%).
+      check_memory: before the first step, compare the step's estimated memory with the memory
+        available (:func:`patexgs_jax.memory.check_training_memory`; CPU backend only).
     Returns:
       :class:`TrainResult`.
     Raises:
       compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
+      memory.NotEnoughMemory: the step would not fit in memory (the message names a factor that fits).
     """
     # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
     # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
@@ -866,6 +870,11 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
             _load_stage1(run, Path(stage1), config)
         else:
             run.fresh()
+    if check_memory:  # a clear stop now rather than the kernel's OOM kill mid-step
+        from . import memory
+
+        memory.check_training_memory(dataset, gaussians=max(run.scene.capacity, config.max_gaussians or 0),
+                                     textured=run.spec["textures"] is not None)
     if out is not None:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
         ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
             np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
@@ -921,7 +930,8 @@ def main(argv=None) -> int:
                     "default: the embedded synthetic scene")
     ap.add_argument("--method", default="patexgs")
     ap.add_argument("--out", required=True)
-    ap.add_argument("--factor", type=int, default=None)
+    ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
+                    "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--preset", default="paper", choices=sorted(PRESETS),
                     help="iteration schedule (default: paper); --iters-* override it")
     ap.add_argument("--iters-2dgs", type=int, default=None)
@@ -953,7 +963,7 @@ def main(argv=None) -> int:
                             batch_size=args.batch_size, devices=args.devices)
         ds = load(args.data, factor=args.factor)
         train(ds, cfg, args.out, resume=args.resume)
-    except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
+    except (ValueError, FileExistsError, OSError, MemoryError, ckpt.CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     return 0
