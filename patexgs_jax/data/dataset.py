@@ -122,25 +122,30 @@ def read_image(path, background=(1.0, 1.0, 1.0), size: tuple[int, int] | None = 
 _RESIZE_BLOCK = 256
 
 
-def _area_weights(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray]:
-    """Area-filter taps along one axis: output pixel j averages the input interval
-    ``[j s, (j + 1) s)``, s = n_in / n_out, each input pixel weighted by its overlap with it.
-    Returns (index (n_out, k) int, weight (n_out, k) float32), k = ceil(s) + 1."""
+def _area_weights(n_in: int, n_out: int):
+    """Area-filter taps along one axis as an (n_out, n_in) float32 sparse matrix: output pixel j
+    averages the input interval ``[j s, (j + 1) s)``, s = n_in / n_out, each input pixel weighted
+    by its overlap with it (at most ceil(s) + 1 taps a row)."""
+    import scipy.sparse
+
     s = n_in / n_out
     lo = np.arange(n_out) * s
     hi = lo + s
     k = int(np.ceil(s)) + 1
     idx = np.floor(lo).astype(np.int64)[:, None] + np.arange(k)
     w = np.clip(np.minimum(hi[:, None], idx + 1) - np.maximum(lo[:, None], idx), 0.0, None) / s
-    return np.minimum(idx, n_in - 1), w.astype(np.float32)
+    keep = (w > 0) & (idx < n_in)
+    rows = np.broadcast_to(np.arange(n_out)[:, None], idx.shape)
+    return scipy.sparse.csr_matrix((w[keep].astype(np.float32), (rows[keep], idx[keep])), shape=(n_out, n_in))
 
 
 def _resize_axis(x: np.ndarray, taps, axis: int) -> np.ndarray:
     """Applies :func:`_area_weights` taps along ``axis`` (0 or 1) of an (H, W, C) float32 array."""
-    idx, w = taps
     if axis == 0:
-        return np.einsum("ikjc,ik->ijc", x[idx], w, dtype=np.float32)
-    return np.einsum("rjkc,jk->rjc", x[:, idx], w, dtype=np.float32)
+        return np.asarray(taps @ x.reshape(x.shape[0], -1), np.float32).reshape((taps.shape[0],) + x.shape[1:])
+    t = np.ascontiguousarray(x.transpose(1, 0, 2))  # the sparse product runs along the first axis
+    out = np.asarray(taps @ t.reshape(t.shape[0], -1), np.float32).reshape((taps.shape[0],) + t.shape[1:])
+    return np.ascontiguousarray(out.transpose(1, 0, 2))
 
 
 def area_resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
