@@ -33,7 +33,7 @@ GiB = float(1 << 30)
 #: Resident memory of a training process besides its per-pixel and per-Gaussian arrays (the
 #: Python and JAX runtime, compiling the step, one strip of the loss's filters), without and with
 #: textures.
-BASE_BYTES = {False: 1.2 * GiB, True: 1.35 * GiB}
+BASE_BYTES = {False: 1.2 * GiB, True: 1.37 * GiB}
 #: Bytes per padded pixel of the largest training view: the render's per-tile accumulators and
 #: their cotangents, its per-pixel outputs, the loss's per-pixel terms and gradients, the image on
 #: the host and on the device.
@@ -42,8 +42,9 @@ BYTES_PER_PIXEL = 190.0
 #: 60 floats each with SH degree 3), the projection's per-splat rows and their cotangents, the
 #: densification statistics. Counted, not calibrated: the measurements hold 4,000 Gaussians.
 BYTES_PER_GAUSSIAN = 2_000.0
-#: The estimate's error on the calibration cases: from 1% under to 10% over the measured peak.
-RELATIVE_ERROR = 0.10
+#: The estimate's error on the calibration cases (two runs of six): 0.3% to 11% over the measured
+#: peak, never under.
+RELATIVE_ERROR = 0.11
 
 _ENV_SKIP = "PATEXGS_SKIP_MEMORY_CHECK"
 
