@@ -870,14 +870,14 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
             _load_stage1(run, Path(stage1), config)
         else:
             run.fresh()
+    if out is not None:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
+        ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
+            np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
     if check_memory:  # a clear stop now rather than the kernel's OOM kill mid-step
         from . import memory
 
         memory.check_training_memory(dataset, gaussians=max(run.scene.capacity, config.max_gaussians or 0),
                                      textured=run.spec["textures"] is not None)
-    if out is not None:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
-        ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
-            np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
     run.run()
     scene = run.scene
     texels = scene.texel_count()
