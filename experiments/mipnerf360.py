@@ -13,7 +13,8 @@ ROOT holds Mip-NeRF 360 scene folders (``bicycle/``, ``garden/``, ... each in CO
 one scene (any format :func:`patexgs_jax.data.load` reads). Without ``--data`` the study runs on the
 embedded synthetic scene with the ``tiny`` preset (methods ``2dgs,patexgs``); with ``--data`` the
 default preset is ``paper`` (the paper's iteration counts) and the default factor the Mip-NeRF 360
-one (4 outdoors, 2 indoors).
+one (4 outdoors, 2 indoors); other scenes' images wider than 1600 px are resized to 1600 wide (the
+3DGS rule; ``--factor 1`` keeps the full size).
 
 For each scene:
   1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every textured
@@ -685,7 +686,8 @@ def main(argv=None) -> int:
                     f"scene, {','.join(DEFAULT_METHODS)} with --data)")
     ap.add_argument("--preset", default=None, choices=["tiny", "small", "paper"],
                     help="iteration schedule (default: tiny without --data, paper with it)")
-    ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor)")
+    ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor; "
+                    "other scenes: images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--out", default="runs/mipnerf360")
     ap.add_argument("--budget", default=None, help="Gaussian budget: 10%%, 1%% (of the unbudgeted 2DGS count) or "
                     "a count")
@@ -743,7 +745,7 @@ def _study_cli(args) -> int:
     except parallel.DistributedError as e:
         print(f"error: {e}", file=sys.stderr)
         return parallel.EXIT_DISTRIBUTED
-    except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
+    except (ValueError, FileExistsError, OSError, MemoryError, ckpt.CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except BaseException:

@@ -47,10 +47,14 @@ from jax import lax
 __all__ = [
     "BYTES_PER_MB",
     "FLOATS_PER_GAUSSIAN_BASE",
+    "STRIP_PIXELS",
     "psnr",
     "mean_psnr",
     "gaussian_window_1d",
     "ssim",
+    "ssim_sum",
+    "strip_rows",
+    "sum_over_row_strips",
     "dssim_loss",
     "l1_dssim_loss",
     "storage_mb",
@@ -146,6 +150,108 @@ def _filter_1d(x: jax.Array, g: np.ndarray, axis: int, pad: int) -> jax.Array:
     return out
 
 
+#: Pixels per strip of the strip-wise SSIM and losses (:func:`sum_over_row_strips`): each strip's
+#: filter intermediates and their gradients are a few tens of times its pixels, so whole-image
+#: filters of a 12 MP image would hold gigabytes at once.
+STRIP_PIXELS = 1 << 18
+
+
+def strip_rows(width: int, pixels: int | None = None, min_rows: int = 16) -> int:
+    """Rows per strip of an image ``width`` pixels wide: about ``pixels`` (default
+    :data:`STRIP_PIXELS`) pixels a strip, at least ``min_rows`` rows."""
+    pixels = STRIP_PIXELS if pixels is None else pixels
+    return max(int(min_rows), -(-int(pixels) // max(int(width), 1)))
+
+
+def sum_over_row_strips(fn, arrays, *, rows: int, halo: int):
+    """``sum_s fn(strip_s, row0_s)`` over horizontal strips of images, one strip in memory at a time.
+
+    Args:
+      fn: ``fn(strips, row0) -> ()`` scalar, with ``strips`` a tuple of ``(rows + 2 halo, W, ...)``
+        blocks (the strip's rows, ``halo`` rows above and below it, zeros beyond the image) and
+        ``row0`` (() int32, traced) the image row of the block's first row (``-halo`` for the first).
+      arrays: tuple of (H, W, ...) arrays of the same H.
+      rows: rows per strip (>= halo; see :func:`strip_rows`).
+      halo: rows of context each side of a strip.
+    Returns:
+      The sum, differentiable. With more than one strip, each strip is a ``jax.checkpoint``-ed
+      step of a ``lax.map``: the gradient recomputes it, so memory holds the inputs, their
+      cotangents and one strip's intermediates, whatever the image size.
+    """
+    H = arrays[0].shape[0]
+    rows = int(rows)
+    if rows < max(halo, 1):
+        raise ValueError(f"strip rows ({rows}) must be at least the halo ({halo}) and 1.")
+    S = -(-H // rows)
+    pad = lambda x, top, bottom: jnp.pad(x, [(top, bottom)] + [(0, 0)] * (x.ndim - 1))  # noqa: E731
+    if S == 1:
+        return fn(tuple(pad(x, halo, halo) for x in arrays), jnp.int32(-halo))
+
+    def strips(x):  # (H, W, ...) -> (S, rows + 2 halo, W, ...)
+        main = pad(x, 0, S * rows - H).reshape((S, rows) + x.shape[1:])
+        if not halo:
+            return main
+        zeros = jnp.zeros((1, halo) + x.shape[1:], x.dtype)
+        top = jnp.concatenate([zeros, main[:-1, rows - halo:]], axis=0)
+        bottom = jnp.concatenate([main[1:, :halo], zeros], axis=0)
+        return jnp.concatenate([top, main, bottom], axis=1)
+
+    row0 = jnp.arange(S, dtype=jnp.int32) * rows - halo
+    body = jax.checkpoint(lambda xs: fn(xs[0], xs[1]))
+    return jnp.sum(lax.map(body, (tuple(strips(x) for x in arrays), row0)))
+
+
+def _ssim_map(img, ref, g, row_pad: int, col_pad: int, c1: float, c2: float):
+    """The SSIM map of ``(..., H, W, C)`` images: the window sums over rows zero-padded by
+    ``row_pad`` and columns by ``col_pad`` (the map has ``H + 2 row_pad - len(g) + 1`` rows)."""
+    # One filtering pass for all five local moments: stack them on the channel axis.
+    c = img.shape[-1]
+    stacked = jnp.concatenate([img, ref, img * img, ref * ref, img * ref], axis=-1)
+    blurred = _filter_1d(_filter_1d(stacked, g, axis=-3, pad=row_pad), g, axis=-2, pad=col_pad)
+    mu_x, mu_y, e_xx, e_yy, e_xy = (blurred[..., i * c : (i + 1) * c] for i in range(5))
+    var_x = e_xx - mu_x * mu_x
+    var_y = e_yy - mu_y * mu_y
+    cov_xy = e_xy - mu_x * mu_y
+    return ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / (
+        (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+    )
+
+
+def ssim_sum(img, ref, weight=None, *, max_val: float = 1.0, window_size: int = 11, sigma: float = 1.5,
+             k1: float = 0.01, k2: float = 0.03, rows: int | None = None):
+    """Sum over pixels and channels of the zero-pad SSIM map (see :func:`ssim`), computed in strips
+    of rows (:func:`sum_over_row_strips`), so that memory does not grow with the filters'
+    whole-image intermediates.
+
+    Args:
+      img, ref: (H, W, C) float arrays in ``[0, max_val]``.
+      weight: optional (H, W) per-pixel weight (bool or float) of the map.
+      rows: rows per strip; default :func:`strip_rows` of the width.
+    Returns:
+      () the weighted sum (divide by ``C`` times the weights' sum, or by ``H W C``, for the mean).
+    """
+    img, ref = jnp.asarray(img), jnp.asarray(ref)
+    _check_image_pair(img, ref)
+    if img.ndim != 3:
+        raise ValueError(f"ssim_sum takes one (H, W, C) image, got shape {img.shape}.")
+    g = gaussian_window_1d(window_size, sigma)
+    half = window_size // 2
+    c1, c2 = (k1 * max_val) ** 2, (k2 * max_val) ** 2
+    arrays = (img, ref) if weight is None else (img, ref, jnp.asarray(weight))
+
+    H = img.shape[0]
+
+    def strip(xs, row0):
+        smap = _ssim_map(xs[0], xs[1], g, 0, half, c1, c2)
+        if weight is None:  # rows past the image (the last strip's padding) are left out
+            inside = row0 + half + jnp.arange(smap.shape[0]) < H
+            return jnp.sum(jnp.where(inside[:, None, None], smap, 0.0))
+        return jnp.sum(smap * xs[2][half:half + smap.shape[0], :, None].astype(smap.dtype))
+
+    rows = strip_rows(img.shape[1]) if rows is None else rows
+    return sum_over_row_strips(strip, arrays, rows=max(rows, half), halo=half)
+
+
 @functools.partial(
     jax.jit, static_argnames=("border", "max_val", "window_size", "sigma", "k1", "k2", "return_map")
 )
@@ -174,7 +280,8 @@ def ssim(
 
     Returns:
       Mean SSIM over pixels and channels: a scalar for one image, ``(B,)`` for a batch (and the map if
-      ``return_map``).
+      ``return_map``). One image with the zero-pad border and no map is computed in strips of
+      rows (:func:`ssim_sum`), whose memory does not grow with the image's filter intermediates.
     """
     img, ref = jnp.asarray(img), jnp.asarray(ref)
     dtype = jnp.result_type(img.dtype, ref.dtype, jnp.float32)
@@ -185,22 +292,13 @@ def ssim(
     h, w = img.shape[-3], img.shape[-2]
     if border == "crop" and (h < window_size or w < window_size):
         raise ValueError(f"border='crop' needs images of at least {window_size}x{window_size}, got {h}x{w}.")
+    if border == "zero_pad" and img.ndim == 3 and not return_map and h > strip_rows(w):
+        total = ssim_sum(img, ref, max_val=max_val, window_size=window_size, sigma=sigma, k1=k1, k2=k2)
+        return total / (h * w * img.shape[-1])
 
     g = gaussian_window_1d(window_size, sigma)
     pad = window_size // 2 if border == "zero_pad" else 0
-    # One filtering pass for all five local moments: stack them on the channel axis.
-    c = img.shape[-1]
-    stacked = jnp.concatenate([img, ref, img * img, ref * ref, img * ref], axis=-1)
-    blurred = _filter_1d(_filter_1d(stacked, g, axis=-3, pad=pad), g, axis=-2, pad=pad)
-    mu_x, mu_y, e_xx, e_yy, e_xy = (blurred[..., i * c : (i + 1) * c] for i in range(5))
-    var_x = e_xx - mu_x * mu_x
-    var_y = e_yy - mu_y * mu_y
-    cov_xy = e_xy - mu_x * mu_y
-    c1 = (k1 * max_val) ** 2
-    c2 = (k2 * max_val) ** 2
-    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / (
-        (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
-    )
+    ssim_map = _ssim_map(img, ref, g, pad, pad, (k1 * max_val) ** 2, (k2 * max_val) ** 2)
     value = jnp.mean(ssim_map, axis=(-3, -2, -1))
     return (value, ssim_map) if return_map else value
 

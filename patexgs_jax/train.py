@@ -968,7 +968,8 @@ def evaluate(scene: Scene, views, render_config: RenderConfig) -> dict:
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,
           verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
-          evaluate_everywhere: bool = False, end_distributed: bool = False) -> TrainResult:
+          evaluate_everywhere: bool = False, end_distributed: bool = False,
+          check_memory: bool = True) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -992,12 +993,15 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         follows); with ``end_distributed`` ``jax.distributed`` is shut down once training is done,
         so the other processes can exit while process 0 evaluates and writes (the command line's
         choice; nothing cross-process can follow).
+      check_memory: before the first step, compare the step's estimated memory with the memory
+        available (:func:`patexgs_jax.memory.check_training_memory`; CPU backend only).
     Returns:
       :class:`TrainResult`.
     Raises:
       compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
       parallel.DistributedError: with several processes, they do not start from the same state, or
         one of them stopped (the message says what to do).
+      memory.NotEnoughMemory: the step would not fit in memory (the message names a factor that fits).
     """
     # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
     # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
@@ -1040,6 +1044,11 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         parallel.check_same("the starting state (step and a checksum of the scene); every process needs the same "
                             "--data and, to resume, must see process 0's --out folder (a shared filesystem)",
                             [run.step, parallel.tree_checksum(run.scene)])
+    if check_memory:  # a clear stop now rather than the kernel's OOM kill mid-step
+        from . import memory
+
+        memory.check_training_memory(dataset, gaussians=max(run.scene.capacity, config.max_gaussians or 0),
+                                     textured=run.spec["textures"] is not None)
     run.run()
     scene = run.scene
     texels = scene.texel_count()
@@ -1102,7 +1111,8 @@ def main(argv=None) -> int:
                     "default: the embedded synthetic scene")
     ap.add_argument("--method", default="patexgs")
     ap.add_argument("--out", required=True)
-    ap.add_argument("--factor", type=int, default=None)
+    ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
+                    "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--preset", default="paper", choices=sorted(PRESETS),
                     help="iteration schedule (default: paper); --iters-* override it")
     ap.add_argument("--iters-2dgs", type=int, default=None)
@@ -1155,7 +1165,7 @@ def _train_cli(args) -> int:
     except parallel.DistributedError as e:
         print(f"error: {e}", file=sys.stderr)
         return parallel.EXIT_DISTRIBUTED
-    except (ValueError, FileExistsError, OSError, ckpt.CheckpointError) as e:
+    except (ValueError, FileExistsError, OSError, MemoryError, ckpt.CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except BaseException:

@@ -218,6 +218,61 @@ def test_default_factors_for_mipnerf360_names(tmp_path):
     assert data.load(tmp_path / "counter").views[0].camera.width == 20
 
 
+def _area_matrix(n_out: int, n_in: int) -> np.ndarray:
+    """(n_out, n_in) weights of an area filter: output pixel j averages input [j s, (j + 1) s), s = n_in / n_out."""
+    s = n_in / n_out
+    A = np.zeros((n_out, n_in))
+    for j in range(n_out):
+        lo, hi = j * s, (j + 1) * s
+        for i in range(int(np.floor(lo)), min(int(np.ceil(hi)), n_in)):
+            A[j, i] = (min(hi, i + 1) - max(lo, i)) / s
+    return A
+
+
+def test_images_wider_than_1600_are_resized_to_1600_by_area_and_said(tmp_path, capfd):
+    W, H = 1700, 40
+    sc = make_colmap_scene(tmp_path / "wide", n_images=2, W=W, H=H)
+    ds = data.load(tmp_path / "wide", test_every=0)
+    w, h = 1600, H * 1600 // W  # 37: the 3DGS rule (width 1600, height truncated)
+    said = capfd.readouterr().err
+    assert f"training at {w}x{h}" in said and f"{W}x{H}" in said and "--factor 1" in said
+    assert said.count("wider than 1600") == 1  # one line for the dataset
+    assert ds.factor == pytest.approx(W / 1600)
+    Ay, Ax = _area_matrix(h, H), _area_matrix(w, W)
+    for v in ds.views:
+        assert (v.camera.width, v.camera.height) == (w, h)
+        np.testing.assert_allclose(np.asarray(v.camera.K), np.diag([w / W, h / H, 1]) @ sc["K"][v.name], rtol=1e-6)
+        full = sc["image"][v.name].astype(np.float64) / 255.0
+        want = np.einsum("ai,ijc,bj->abc", Ay, full, Ax, optimize=True)
+        np.testing.assert_allclose(v.image, want, atol=2e-6)
+    # --factor 1 keeps the full size, silently; 1600 px or less is never resized.
+    full = data.load(tmp_path / "wide", factor=1, test_every=0)
+    assert full.views[0].image.shape == (H, W, 3) and full.factor == 1
+    make_colmap_scene(tmp_path / "narrow", n_images=2, W=1600, H=30)
+    assert data.load(tmp_path / "narrow", test_every=0).views[0].camera.width == 1600
+    assert "wider than" not in capfd.readouterr().err
+
+
+def test_resolution_rule_keeps_mipnerf360_factors_and_covers_llff(tmp_path, capfd):
+    make_colmap_scene(tmp_path / "garden", n_images=2, W=1700, H=40)
+    assert data.load(tmp_path / "garden", test_every=0).views[0].camera.width == 1700 // 4
+    assert "wider than" not in capfd.readouterr().err
+    assert data.default_resolution(tmp_path / "garden", None) == (4, None)
+    assert data.default_resolution(tmp_path / "phone", None) == (1, data.DEFAULT_MAX_WIDTH)
+    assert data.default_resolution(tmp_path / "phone", 2) == (2, None)
+    W, H = 1800, 30
+    root = tmp_path / "llff"
+    poses = ring_poses(3)
+    for k in range(3):
+        save_png(root / "images" / f"IMG_{k}.png", random_image(W, H, seed=k))
+    write_llff(root, [np.linalg.inv(p) for p in poses], (H, W, 900.0), [(0.5, 9.0)] * 3)
+    ds = data.load(root, test_every=0)
+    v = ds.views[0]
+    assert (v.camera.width, v.camera.height) == (1600, H * 1600 // W) and v.image.shape == (26, 1600, 3)
+    np.testing.assert_allclose(np.asarray(v.camera.K)[0, 0], 900.0 * 1600 / W, rtol=1e-6)
+    assert "training at 1600x26" in capfd.readouterr().err
+
+
 # ----------------------------------------------------------------------------------------------------
 # view.scaled, zoom-out helper, lazy loading, normalisation
 # ----------------------------------------------------------------------------------------------------
@@ -270,6 +325,47 @@ def test_lazy_loading_respects_the_cache_bound(tmp_path):
     uncached = data.load(tmp_path, test_every=0, image_cache_size=0)
     uncached.views[0].image
     assert len(uncached.image_cache) == 0
+
+
+def test_image_cache_never_holds_more_than_its_limits():
+    import threading
+
+    img = lambda k: (lambda: np.full((10, 10, 3), k, np.float32))  # noqa: E731  (1200 bytes each)
+    by_count = data.ImageCache(maxsize=3, max_bytes=None)
+    by_bytes = data.ImageCache(maxsize=100, max_bytes=2 * 1200 + 100)
+    rng = np.random.default_rng(0)
+
+    def hammer(cache, seed):
+        r = np.random.default_rng(seed)
+        for _ in range(300):
+            k = int(r.integers(0, 12))
+            assert float(cache.get(k, img(k))[0, 0, 0]) == k
+            assert len(cache) <= cache.maxsize
+            assert cache.max_bytes is None or cache.nbytes <= cache.max_bytes
+
+    for cache, limit in ((by_count, 3), (by_bytes, 2)):
+        threads = [threading.Thread(target=hammer, args=(cache, int(rng.integers(1 << 30)))) for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert 1 <= len(cache) <= limit and cache.nbytes == sum(cache._items[k].nbytes for k in cache._items)
+    assert by_bytes.misses > 12  # evictions happened and were reloaded
+    # An image larger than the byte bound is returned but not kept.
+    tiny = data.ImageCache(maxsize=5, max_bytes=100)
+    assert tiny.get("big", img(1)).shape == (10, 10, 3) and len(tiny) == 0 and tiny.nbytes == 0
+    with pytest.raises(ValueError, match="bytes"):
+        data.ImageCache(maxsize=2, max_bytes=-1)
+
+
+def test_dataset_image_cache_bound_in_bytes(tmp_path):
+    make_colmap_scene(tmp_path, n_images=6, W=40, H=30)
+    one = 40 * 30 * 3 * 4
+    ds = data.load(tmp_path, test_every=0, image_cache_bytes=2 * one)
+    for v in ds.views:
+        v.image
+        assert len(ds.image_cache) <= 2 and ds.image_cache.nbytes <= 2 * one
+    assert ds.image_cache.misses == 6 and len(ds.image_cache) == 2
 
 
 def test_normalization_recorded_and_optional(tmp_path):

@@ -175,6 +175,58 @@ def test_ssim_identity_batch_and_errors():
         ssim(a, b, border="reflect")
 
 
+def test_ssim_in_strips_equals_the_whole_image():
+    from patexgs_jax.metrics import ssim_sum
+
+    a, b = _random_pair((70, 40, 3), seed=21)
+    weight = np.zeros((70, 40), bool)
+    weight[:61, :33] = True
+    x, y = jnp.asarray(a), jnp.asarray(b)
+    _, smap = ssim(a, b, return_map=True)
+    whole = jax.jit(jax.grad(lambda z: jnp.sum(ssim(z, y, return_map=True)[1] * weight[..., None])))(x)
+    for rows in (16, 70):  # 5 strips (the last partly past the image), 1 strip
+        summed = jax.jit(lambda z, w: ssim_sum(z, y, w, rows=rows))  # noqa: B023
+        assert float(summed(x, None)) / a.size == pytest.approx(_numpy_ssim_zero_pad(a, b), abs=1e-5)
+        assert float(summed(x, weight)) == pytest.approx(float(np.sum(np.asarray(smap) * weight[..., None])), rel=1e-5)
+        grad = jax.jit(jax.grad(summed))(x, weight)
+        np.testing.assert_allclose(grad, whole, rtol=1e-4, atol=1e-5)  # float32 sums in another order
+
+
+def test_losses_in_strips_equal_the_whole_image(monkeypatch):
+    """The step's SSIM and normal-consistency terms, summed over many strips, equal one strip."""
+    from patexgs_jax import losses, metrics
+
+    H, W = 75, 36
+    rng = np.random.default_rng(5)
+    rgb, target = (jnp.asarray(rng.uniform(size=(H, W, 3)), jnp.float32) for _ in range(2))
+    normal = jnp.asarray(rng.normal(size=(H, W, 3)), jnp.float32)
+    depth = jnp.asarray(rng.uniform(1, 3, size=(H, W)), jnp.float32).at[10:14, 5:9].set(0.0)
+    alpha = jnp.asarray(rng.uniform(size=(H, W)), jnp.float32)
+    K = jnp.asarray([[40.0, 0, 18.5], [0, 41.0, 37.0], [0, 0, 1]], jnp.float32)
+    valid = (jnp.arange(H)[:, None] < 66) & (jnp.arange(W)[None, :] < 31)
+
+    def terms(v):  # traced afresh for each call: strip_rows is read at trace time
+        def f(r, n, d):
+            return losses.photometric(r, target, 0.2, valid=v)[0] + losses.normal_consistency(n, d, alpha, K, valid=v)
+        return jax.jit(jax.value_and_grad(f, argnums=(0, 1, 2)))(rgb, normal, depth)
+
+    for v in (None, valid):
+        one = terms(v)  # 262,144 pixels a strip: the whole image
+        with monkeypatch.context() as m:
+            m.setattr(metrics, "STRIP_PIXELS", 16 * W)  # 16 rows a strip: 5 strips
+            assert metrics.strip_rows(W) == 16
+            many = terms(v)
+        assert float(many[0]) == pytest.approx(float(one[0]), rel=1e-6)
+        for a, b in zip(one[1], many[1]):
+            np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-7)
+    # and the whole-image formulas they replace
+    n_depth = losses.depth_to_normal(depth, K) * alpha[..., None]
+    want = float(jnp.mean(1.0 - jnp.sum(normal * n_depth, axis=-1)))
+    assert float(losses.normal_consistency(normal, depth, alpha, K)) == pytest.approx(want, rel=1e-6)
+    want = 0.8 * float(jnp.mean(jnp.abs(rgb - target))) + 0.2 * (1 - float(ssim(rgb, target)))
+    assert float(losses.photometric(rgb, target)[0]) == pytest.approx(want, rel=1e-6)
+
+
 def test_gaussian_window():
     g = gaussian_window_1d(11, 1.5)
     assert g.shape == (11,) and g.sum() == pytest.approx(1.0) and np.argmax(g) == 5

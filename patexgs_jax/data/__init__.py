@@ -54,6 +54,7 @@ if _pycolmap_loaded_before_libz():
 from pathlib import Path  # noqa: E402
 
 from .dataset import (  # noqa: E402
+    DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
     Dataset,
@@ -69,7 +70,7 @@ from .dataset import (  # noqa: E402
     split_indices,
     zoom_out_views,
 )
-from .colmap import MIPNERF360_FACTORS, default_factor, find_sparse_dir, load_colmap, read_model  # noqa: E402
+from .colmap import DEFAULT_MAX_WIDTH, MIPNERF360_FACTORS, default_factor, default_resolution, find_sparse_dir, load_colmap, read_model  # noqa: E402
 from .llff import load_llff  # noqa: E402
 from .nerf import find_transforms, load_nerf  # noqa: E402
 
@@ -93,11 +94,14 @@ __all__ = [
     "zoom_out_views",
     "resolve_cache_dir",
     "default_factor",
+    "default_resolution",
+    "DEFAULT_MAX_WIDTH",
     "find_sparse_dir",
     "find_transforms",
     "read_model",
     "MIPNERF360_FACTORS",
     "DEFAULT_IMAGE_CACHE_SIZE",
+    "DEFAULT_IMAGE_CACHE_BYTES",
     "DEFAULT_NUM_RANDOM_POINTS",
 ]
 
@@ -158,7 +162,8 @@ def detect_format(path) -> str:
 
 def load(path, factor: int | None = None, test_every: int | None = 8, skip_missing: bool = False, *,
          format: str | None = None, normalize: bool = False, cache_dir=None,
-         image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE, background=(1.0, 1.0, 1.0),
+         image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE,
+         image_cache_bytes: int | None = DEFAULT_IMAGE_CACHE_BYTES, background=(1.0, 1.0, 1.0),
          num_random_points: int = DEFAULT_NUM_RANDOM_POINTS, seed: int = 0, verbose: bool = True) -> Dataset:
     """Loads a scene, detecting its format (see :func:`detect_format`).
 
@@ -166,7 +171,8 @@ def load(path, factor: int | None = None, test_every: int | None = 8, skip_missi
       path: scene folder (or a transforms .json file).
       factor: integer image downsampling factor. None -> 4 for the Mip-NeRF 360 outdoor scenes
         (bicycle, flowers, garden, stump, treehill), 2 for the indoor ones (room, counter, kitchen,
-        bonsai), else 1. Uses ``images_<factor>/`` when present (K scaled by the actual size ratio),
+        bonsai), else full size, with images wider than 1600 px resized to 1600 px wide (an area
+        filter; the 3DGS rule, announced on stderr); 1 keeps the full size. Uses ``images_<factor>/`` when present (K scaled by the actual size ratio),
         else box-downsamples to ``W // f x H // f`` with K / f.
       test_every: every ``test_every``-th image (sorted by name, starting with the first) is a test
         view, the 3DGS protocol; 0 or None: no test split. (NeRF split files take precedence.)
@@ -177,7 +183,8 @@ def load(path, factor: int | None = None, test_every: int | None = 8, skip_missi
       cache_dir: root for derived data (undistorted images); default the ``PATEXGS_CACHE`` env var,
         else ``<scene>/.patexgs_cache`` if the scene folder is writable, else
         ``~/.cache/patexgs_jax/<scene>-<hash>``.
-      image_cache_size: number of decoded images kept in memory (LRU, default 64).
+      image_cache_size, image_cache_bytes: at most this many decoded images, and bytes of them, are
+        kept in memory (LRU; default 64 images and 2 GiB, None: no byte bound).
       background: (3,) RGB in [0, 1] behind transparent pixels (default white).
       num_random_points, seed: random initial points when the scene has no point cloud (default
         100,000, seed 0).
@@ -194,6 +201,7 @@ def load(path, factor: int | None = None, test_every: int | None = 8, skip_missi
     fmt = detect_format(path) if format is None else format
     if fmt not in _LOADERS:
         raise DatasetError(f"Unknown format {fmt!r}; use one of {sorted(_LOADERS)}.")
-    kwargs = dict(normalize=normalize, cache_dir=cache_dir, image_cache_size=image_cache_size, background=background,
+    kwargs = dict(normalize=normalize, cache_dir=cache_dir, image_cache_size=image_cache_size,
+                  image_cache_bytes=image_cache_bytes, background=background,
                   num_random_points=num_random_points, seed=seed, verbose=verbose)
     return _LOADERS[fmt](path, factor, test_every, skip_missing, **kwargs)

@@ -23,7 +23,9 @@ import PIL.Image  # noqa: F401  -- must be loaded before pycolmap (see data/__in
 from .._pycolmap import pycolmap
 
 from .dataset import (
+    fit_records_to_width,
     image_loader,
+    DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
     IMAGE_EXTENSIONS,
@@ -51,6 +53,8 @@ __all__ = [
     "validate_binary_model",
     "validate_text_model",
     "default_factor",
+    "default_resolution",
+    "DEFAULT_MAX_WIDTH",
     "MIPNERF360_FACTORS",
     "PINHOLE_MODELS",
 ]
@@ -63,6 +67,20 @@ MIPNERF360_FACTORS = {
 #: Camera models used as they are (no distortion).
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 _MODEL_FILES = ("cameras", "images", "points3D")
+
+
+#: Without a factor, images wider than this many pixels are resized to this width (the 3DGS rule).
+DEFAULT_MAX_WIDTH = 1600
+
+
+def default_resolution(scene: Path, factor: int | None) -> tuple[int, int | None]:
+    """``(factor, max_width)`` of a scene loaded with ``factor``: an explicit factor as it is (no
+    width limit); None -> the Mip-NeRF 360 factor for those scene names (:func:`default_factor`),
+    else factor 1 with images wider than :data:`DEFAULT_MAX_WIDTH` resized to that width."""
+    if factor is not None:
+        return int(factor), None
+    named = default_factor(scene)
+    return (named, None) if named != 1 else (1, DEFAULT_MAX_WIDTH)
 
 
 def default_factor(scene: Path) -> int:
@@ -418,6 +436,7 @@ def _resolve_image_files(names: list[str], folder: Path, base_folder: Path) -> d
 
 def load_colmap(path, factor: int | None = None, test_every: int | None = 8, skip_missing: bool = False, *,
                 normalize: bool = False, cache_dir=None, image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE,
+              image_cache_bytes: int | None = DEFAULT_IMAGE_CACHE_BYTES,
                 background=(1.0, 1.0, 1.0), num_random_points: int = DEFAULT_NUM_RANDOM_POINTS, seed: int = 0,
                 images: str = "images", verbose: bool = True) -> Dataset:
     """Loads a COLMAP scene folder.
@@ -428,7 +447,9 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
 
     Args:
       path: scene folder.
-      factor: image downsampling factor; None -> :func:`default_factor` (Mip-NeRF 360 defaults, else 1).
+      factor: image downsampling factor; None -> :func:`default_resolution` (the Mip-NeRF 360 factors
+        for those scene names, else full size with images wider than 1600 px resized to 1600 wide
+        with an area filter and K scaled per axis, as 3DGS).
         If ``images_<factor>`` exists it is used and K is scaled per axis by the actual size ratio
         (``w_N / W``, ``h_N / H``); otherwise ``images/`` is box-downsampled to ``W // f x H // f`` and K
         divided by ``f`` (pixel-centre consistent, like :meth:`Camera.scaled`).
@@ -438,7 +459,8 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
       normalize: apply the 3DGS similarity (centre -> 0, radius -> 1) to cameras and points; the
         mapping back is recorded in ``dataset.normalization``.
       cache_dir: root folder for derived data (undistorted images); see ``resolve_cache_dir``.
-      image_cache_size: number of decoded images kept in memory (LRU).
+      image_cache_size, image_cache_bytes: at most this many decoded images, and bytes of them, are
+        kept in memory (LRU; defaults 64 and 2 GiB; None: no byte bound).
       background: (3,) RGB in [0, 1] for compositing images with alpha.
       num_random_points, seed: used only if the model has no 3D points (a :class:`DatasetWarning` is
         emitted and random points fill the cube of half-side 0.5 x the largest camera distance around
@@ -466,7 +488,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
     if not reg:
         raise DatasetError(f"The COLMAP model in {sparse} has no registered images ({len(rec.images)} images, "
                            "none with a pose): the reconstruction failed; re-run COLMAP mapping.")
-    factor = default_factor(scene) if factor is None else int(factor)
+    factor, max_width = default_resolution(scene, factor)
     if factor < 1:
         raise DatasetError(f"factor must be a positive integer, got {factor}.")
 
@@ -548,6 +570,9 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         w2c[:3, :] = im.cam_from_world().matrix()
         records.append(dict(name=im.name, K=K, w2c=w2c, width=w, height=h, image_path=files[im.name],
                             load=image_loader(files[im.name], post, background)))
+    records, ratio = fit_records_to_width(records, max_width, background, verbose)
+    if ratio > 1:
+        factor = ratio
 
     if point_ids.size:
         source = "sfm"
@@ -563,7 +588,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
 
     return finish_dataset(records, fmt="colmap", path=scene, factor=factor, test_every=test_every,
                           normalize=normalize, points=pts, colors=cols, points_source=source,
-                          cache=ImageCache(image_cache_size), info=info, random_points=rand)
+                          cache=ImageCache(image_cache_size, image_cache_bytes), info=info, random_points=rand)
 
 
 

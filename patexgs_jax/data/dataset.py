@@ -3,7 +3,8 @@
 Everything here is host-side numpy (jax is only touched to build :class:`~patexgs_jax.camera.Camera`).
 
 * :class:`View` -- one posed image: a :class:`Camera`, a name and a lazily loaded ``(H, W, 3)`` float32
-  image in [0, 1] (read on first access of ``view.image`` and kept in a bounded LRU :class:`ImageCache`).
+  image in [0, 1] (read on first access of ``view.image`` and kept in a bounded LRU :class:`ImageCache`:
+  at most a set number of images and of bytes).
 * :class:`Dataset` -- train/test views, an initial point cloud and the :class:`SceneNormalization`.
 * helpers shared by the format loaders: image reading (RGBA compositing), box downsampling, the 3DGS
   train/test split, the 3DGS scene normalisation, random initial points, cache-folder selection and
@@ -41,6 +42,7 @@ __all__ = [
     "SceneNormalization",
     "read_image",
     "box_downsample",
+    "area_resize",
     "split_indices",
     "compute_normalization",
     "random_points_in_box",
@@ -49,6 +51,7 @@ __all__ = [
     "resolve_cache_dir",
     "IMAGE_EXTENSIONS",
     "DEFAULT_IMAGE_CACHE_SIZE",
+    "DEFAULT_IMAGE_CACHE_BYTES",
     "DEFAULT_NUM_RANDOM_POINTS",
 ]
 
@@ -56,6 +59,8 @@ __all__ = [
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 #: Default number of decoded images kept in memory per dataset.
 DEFAULT_IMAGE_CACHE_SIZE = 64
+#: Default bound on the bytes of the decoded images kept in memory per dataset (2 GiB).
+DEFAULT_IMAGE_CACHE_BYTES = 2 << 30
 #: Default number of random initial points when a scene has no point cloud (3DGS uses 100k for Blender).
 DEFAULT_NUM_RANDOM_POINTS = 100_000
 
@@ -73,13 +78,15 @@ class DatasetWarning(UserWarning):
 # ----------------------------------------------------------------------------------------------------
 
 
-def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
+def read_image(path, background=(1.0, 1.0, 1.0), size: tuple[int, int] | None = None) -> np.ndarray:
     """Reads an image file as RGB float32 in [0, 1].
 
     Args:
       path: image file (anything Pillow reads: PNG, JPEG, TIFF, ...).
       background: (3,) RGB in [0, 1] on which images with an alpha channel (RGBA, LA, palette with
         transparency) are composited: ``rgb * alpha + background * (1 - alpha)``.
+      size: optional ``(width, height)`` to resize to with an area filter (:func:`area_resize`),
+        a block of rows at a time: besides the decoded file, memory holds the output and one block.
 
     Returns:
       (H, W, 3) float32 array in [0, 1]. 16-bit grey images are scaled by 1/65535; grey images are
@@ -92,7 +99,15 @@ def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
     try:
         with PIL.Image.open(path) as im:
             im.load()
-            arr = _pil_to_float(im, background)
+            if size is None:
+                return _pil_to_float(im, background)
+            W, H = im.size
+            w, h = int(size[0]), int(size[1])
+            if not (1 <= w <= W and 1 <= h <= H):
+                raise ValueError(f"cannot area-resize a {W}x{H} image to {w}x{h} (only downscaling)")
+            cols = _area_weights(W, w)
+            rows = [_resize_axis(_pil_to_float(im.crop((0, r, W, min(H, r + _RESIZE_BLOCK))), background), cols, 1)
+                    for r in range(0, H, _RESIZE_BLOCK)]
     except FileNotFoundError:
         raise DatasetError(f"Image file {path} does not exist; restore it, or load with "
                            "skip_missing=True to drop the views whose images are missing.") from None
@@ -100,7 +115,55 @@ def read_image(path, background=(1.0, 1.0, 1.0)) -> np.ndarray:
         raise DatasetError(f"Image file {path} cannot be decoded ({type(e).__name__}: {e}); the file is "
                            "corrupt or truncated: re-export or re-copy it, or load with skip_missing=True "
                            "(which only drops images unreadable at load time).") from None
-    return arr
+    return _resize_axis(np.concatenate(rows), _area_weights(H, h), 0)
+
+
+#: Rows of a full-size image converted to float at a time by :func:`read_image`'s resize.
+_RESIZE_BLOCK = 256
+
+
+def _area_weights(n_in: int, n_out: int):
+    """Area-filter taps along one axis as an (n_out, n_in) float32 sparse matrix: output pixel j
+    averages the input interval ``[j s, (j + 1) s)``, s = n_in / n_out, each input pixel weighted
+    by its overlap with it (at most ceil(s) + 1 taps a row)."""
+    import scipy.sparse
+
+    s = n_in / n_out
+    lo = np.arange(n_out) * s
+    hi = lo + s
+    k = int(np.ceil(s)) + 1
+    idx = np.floor(lo).astype(np.int64)[:, None] + np.arange(k)
+    w = np.clip(np.minimum(hi[:, None], idx + 1) - np.maximum(lo[:, None], idx), 0.0, None) / s
+    keep = (w > 0) & (idx < n_in)
+    rows = np.broadcast_to(np.arange(n_out)[:, None], idx.shape)
+    return scipy.sparse.csr_matrix((w[keep].astype(np.float32), (rows[keep], idx[keep])), shape=(n_out, n_in))
+
+
+def _resize_axis(x: np.ndarray, taps, axis: int) -> np.ndarray:
+    """Applies :func:`_area_weights` taps along ``axis`` (0 or 1) of an (H, W, C) float32 array."""
+    if axis == 0:
+        return np.asarray(taps @ x.reshape(x.shape[0], -1), np.float32).reshape((taps.shape[0],) + x.shape[1:])
+    t = np.ascontiguousarray(x.transpose(1, 0, 2))  # the sparse product runs along the first axis
+    out = np.asarray(taps @ t.reshape(t.shape[0], -1), np.float32).reshape((taps.shape[0],) + t.shape[1:])
+    return np.ascontiguousarray(out.transpose(1, 0, 2))
+
+
+def area_resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Downscales an (H, W, C) image to (height, width, C) float32 with an area filter.
+
+    Output pixel (i, j) is the mean of the image over the rectangle
+    ``[j W / width, (j + 1) W / width) x [i H / height, (i + 1) H / height)`` (partly covered pixels
+    weighted by their covered area), so pixel centres map as ``(j + 0.5) W / width`` and the
+    intrinsics scale by ``width / W`` and ``height / H`` (an integer factor is :func:`box_downsample`).
+    """
+    x = np.asarray(image, np.float32)
+    H, W = x.shape[:2]
+    if not (1 <= width <= W and 1 <= height <= H):
+        raise ValueError(f"area_resize only downscales: {W}x{H} to {width}x{height}.")
+    squeeze = x.ndim == 2
+    x = x[..., None] if squeeze else x
+    out = _resize_axis(_resize_axis(x, _area_weights(W, width), 1), _area_weights(H, height), 0)
+    return out[..., 0] if squeeze else out
 
 
 def _pil_to_float(im: "PIL.Image.Image", background) -> np.ndarray:
@@ -130,7 +193,14 @@ def _pil_to_float(im: "PIL.Image.Image", background) -> np.ndarray:
         return (a[..., :3] * alpha + bg * (1.0 - alpha)).astype(np.float32)
     if mode != "RGB":
         im = im.convert("RGB")
-    return np.asarray(im, dtype=np.float32) / 255.0
+    return _to_unit_float(np.asarray(im))
+
+
+def _to_unit_float(a: np.ndarray) -> np.ndarray:
+    """uint8 -> float32 / 255 into one new array (no float32 temporary of the same size)."""
+    out = np.empty(a.shape, np.float32)
+    np.divide(a, np.float32(255.0), out=out)
+    return out
 
 
 def image_size(path) -> tuple[int, int]:
@@ -182,13 +252,44 @@ def handle_unreadable(problems: list[tuple[str, str]], total: int, source: str, 
     return [str(p) for p, _ in problems]
 
 
-def image_loader(path, factor: int, background):
+def image_loader(path, factor: int, background, size: tuple[int, int] | None = None):
     """A zero-argument function that reads ``path`` (RGBA composited on ``background``) and
-    box-downsamples it by ``factor``: the lazy loader a :class:`View` holds."""
-    def load():
-        return box_downsample(read_image(path, background), factor)
+    box-downsamples it by ``factor``, or resizes it to ``size`` = (width, height) with an area
+    filter (see :func:`read_image`): the lazy loader a :class:`View` holds."""
+    if size is not None:
+        return lambda: read_image(path, background, size=size)
+    return lambda: box_downsample(read_image(path, background), factor)
 
-    return load
+
+def fit_records_to_width(records: list[dict], max_width: int | None, background, verbose: bool) -> tuple[list[dict], float]:
+    """Applies the default resolution rule to loader records (see :func:`finish_dataset`): the
+    images wider than ``max_width`` are resized to ``max_width`` pixels wide (height
+    ``H * max_width // W``) with an area filter, their intrinsics scaled per axis, and one line says
+    so. Returns the records and the largest downscaling ratio applied (1.0 when none).
+    """
+    if max_width is None:
+        return records, 1.0
+    wide = [r for r in records if r["width"] > max_width]
+    if not wide:
+        return records, 1.0
+    out = []
+    for r in records:
+        if r["width"] <= max_width:
+            out.append(r)
+            continue
+        w, h = int(max_width), max(1, r["height"] * int(max_width) // r["width"])
+        K = np.diag([w / r["width"], h / r["height"], 1.0]) @ np.asarray(r["K"], np.float64)
+        out.append(dict(r, K=K, width=w, height=h, load=image_loader(r["image_path"], 1, background, size=(w, h)),
+                        full_size=(r["width"], r["height"])))
+    big = max(wide, key=lambda r: r["width"])
+    ratio = big["width"] / max_width
+    if verbose:
+        small = next(r for r in out if r["name"] == big["name"])
+        print(f"[patexgs_jax] {len(wide)} of {len(records)} images are wider than {max_width} px (up to "
+              f"{big['width']}x{big['height']}): training at {small['width']}x{small['height']}, downscaled "
+              f"{ratio:.3g}x with an area filter, as 3DGS does; --factor 1 (factor=1) keeps the full size.",
+              file=sys.stderr, flush=True)
+    return out, ratio
 
 
 def box_downsample(image: np.ndarray, factor: int) -> np.ndarray:
@@ -222,22 +323,36 @@ def box_downsample(image: np.ndarray, factor: int) -> np.ndarray:
 class ImageCache:
     """A thread-safe, bounded least-recently-used cache of decoded images.
 
+    Holds at most ``maxsize`` images and at most ``max_bytes`` of them: a 24 MP image is 288 MB as
+    float32, so the byte bound is what keeps a large capture's cache in memory (with the defaults,
+    64 images of 1600 x 1200, or 7 of 24 MP). An image larger than ``max_bytes`` on its own is
+    returned without being kept.
+
     Args:
       maxsize: maximum number of images held (``0`` disables caching: every access re-reads).
+      max_bytes: maximum total bytes of the images held (None: no byte bound).
 
     Attributes:
       hits, misses: access counters (a miss is one call of the loader).
+      nbytes: bytes of the images held now.
     """
 
-    def __init__(self, maxsize: int = DEFAULT_IMAGE_CACHE_SIZE):
+    def __init__(self, maxsize: int = DEFAULT_IMAGE_CACHE_SIZE, max_bytes: int | None = DEFAULT_IMAGE_CACHE_BYTES):
         maxsize = int(maxsize)
         if maxsize < 0:
             raise ValueError(f"image cache size must be >= 0, got {maxsize}.")
+        if max_bytes is not None and max_bytes < 0:
+            raise ValueError(f"image cache bytes must be >= 0 or None, got {max_bytes}.")
         self.maxsize = maxsize
+        self.max_bytes = None if max_bytes is None else int(max_bytes)
         self._items: "collections.OrderedDict[object, np.ndarray]" = collections.OrderedDict()
         self._lock = threading.Lock()
+        self.nbytes = 0
         self.hits = 0
         self.misses = 0
+
+    def _over(self) -> bool:
+        return len(self._items) > self.maxsize or (self.max_bytes is not None and self.nbytes > self.max_bytes)
 
     def get(self, key, loader: Callable[[], np.ndarray]) -> np.ndarray:
         """Returns the cached array for ``key``, calling ``loader()`` (and caching) on a miss.
@@ -254,10 +369,13 @@ class ImageCache:
         value.setflags(write=False)
         if self.maxsize:
             with self._lock:
+                old = self._items.pop(key, None)  # another thread loaded it meanwhile
+                if old is not None:
+                    self.nbytes -= old.nbytes
                 self._items[key] = value
-                self._items.move_to_end(key)
-                while len(self._items) > self.maxsize:
-                    self._items.popitem(last=False)
+                self.nbytes += value.nbytes
+                while self._items and self._over():
+                    self.nbytes -= self._items.popitem(last=False)[1].nbytes
         return value
 
     def __len__(self) -> int:
@@ -270,6 +388,7 @@ class ImageCache:
         """Drops every cached image."""
         with self._lock:
             self._items.clear()
+            self.nbytes = 0
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -475,7 +594,8 @@ class Dataset:
       normalization: the :class:`SceneNormalization` (centre, radius, and the applied similarity).
       format: ``"colmap"``, ``"llff"`` or ``"nerf"``.
       path: the scene folder (or transforms file) that was loaded.
-      factor: the image downsampling factor that was applied (1 = full resolution).
+      factor: the image downsampling factor that was applied (1 = full resolution; with the default
+        resolution rule, images wider than 1600 px resized to 1600 wide, the largest ratio, e.g. 2.52).
       image_cache: the shared :class:`ImageCache` of decoded images.
       info: free-form details (e.g. ``{"undistorted_from": ..., "skipped": [...]}``).
     """
@@ -488,7 +608,7 @@ class Dataset:
     normalization: SceneNormalization
     format: str
     path: Path
-    factor: int
+    factor: float
     image_cache: ImageCache
     info: dict = dataclasses.field(default_factory=dict)
 
@@ -578,7 +698,8 @@ def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: int, te
                    points=points.astype(np.float32),
                    colors=None if colors is None else np.asarray(colors, np.float32).reshape(-1, 3),
                    points_source=points_source, normalization=norm, format=fmt, path=Path(path),
-                   factor=int(factor), image_cache=cache, info=dict(info or {}))
+                   factor=factor if isinstance(factor, float) else int(factor), image_cache=cache,
+                   info=dict(info or {}))
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -13,9 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .colmap import default_factor, find_sparse_dir, model_points, read_model
+from .colmap import default_resolution, find_sparse_dir, model_points, read_model
 from .dataset import (
+    fit_records_to_width,
     image_loader,
+    DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
     Dataset,
@@ -58,20 +60,22 @@ def opencv_c2w_to_llff(c2w, height: float, width: float, focal: float) -> np.nda
 
 def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_missing: bool = False, *,
               normalize: bool = False, cache_dir=None, image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE,
+              image_cache_bytes: int | None = DEFAULT_IMAGE_CACHE_BYTES,
               background=(1.0, 1.0, 1.0), num_random_points: int = DEFAULT_NUM_RANDOM_POINTS, seed: int = 0,
               images: str = "images", verbose: bool = True) -> Dataset:
     """Loads an LLFF scene folder.
 
     Args:
       path: folder with ``poses_bounds.npy`` and ``images/``.
-      factor: downsampling factor (None -> Mip-NeRF 360 default by folder name, else 1). If
+      factor: downsampling factor (None -> Mip-NeRF 360 default by folder name, else full size with
+        images wider than 1600 px resized to 1600 wide, as 3DGS; see :func:`default_resolution`). If
         ``images_<factor>/`` exists it is used, its files matched to the poses by *sorted order* (names
         may differ, e.g. ``IMG_001.JPG`` vs ``image000.png``) and K scaled by the actual size ratio per
         axis; otherwise ``images/`` is box-downsampled (``W // f x H // f``, K / f).
       test_every: every ``test_every``-th name-sorted image is a test view (0 / None: none).
       skip_missing: drop images that cannot be read (their pose rows are dropped too). Missing files
         cannot be skipped: the pose rows are matched by order, so a count mismatch is always an error.
-      normalize, cache_dir, image_cache_size, background, verbose: as for :func:`load_colmap`
+      normalize, cache_dir, image_cache_size, image_cache_bytes, background, verbose: as for :func:`load_colmap`
         (``cache_dir`` is unused: LLFF images are pinhole).
       num_random_points, seed: without a COLMAP model in ``sparse/``, the initial points are
         ``num_random_points`` seeded random points, uniform in the image and depth between each
@@ -105,7 +109,7 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
     poses = pb[:, :15].reshape(n, 3, 5)
     bounds = pb[:, 15:17]
 
-    factor = default_factor(scene) if factor is None else int(factor)
+    factor, max_width = default_resolution(scene, factor)
     if factor < 1:
         raise DatasetError(f"factor must be a positive integer, got {factor}.")
     base = scene / images
@@ -145,6 +149,9 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
                             image_path=files[i], near=bounds[i, 0], far=bounds[i, 1],
                             load=image_loader(files[i], post, background)))
     skipped = handle_unreadable(problems, n, f"{pb_path} (images in {folder})", skip_missing)
+    records, ratio = fit_records_to_width(records, max_width, background, verbose)
+    if ratio > 1:
+        factor = ratio
     if not records:
         raise DatasetError(f"No readable image in {folder}.")
 
@@ -167,5 +174,5 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
 
     return finish_dataset(records, fmt="llff", path=scene, factor=factor, test_every=test_every,
                           normalize=normalize, points=pts, colors=cols, points_source=source,
-                          cache=ImageCache(image_cache_size), info=info, random_points=rand)
+                          cache=ImageCache(image_cache_size, image_cache_bytes), info=info, random_points=rand)
 

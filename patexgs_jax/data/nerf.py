@@ -32,9 +32,11 @@ import numpy as np
 import PIL.Image
 from .._pycolmap import pycolmap
 
-from .colmap import default_factor
+from .colmap import default_resolution
 from .dataset import (
+    fit_records_to_width,
     image_loader,
+    DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
     Dataset,
@@ -302,18 +304,20 @@ def read_ply_points(path) -> tuple[np.ndarray, np.ndarray | None]:
 
 def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_missing: bool = False, *,
               normalize: bool = False, cache_dir=None, image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE,
+              image_cache_bytes: int | None = DEFAULT_IMAGE_CACHE_BYTES,
               background=(1.0, 1.0, 1.0), num_random_points: int = DEFAULT_NUM_RANDOM_POINTS, seed: int = 0,
               verbose: bool = True) -> Dataset:
     """Loads a ``transforms.json`` scene (see the module docstring for the accepted keys).
 
     Args:
       path: scene folder (with ``transforms.json`` or ``transforms_train.json``) or a json file.
-      factor: box-downsampling factor (None -> the Mip-NeRF 360 default for those scene names, else 1);
-        image ``W x H`` becomes ``W // f x H // f`` and K is divided by ``f``.
+      factor: box-downsampling factor (None -> the Mip-NeRF 360 default for those scene names, else
+        full size with images wider than 1600 px resized to 1600 wide, as 3DGS; see
+        :func:`default_resolution`); image ``W x H`` becomes ``W // f x H // f`` and K is divided by ``f``.
       test_every: split of a single ``transforms.json`` (every ``test_every``-th name-sorted frame is a
         test view; 0 / None: none). Ignored when ``transforms_train.json`` defines the split.
       skip_missing: drop frames whose image is missing / unreadable (printing how many).
-      normalize, cache_dir, image_cache_size, verbose: as for :func:`load_colmap`.
+      normalize, cache_dir, image_cache_size, image_cache_bytes, verbose: as for :func:`load_colmap`.
       background: (3,) RGB in [0, 1] behind transparent pixels (default white, the NeRF convention).
       num_random_points, seed: without ``ply_file_path``, ``num_random_points`` (default 100,000)
         seeded uniform points with uniform random colours in the cube centred on the mean camera centre
@@ -333,7 +337,7 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
     if found is None:
         raise DatasetError(f"No transforms.json or transforms_train.json in {p}.")
     scene = p if p.is_dir() else p.parent
-    factor = default_factor(scene) if factor is None else int(factor)
+    factor, max_width = default_resolution(scene, factor)
     if factor < 1:
         raise DatasetError(f"factor must be a positive integer, got {factor}.")
 
@@ -431,6 +435,9 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
                 raise DatasetError(f"factor {factor} leaves no pixel of image {m['file']}.")
         records.append(dict(name=m["name"], K=K, w2c=np.linalg.inv(m["c2w"]), width=w, height=h,
                             image_path=m["file"], load=image_loader(m["file"], factor, background)))
+    records, ratio = fit_records_to_width(records, max_width, background, verbose)
+    if ratio > 1:
+        factor = ratio
 
     splits = None
     if "train" in found:
@@ -453,7 +460,7 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         return random_points_in_box(norm.original_center, half, num_random_points, seed)
 
     return finish_dataset(records, fmt="nerf", path=p, factor=factor, test_every=test_every, normalize=normalize,
-                          points=pts, colors=cols, points_source=source, cache=ImageCache(image_cache_size),
+                          points=pts, colors=cols, points_source=source, cache=ImageCache(image_cache_size, image_cache_bytes),
                           info=info, splits=splits, random_points=rand)
 
 
