@@ -482,42 +482,6 @@ def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_p
         tiny_config(method="patexgs", continue_2dgs=4)
 
 
-def test_iteration_overrides_scale_the_texture_schedule_or_are_refused():
-    """--iters-tex scales the preset's warm-up and growth interval (Eq. 7 and growth still happen);
-    an explicit schedule whose warm-up outlasts the texture stage is refused with the fix."""
-    tiny = T.PRESETS["tiny"]
-    cfg = T.preset_config("tiny", iters_tex=2 * tiny["iters_tex"])
-    assert (cfg.warmup_tex, cfg.growth_interval) == (2 * tiny["warmup_tex"], 2 * tiny["growth_interval"])
-    paper = T.preset_config("paper", iters_tex=600)  # the paper's 1,000-step warm-up, scaled to 20
-    assert (paper.warmup_tex, paper.growth_interval) == (20, 2) and paper.warmup_tex < paper.iters_tex
-    kept = T.preset_config("tiny", iters_tex=60, warmup_tex=7)  # given fields are kept
-    assert (kept.warmup_tex, kept.growth_interval) == (7, 8)
-    assert T.preset_config("tiny") == T.TrainConfig(**tiny)
-    with pytest.raises(ValueError, match=r"warm-up.*only 30 steps.*--iters-tex"):
-        T.TrainConfig(method="patexgs", iters_tex=30, warmup_tex=30)
-    T.TrainConfig(method="textured-fixed-4", iters_tex=30, warmup_tex=30)  # no Eq. 7: nothing to skip
-    with pytest.raises(ValueError, match="growth_interval"):
-        T.TrainConfig(growth_interval=0)
-
-
-def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_path):
-    """continue_2dgs: the 2DGS baseline trains as many steps as a textured run (no densification
-    after its stage), and keeps its end-of-stage-1 checkpoint out of the rotation for the others."""
-    cfg = tiny_config(method="2dgs", iters_2dgs=6, continue_2dgs=4, checkpoint_every=2)  # densify at 3 (and 9)
-    assert cfg.total_steps == 10
-    res = T.train(dataset, cfg, tmp_path / "2dgs", verbose=False)
-    assert res.summary["steps"] == 10 and res.summary["texels"] == 0
-    assert ckpt_step(tmp_path / "2dgs") == 10
-    tex = tiny_config(method="textured-fixed-2", iters_2dgs=6, iters_tex=4, checkpoint_every=2)
-    s1 = T.stage1_checkpoint(tmp_path / "2dgs", tex)
-    assert s1 is not None and s1.parent.name == T.STAGE1_DIR and ckpt.read_metadata(s1)["step"] == 6
-    tree, _ = ckpt.load_checkpoint(s1)
-    assert tree["scene"].num_active() == res.scene.num_active()  # not densified after stage 1 (step 9)
-    assert 0 < float(tree["t_train"]) < res.summary["train_seconds"]
-    with pytest.raises(ValueError, match="continue_2dgs.*'2dgs' only"):
-        tiny_config(method="patexgs", continue_2dgs=4)
-
-
 def test_textured_fixed_8(dataset):
     cfg = tiny_config(method="textured-fixed-8", iters_2dgs=3, iters_tex=3, densify=NO_DENSIFY)
     run = T._Run(dataset, cfg, None, verbose=False)  # the loop of train(), without the final evaluation
