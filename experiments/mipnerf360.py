@@ -709,18 +709,7 @@ def main(argv=None) -> int:
     from patexgs_jax import parallel
 
     parallel.add_cli_arguments(ap)
-    args = ap.parse_args(argv)
-    try:
-        several = parallel.initialize_from_args(args)
-    except parallel.DistributedError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return parallel.EXIT_DISTRIBUTED
-    if args.devices is not None and not several:
-        parallel.request_cpu_devices(args.devices)
-    code = _study_cli(args)
-    if several and code != 0:
-        parallel.end_process(code)  # the message is out; skip the shutdown barrier (see end_process)
-    return code
+    return parallel.run_cli(ap.parse_args(argv), _study_cli)
 
 
 def _study_cli(args) -> int:

@@ -466,6 +466,24 @@ def initialize_from_args(args) -> bool:
     return initialize(args.coordinator, args.num_processes, args.process_id, timeout=args.distributed_timeout)
 
 
+def run_cli(args, body) -> int:
+    """A command line's run with :func:`add_cli_arguments`' flags parsed into ``args``: joins the
+    processes (a failure is one ``error:`` line and :data:`EXIT_DISTRIBUTED`), creates
+    ``args.devices`` CPU devices in a single process, runs ``body(args)`` and returns its exit code;
+    a process of several that fails ends at once (:func:`end_process`)."""
+    try:
+        several = initialize_from_args(args)
+    except DistributedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_DISTRIBUTED
+    if args.devices is not None and not several:
+        request_cpu_devices(args.devices)
+    code = body(args)
+    if several and code != 0:
+        end_process(code)  # the message is out; skip the shutdown barrier (see end_process)
+    return code
+
+
 def end_process(code: int, message: str | None = None) -> None:
     """Ends a process of a run of several processes after an error: prints ``error: message`` (if
     given) and exits at once with ``code``, without the ``jax.distributed`` shutdown barrier (which
