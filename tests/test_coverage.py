@@ -229,8 +229,12 @@ def test_literal_mode_reproduces_the_low_pass_renderer():
     cases = {"nearest": (LITERAL, True),
              "trilinear": (RenderConfig(mip="trilinear", lambda_mip=0.4), True),
              "2dgs": (TrainConfig(method="2dgs").render_config(), False)}
+    # Equal up to float32 rounding: another CPU (vector width) or XLA optimisation level sums in
+    # another order, which moves depths of ~2 by up to 1.3e-5 and colours by up to 5e-6 (measured on
+    # an AMD EPYC against the Intel Xeon that wrote the file). Any real change is far larger: lambda
+    # 0.41 for 0.4 moves colours by 0.04, a background of 0.001 by 0.001.
     for name, (cfg, textured) in cases.items():
         out = render_jit(scene(7, textured, 1), camera(), config=cfg, capacity=RCAP)
         for k in ("rgb", "alpha", "depth"):
-            np.testing.assert_allclose(np.asarray(getattr(out, k)), gold[f"{name}_{k}"], rtol=0, atol=1e-6,
+            np.testing.assert_allclose(np.asarray(getattr(out, k)), gold[f"{name}_{k}"], rtol=5e-5, atol=5e-6,
                                        err_msg=f"{name} {k}")
