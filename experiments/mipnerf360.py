@@ -648,18 +648,17 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     """
     from patexgs_jax.train import method_spec
 
+    methods = list(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
+    for m in methods:
+        method_spec(m)  # unknown names fail before any work
     if data is None:
         from patexgs_jax.data.synthetic import ensure_default_scene
 
         root = ensure_default_scene(verbose=verbose)
         config.setdefault("preset", "tiny")
-        methods = list(methods or EMBEDDED_METHODS)
     else:
         root = Path(data)
         config.setdefault("preset", "paper")
-        methods = list(methods or DEFAULT_METHODS)
-    for m in methods:
-        method_spec(m)  # unknown names fail before any work
     if len(set(methods)) != len(methods):
         raise StudyError(f"--methods lists a method twice: {methods}.")
     parse_budget(config.get("budget"))
@@ -728,6 +727,8 @@ def _study_cli(args) -> int:
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
     try:
+        if jax.process_index() == 0:  # the process that writes; before any scene is loaded
+            ckpt.check_output_dir(args.out)
         run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
             renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
             **config)

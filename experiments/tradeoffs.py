@@ -505,7 +505,8 @@ def load_trained(run_dir):
     elif (run_dir / "scene.ply").exists():
         scene, cfg = load_ply(run_dir / "scene.ply"), (summary or {}).get("config") or {}
     else:
-        raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply.")
+        raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply: pass --run a folder "
+                                "that python -m patexgs_jax.train --out wrote.")
     spec = method_spec(cfg.get("method", "patexgs"))
     lam = cfg.get("lambda_mip")
     rc = RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"], coverage=spec["coverage"],
@@ -669,19 +670,31 @@ def main(argv=None) -> int:
     e.add_argument("--export", default=None, help="reduced PLY path (default OUT/scene_reduced.ply)")
     args = ap.parse_args(argv)
 
+    from patexgs_jax.checkpoint import CheckpointError, check_output_dir
     from patexgs_jax.data import load
 
+    # Mistakes in the arguments are named before any scene is made or loaded.
+    if args.effects and args.run is None:
+        ap.error("--effects needs --run RUN_DIR")
+    if args.effects and not Path(args.run).is_dir():  # before the scene is loaded
+        print(f"error: --run {args.run} is not a folder: pass --run a folder that python -m "
+              "patexgs_jax.train --out wrote.", file=sys.stderr)
+        return 2
+    unknown = [k for k in args.knobs.split(",") if k and k not in KNOBS]
+    if unknown:
+        print(f"error: unknown knob(s) {', '.join(unknown)}: choose from {', '.join(KNOBS)}.", file=sys.stderr)
+        return 2
     synthetic = args.data is None
     if synthetic:
         from patexgs_jax.data.synthetic import ensure_default_scene
 
         args.data = str(ensure_default_scene())
     try:
+        out = args.out or (Path(args.run) / "effects" if args.effects else "runs/tradeoffs")
+        check_output_dir(out)
         ds = load(args.data, factor=args.factor)
         if args.effects:
-            if args.run is None:
-                ap.error("--effects needs --run RUN_DIR")
-            run_effects(args.run, ds, args.out or Path(args.run) / "effects", scales=args.scales,
+            run_effects(args.run, ds, out, scales=args.scales,
                         drop_below=args.drop_effects_below, export_path=args.export, verbose=not args.quiet,
                         max_views=args.render_views)
             return 0
@@ -693,14 +706,14 @@ def main(argv=None) -> int:
                                            max_gaussians=args.max_gaussians).items() if v is not None})
         base = preset_config(preset, method="patexgs", seed=args.seed, **over)
         knobs = [k for k in args.knobs.split(",") if k]
-        study = Study(ds, base, args.out or "runs/tradeoffs", data_name=args.data, preset=preset,
+        study = Study(ds, base, out, data_name=args.data, preset=preset,
                       scales=args.scales, verbose=not args.quiet, render_views=args.render_views)
         t0 = time.perf_counter()
         study.run(knobs, fixed_sizes=args.fixed_sizes, budget_fractions=args.budget_fractions,
                   iter_fractions=args.iter_fractions, sh_degrees=args.sh_degrees)
         print(f"study done in {time.perf_counter() - t0:.0f} s (this invocation): {study.out / 'tradeoffs.md'}, "
               f"{study.out / 'tradeoffs.png'}")
-    except (ValueError, FileNotFoundError, OSError) as ex:
+    except (ValueError, FileNotFoundError, OSError, CheckpointError) as ex:
         print(f"error: {ex}", file=sys.stderr)
         return 2
     return 0

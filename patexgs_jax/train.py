@@ -1144,6 +1144,8 @@ def _train_cli(args) -> int:
             from .data.synthetic import ensure_default_scene
 
             args.data = str(ensure_default_scene())
+        if jax.process_index() == 0:  # the process that writes; before the data is loaded
+            ckpt.check_output_dir(args.out)
         cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                             iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
                             texture_budget_mb=args.texture_budget_mb, seed=args.seed,
