@@ -51,7 +51,9 @@ Effects (the second form)
 
 ``tradeoffs.json`` schema::
 
-    {"schema": 1, "data": str, "preset": str, "scales": [1, 2, 4, 8], "machine": str,
+    {"schema": 1, "git": str | null, "date": str, "machine": str, "cpu": str, "cpus": int,
+     "jax": str, "backend": str, "devices": int,  (experiments.provenance's header, at the study's start)
+     "data": str, "preset": str, "scales": [1, 2, 4, 8],
      "base": {TrainConfig as JSON}, "study_seconds": float,
      "runs": {run_id: {"run": run_id, "method": str, "config": {...}, "stage1_run": run_id | null,
                        "steps": int, "train_seconds": float, "stage1_seconds": float | null,
@@ -74,13 +76,14 @@ import argparse
 import dataclasses
 import hashlib
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from experiments import provenance
 
 KNOBS = ("mip", "texture", "budget", "iters", "sh")
 SCALES = (1, 2, 4, 8)
@@ -93,6 +96,7 @@ SH_DEGREES = (0, 1, 2, 3)
 STUDY_DEFAULTS = {"tiny": dict(iters_tex=60)}
 EFFECTS = ("sh_bands", "rgb_textures", "alpha_textures", "mipmaps")
 SCHEMA = 1
+EFFECTS_SCHEMA = 1  # effects.json: experiments.provenance's header, then effect_study's fields
 
 
 # ------------------------------------------------------------------------------------------------
@@ -223,7 +227,8 @@ def markdown(study: dict) -> str:
     scales = [str(s) for s in study["scales"]]
     runs, pareto = study["runs"], study.get("pareto") or pareto_sets(study["runs"], study["scales"])
     lines = [f"# Accuracy vs time ({Path(str(study['data'])).name}, preset {study['preset']})", "",
-             f"Machine: {study.get('machine', '?')}. Test views at zoom-out scales {', '.join(scales)}; "
+             f"Machine: {study.get('machine', '?')}, jax {study.get('jax', '?')}, code at "
+             f"{study.get('git') or '?'} ({study.get('date', '?')}). Test views at zoom-out scales {', '.join(scales)}; "
              "train s = both stages' training steps (a shared 2DGS stage counted in full; 2DGS continues its "
              "stage for the texture steps: equal steps); render ms = "
              "per frame (per view the fastest of 3 renders, median over views; no compilation); PSNR against "
@@ -315,13 +320,6 @@ def _write_json(path: Path, obj) -> None:
     tmp.replace(path)
 
 
-def machine() -> str:
-    import jax
-
-    return (f"{platform.machine()} {platform.system()}, {len(jax.devices())} {jax.default_backend()} "
-            f"device(s), jax {jax.__version__}")
-
-
 def _latest_scene(run_dir: Path):
     from patexgs_jax import checkpoint as ckpt
 
@@ -393,8 +391,8 @@ class Study:
         if state is not None and (state.get("base") != config_json(base) or state.get("scales") != list(self.scales)):
             raise ValueError(f"{self.path} holds a study with another base configuration or scales; choose "
                              "another --out or the same settings.")
-        self.state = state or dict(schema=SCHEMA, data=data_name, preset=preset, scales=list(self.scales),
-                                   machine=machine(), base=config_json(base), study_seconds=0.0,
+        self.state = state or dict(provenance.header(SCHEMA), data=data_name, preset=preset,
+                                   scales=list(self.scales), base=config_json(base), study_seconds=0.0,
                                    runs={}, knobs={}, pareto={})
 
     def say(self, msg):
@@ -611,7 +609,7 @@ def run_effects(run_dir, dataset, out_dir, *, scales=SCALES, drop_below=None, ex
     out_dir.mkdir(parents=True, exist_ok=True)
     views = list(dataset.test_views)
     res = effect_study(scene, rc, views, scales, verbose=verbose, max_views=max_views)
-    res.update(run=str(run_dir), scales=[int(s) for s in scales], machine=machine())
+    res = dict(provenance.header(EFFECTS_SCHEMA), **res, run=str(run_dir), scales=[int(s) for s in scales])
     if drop_below is not None:
         from patexgs_jax.export import load_ply
 
