@@ -84,6 +84,7 @@ from typing import Sequence
 import numpy as np
 
 from experiments import provenance
+from patexgs_jax import progress
 
 KNOBS = ("mip", "texture", "budget", "iters", "sh")
 SCALES = (1, 2, 4, 8)
@@ -394,10 +395,15 @@ class Study:
         self.state = state or dict(provenance.header(SCHEMA), data=data_name, preset=preset,
                                    scales=list(self.scales), base=config_json(base), study_seconds=0.0,
                                    runs={}, knobs={}, pareto={})
+        self.bar = progress.bar(0, "tradeoffs", show=False)  # run() replaces it with the drawn one
 
     def say(self, msg):
         if self.verbose:
-            print(msg, flush=True)
+            progress.say(msg)
+
+    def recorded(self, rid: str) -> bool:
+        rec = self.state["runs"].get(rid)
+        return rec is not None and bool(rec.get("psnr"))
 
     def run_dir(self, cfg) -> Path:
         return self.out / "runs" / run_id(cfg)
@@ -418,9 +424,8 @@ class Study:
         from patexgs_jax.train import stage1_checkpoint
 
         rid = run_id(cfg)
-        rec = self.state["runs"].get(rid)
-        if rec is not None and rec.get("psnr"):
-            return rec
+        if self.recorded(rid):
+            return self.state["runs"][rid]
         t0 = time.perf_counter()
         s1_id, s1_seconds, stage1 = None, None, None
         if cfg.method != "2dgs":
@@ -444,6 +449,7 @@ class Study:
         self.state["runs"][rid] = rec
         self.state["study_seconds"] += rec["wall_seconds"]
         self.save()
+        self.bar.update(1)
         self.say(f"    {rid}: PSNR " + " / ".join(_fmt(m["psnr"][str(s)]) for s in self.scales)
                  + " dB (alias PSNR " + " / ".join(_fmt(m["alias_psnr"][str(s)]) for s in self.scales if s != 1)
                  + f" dB), {rec['train_seconds']:.0f} s training, {_fmt(m['render_ms']['1'], 1)} ms/frame")
@@ -465,13 +471,19 @@ class Study:
 
     def run(self, knobs=KNOBS, **plan_kw) -> dict:
         entries = plan(self.base, knobs, **plan_kw)
-        for e in entries:
-            self.add(e)
-        if "budget" in knobs:
-            n = self.ensure(self.base)["num_gaussians"]
-            entries = plan(self.base, knobs, base_gaussians=n, **plan_kw)
+        ids = {run_id(e.config) for e in entries}
+        with progress.bar(len(ids), "tradeoffs", unit="run", initial=sum(map(self.recorded, ids)), leave=True,
+                          show=self.verbose) as self.bar:
             for e in entries:
                 self.add(e)
+            if "budget" in knobs:
+                n = self.ensure(self.base)["num_gaussians"]
+                entries = plan(self.base, knobs, base_gaussians=n, **plan_kw)
+                more = {run_id(e.config) for e in entries} - ids  # the budgets: known once the base ran
+                self.bar.total += len(more)
+                self.bar.update(sum(map(self.recorded, more)))
+                for e in entries:
+                    self.add(e)
         # Each knob's table in the order of its settings (runs were trained base first).
         n = self.state["runs"].get(run_id(self.base), {}).get("num_gaussians")
         order = {(e.knob, e.label): i for i, e in enumerate(plan(self.base, knobs, base_gaussians=n, base_first=False,
