@@ -82,3 +82,13 @@ def test_prepare_cli_bad_input(bad, capsys):
 def test_view_cli_bad_input(bad, capsys):
     _one_error_line(capsys, view.main([bad["missing"]]), "does not exist", "pass a run folder")
     _one_error_line(capsys, view.main([bad["scene"]]), "no trained run", "pass a run folder")
+
+
+def test_synthetic_and_zoom_ab_cli_bad_input(bad, capsys):
+    from experiments import zoom_ab
+    from patexgs_jax.data import synthetic
+
+    code = synthetic.main([bad["unwritable"]])
+    _one_error_line(capsys, code, "cannot write", "pass OUT_DIR a folder you can write to")
+    code = zoom_ab.main(["--study", bad["missing"]])
+    _one_error_line(capsys, code, "no results.json in --study", "python -m experiments.mipnerf360 --out")
