@@ -15,11 +15,12 @@ import contextlib
 import time
 from typing import Sequence
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from patexgs_jax import compiled
+from patexgs_jax import compiled, progress
 from patexgs_jax.buckets import ViewRenderer
 from patexgs_jax.render import RenderConfig
 
@@ -144,9 +145,11 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
     with _renderer(scene, config, active_sh_degree, renderer) as renderer:
         # Every bucket's capacity fitted up front: one program per bucket.
         renderer.prepare([v.camera if s == 1 else v.camera.scaled(s) for v in views for s in scales])
-        for i, v in enumerate(views):
-            _evaluate_view(renderer, i, v, scales, acc, lpips, keep_images)
-            compiled.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
+        with progress.bar(len(views), "evaluate", unit="view", show=jax.process_index() == 0) as bar:
+            for i, v in enumerate(views):
+                _evaluate_view(renderer, i, v, scales, acc, lpips, keep_images)
+                compiled.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
+                bar.update(1)
     result, images = {}, {}
     for s in scales:
         a = acc[s]
@@ -172,6 +175,9 @@ def _evaluate_view(renderer: ViewRenderer, i: int, v, scales, acc: dict, lpips, 
     for s in scales:
         vs = v if s == 1 else v.scaled(s)
         gt = np.asarray(vs.image, np.float32)
+        chex.assert_shape(gt, (vs.camera.height, vs.camera.width, 3), custom_message=(
+            f"test view {getattr(v, 'name', i)!r} at 1/{s}: its image and its camera disagree "
+            "(each view's image must be (H, W, 3) at its camera's size)"))
         img = full if s == 1 else renderer.image(vs.camera)
         a = acc[s]
         a["psnr"].append(float(psnr(img, gt)))

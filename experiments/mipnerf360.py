@@ -83,6 +83,8 @@ from pathlib import Path
 
 import numpy as np
 
+from patexgs_jax import progress
+
 RESULTS_SCHEMA = 2
 SCALES = (1, 2, 4, 8)
 EMBEDDED_METHODS = ("2dgs", "patexgs")
@@ -287,6 +289,7 @@ class Study:
         # process 0 alone writes and prints.
         self.main = jax.process_index() == 0
         self.devices = devices  # how the batch is split: not part of the protocol
+        self.bar = progress.bar(0, "study", show=False)  # run() replaces it with the drawn one
         if self.main:
             ckpt.check_writable(self.out)
         self.cfg = config
@@ -327,7 +330,7 @@ class Study:
 
     def say(self, msg: str) -> None:
         if self.verbose and self.main:
-            print(msg, flush=True)
+            progress.say(msg)
 
     def done(self, scene: str, key: str) -> bool:
         return key in self.data["results"].get(scene, {})
@@ -384,6 +387,7 @@ class Study:
             entry = self.evaluate(name, key, result, ds, cfg)
             self.data["results"].setdefault(name, {})[key] = entry
             self.save()
+            self.bar.update(1)
             full = entry["1"]
             self.say(f"[{name}] {key}: PSNR {' / '.join(_fmt(entry[str(s)]['psnr'], 2) for s in SCALES)} dB at 1, "
                      f"1/2, 1/4, 1/8 (alias PSNR {' / '.join(_fmt(entry[str(s)]['alias_psnr'], 2) for s in SCALES[1:])}); SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
@@ -648,18 +652,17 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     """
     from patexgs_jax.train import method_spec
 
+    methods = list(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
+    for m in methods:
+        method_spec(m)  # unknown names fail before any work
     if data is None:
         from patexgs_jax.data.synthetic import ensure_default_scene
 
         root = ensure_default_scene(verbose=verbose)
         config.setdefault("preset", "tiny")
-        methods = list(methods or EMBEDDED_METHODS)
     else:
         root = Path(data)
         config.setdefault("preset", "paper")
-        methods = list(methods or DEFAULT_METHODS)
-    for m in methods:
-        method_spec(m)  # unknown names fail before any work
     if len(set(methods)) != len(methods):
         raise StudyError(f"--methods lists a method twice: {methods}.")
     parse_budget(config.get("budget"))
@@ -668,8 +671,12 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     study = Study(out, cfg, renders=renders, use_lpips=use_lpips, lpips_net=lpips_net, verbose=verbose,
                   devices=devices)
     t = time.perf_counter()
-    for name, path in found.items():
-        study.run_scene(name, path, methods)
+    entries = [(name, label(m, cfg.budget)) for name in found for m in methods]
+    with progress.bar(len(entries), "study", unit="run", initial=sum(study.done(*e) for e in entries),
+                      leave=True, show=verbose and study.main) as bar:
+        study.bar = bar
+        for name, path in found.items():
+            study.run_scene(name, path, methods)
     study.save()
     if verbose and study.main:
         print(f"\n{tables_markdown(study.data)}\nwritten to {study.out} ({time.perf_counter() - t:.0f} s)")
@@ -728,6 +735,8 @@ def _study_cli(args) -> int:
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
     try:
+        if jax.process_index() == 0:  # the process that writes; before any scene is loaded
+            ckpt.check_output_dir(args.out)
         run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
             renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
             **config)

@@ -51,7 +51,9 @@ Effects (the second form)
 
 ``tradeoffs.json`` schema::
 
-    {"schema": 1, "data": str, "preset": str, "scales": [1, 2, 4, 8], "machine": str,
+    {"schema": 1, "git": str | null, "date": str, "machine": str, "cpu": str, "cpus": int,
+     "jax": str, "backend": str, "devices": int,  (experiments.provenance's header, at the study's start)
+     "data": str, "preset": str, "scales": [1, 2, 4, 8],
      "base": {TrainConfig as JSON}, "study_seconds": float,
      "runs": {run_id: {"run": run_id, "method": str, "config": {...}, "stage1_run": run_id | null,
                        "steps": int, "train_seconds": float, "stage1_seconds": float | null,
@@ -74,13 +76,15 @@ import argparse
 import dataclasses
 import hashlib
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from experiments import provenance
+from patexgs_jax import progress
 
 KNOBS = ("mip", "texture", "budget", "iters", "sh")
 SCALES = (1, 2, 4, 8)
@@ -93,6 +97,7 @@ SH_DEGREES = (0, 1, 2, 3)
 STUDY_DEFAULTS = {"tiny": dict(iters_tex=60)}
 EFFECTS = ("sh_bands", "rgb_textures", "alpha_textures", "mipmaps")
 SCHEMA = 1
+EFFECTS_SCHEMA = 1  # effects.json: experiments.provenance's header, then effect_study's fields
 
 
 # ------------------------------------------------------------------------------------------------
@@ -223,7 +228,8 @@ def markdown(study: dict) -> str:
     scales = [str(s) for s in study["scales"]]
     runs, pareto = study["runs"], study.get("pareto") or pareto_sets(study["runs"], study["scales"])
     lines = [f"# Accuracy vs time ({Path(str(study['data'])).name}, preset {study['preset']})", "",
-             f"Machine: {study.get('machine', '?')}. Test views at zoom-out scales {', '.join(scales)}; "
+             f"Machine: {study.get('machine', '?')}, jax {study.get('jax', '?')}, code at "
+             f"{study.get('git') or '?'} ({study.get('date', '?')}). Test views at zoom-out scales {', '.join(scales)}; "
              "train s = both stages' training steps (a shared 2DGS stage counted in full; 2DGS continues its "
              "stage for the texture steps: equal steps); render ms = "
              "per frame (per view the fastest of 3 renders, median over views; no compilation); PSNR against "
@@ -315,13 +321,6 @@ def _write_json(path: Path, obj) -> None:
     tmp.replace(path)
 
 
-def machine() -> str:
-    import jax
-
-    return (f"{platform.machine()} {platform.system()}, {len(jax.devices())} {jax.default_backend()} "
-            f"device(s), jax {jax.__version__}")
-
-
 def _latest_scene(run_dir: Path):
     from patexgs_jax import checkpoint as ckpt
 
@@ -393,13 +392,18 @@ class Study:
         if state is not None and (state.get("base") != config_json(base) or state.get("scales") != list(self.scales)):
             raise ValueError(f"{self.path} holds a study with another base configuration or scales; choose "
                              "another --out or the same settings.")
-        self.state = state or dict(schema=SCHEMA, data=data_name, preset=preset, scales=list(self.scales),
-                                   machine=machine(), base=config_json(base), study_seconds=0.0,
+        self.state = state or dict(provenance.header(SCHEMA), data=data_name, preset=preset,
+                                   scales=list(self.scales), base=config_json(base), study_seconds=0.0,
                                    runs={}, knobs={}, pareto={})
+        self.bar = progress.bar(0, "tradeoffs", show=False)  # run() replaces it with the drawn one
 
     def say(self, msg):
         if self.verbose:
-            print(msg, flush=True)
+            progress.say(msg)
+
+    def recorded(self, rid: str) -> bool:
+        rec = self.state["runs"].get(rid)
+        return rec is not None and bool(rec.get("psnr"))
 
     def run_dir(self, cfg) -> Path:
         return self.out / "runs" / run_id(cfg)
@@ -420,9 +424,8 @@ class Study:
         from patexgs_jax.train import stage1_checkpoint
 
         rid = run_id(cfg)
-        rec = self.state["runs"].get(rid)
-        if rec is not None and rec.get("psnr"):
-            return rec
+        if self.recorded(rid):
+            return self.state["runs"][rid]
         t0 = time.perf_counter()
         s1_id, s1_seconds, stage1 = None, None, None
         if cfg.method != "2dgs":
@@ -446,6 +449,7 @@ class Study:
         self.state["runs"][rid] = rec
         self.state["study_seconds"] += rec["wall_seconds"]
         self.save()
+        self.bar.update(1)
         self.say(f"    {rid}: PSNR " + " / ".join(_fmt(m["psnr"][str(s)]) for s in self.scales)
                  + " dB (alias PSNR " + " / ".join(_fmt(m["alias_psnr"][str(s)]) for s in self.scales if s != 1)
                  + f" dB), {rec['train_seconds']:.0f} s training, {_fmt(m['render_ms']['1'], 1)} ms/frame")
@@ -467,13 +471,19 @@ class Study:
 
     def run(self, knobs=KNOBS, **plan_kw) -> dict:
         entries = plan(self.base, knobs, **plan_kw)
-        for e in entries:
-            self.add(e)
-        if "budget" in knobs:
-            n = self.ensure(self.base)["num_gaussians"]
-            entries = plan(self.base, knobs, base_gaussians=n, **plan_kw)
+        ids = {run_id(e.config) for e in entries}
+        with progress.bar(len(ids), "tradeoffs", unit="run", initial=sum(map(self.recorded, ids)), leave=True,
+                          show=self.verbose) as self.bar:
             for e in entries:
                 self.add(e)
+            if "budget" in knobs:
+                n = self.ensure(self.base)["num_gaussians"]
+                entries = plan(self.base, knobs, base_gaussians=n, **plan_kw)
+                more = {run_id(e.config) for e in entries} - ids  # the budgets: known once the base ran
+                self.bar.total += len(more)
+                self.bar.update(sum(map(self.recorded, more)))
+                for e in entries:
+                    self.add(e)
         # Each knob's table in the order of its settings (runs were trained base first).
         n = self.state["runs"].get(run_id(self.base), {}).get("num_gaussians")
         order = {(e.knob, e.label): i for i, e in enumerate(plan(self.base, knobs, base_gaussians=n, base_first=False,
@@ -505,7 +515,8 @@ def load_trained(run_dir):
     elif (run_dir / "scene.ply").exists():
         scene, cfg = load_ply(run_dir / "scene.ply"), (summary or {}).get("config") or {}
     else:
-        raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply.")
+        raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply: pass --run a folder "
+                                "that python -m patexgs_jax.train --out wrote.")
     spec = method_spec(cfg.get("method", "patexgs"))
     lam = cfg.get("lambda_mip")
     rc = RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"], coverage=spec["coverage"],
@@ -610,7 +621,7 @@ def run_effects(run_dir, dataset, out_dir, *, scales=SCALES, drop_below=None, ex
     out_dir.mkdir(parents=True, exist_ok=True)
     views = list(dataset.test_views)
     res = effect_study(scene, rc, views, scales, verbose=verbose, max_views=max_views)
-    res.update(run=str(run_dir), scales=[int(s) for s in scales], machine=machine())
+    res = dict(provenance.header(EFFECTS_SCHEMA), **res, run=str(run_dir), scales=[int(s) for s in scales])
     if drop_below is not None:
         from patexgs_jax.export import load_ply
 
@@ -669,19 +680,31 @@ def main(argv=None) -> int:
     e.add_argument("--export", default=None, help="reduced PLY path (default OUT/scene_reduced.ply)")
     args = ap.parse_args(argv)
 
+    from patexgs_jax.checkpoint import CheckpointError, check_output_dir
     from patexgs_jax.data import load
 
+    # Mistakes in the arguments are named before any scene is made or loaded.
+    if args.effects and args.run is None:
+        ap.error("--effects needs --run RUN_DIR")
+    if args.effects and not Path(args.run).is_dir():  # before the scene is loaded
+        print(f"error: --run {args.run} is not a folder: pass --run a folder that python -m "
+              "patexgs_jax.train --out wrote.", file=sys.stderr)
+        return 2
+    unknown = [k for k in args.knobs.split(",") if k and k not in KNOBS]
+    if unknown:
+        print(f"error: unknown knob(s) {', '.join(unknown)}: choose from {', '.join(KNOBS)}.", file=sys.stderr)
+        return 2
     synthetic = args.data is None
     if synthetic:
         from patexgs_jax.data.synthetic import ensure_default_scene
 
         args.data = str(ensure_default_scene())
     try:
+        out = args.out or (Path(args.run) / "effects" if args.effects else "runs/tradeoffs")
+        check_output_dir(out)
         ds = load(args.data, factor=args.factor)
         if args.effects:
-            if args.run is None:
-                ap.error("--effects needs --run RUN_DIR")
-            run_effects(args.run, ds, args.out or Path(args.run) / "effects", scales=args.scales,
+            run_effects(args.run, ds, out, scales=args.scales,
                         drop_below=args.drop_effects_below, export_path=args.export, verbose=not args.quiet,
                         max_views=args.render_views)
             return 0
@@ -693,14 +716,14 @@ def main(argv=None) -> int:
                                            max_gaussians=args.max_gaussians).items() if v is not None})
         base = preset_config(preset, method="patexgs", seed=args.seed, **over)
         knobs = [k for k in args.knobs.split(",") if k]
-        study = Study(ds, base, args.out or "runs/tradeoffs", data_name=args.data, preset=preset,
+        study = Study(ds, base, out, data_name=args.data, preset=preset,
                       scales=args.scales, verbose=not args.quiet, render_views=args.render_views)
         t0 = time.perf_counter()
         study.run(knobs, fixed_sizes=args.fixed_sizes, budget_fractions=args.budget_fractions,
                   iter_fractions=args.iter_fractions, sh_degrees=args.sh_degrees)
         print(f"study done in {time.perf_counter() - t0:.0f} s (this invocation): {study.out / 'tradeoffs.md'}, "
               f"{study.out / 'tradeoffs.png'}")
-    except (ValueError, FileNotFoundError, OSError) as ex:
+    except (ValueError, FileNotFoundError, OSError, CheckpointError) as ex:
         print(f"error: {ex}", file=sys.stderr)
         return 2
     return 0

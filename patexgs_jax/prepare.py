@@ -123,7 +123,8 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
     images_dir = Path(images_dir).expanduser().absolute()
     out_dir = Path(out_dir).expanduser().absolute()
     if not images_dir.is_dir():
-        raise PrepareError(f"Image folder {images_dir} does not exist (or is not a folder).")
+        raise PrepareError(f"Image folder {images_dir} does not exist (or is not a folder): pass the folder "
+                           "that holds your photos.")
     names = _list_images(images_dir)
     if not names:
         raise PrepareError(f"No images ({', '.join(sorted({e.lower() for e in IMAGE_EXTENSIONS}))}) "
@@ -136,9 +137,14 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
     if out_dir == images_dir or out_dir / "images" == images_dir:
         raise PrepareError("OUT_DIR must differ from IMAGES_DIR and not contain it as OUT_DIR/images.")
 
+    from .checkpoint import CheckpointError, check_output_dir
+
+    try:
+        check_output_dir(out_dir, "OUT_DIR")
+    except CheckpointError as e:
+        raise PrepareError(str(e)) from None
     old_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 0 if colmap_log else 2  # 0 INFO, 1 WARNING, 2 ERROR
-    out_dir.mkdir(parents=True, exist_ok=True)
     work = out_dir / ".work"
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir()

@@ -74,6 +74,7 @@ import math
 import warnings
 from typing import NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -1382,9 +1383,44 @@ def _alpha_peak(scene: Scene):
     return peak
 
 
+_LAYOUT_FIX = ("build scenes with Scene.from_arrays or random_scene and cameras with Camera.from_intrinsics "
+               "or look_at, which set this layout; see patexgs_jax/scene.py")
+
+
+def check_inputs(scene: Scene, camera: Camera) -> None:
+    """Shapes and dtypes of a scene and camera against the layout the renderer assumes (module
+    docstrings of scene.py and camera.py). Static, so it costs nothing under ``jax.jit``: a Scene
+    or Camera built or edited by hand fails here, naming the field, not inside the compositor.
+
+    Raises:
+      AssertionError (chex's) naming the field, its shape or dtype and the fix.
+    """
+    c = scene.means.shape[0] if scene.means.ndim else -1
+    fields = dict(means=(scene.means, (c, 3)), log_scales=(scene.log_scales, (c, 2)),
+                  quats=(scene.quats, (c, 4)), opacity_logits=(scene.opacity_logits, (c,)),
+                  sh=(scene.sh, (c, None, 3)), active=(scene.active, (c,)))
+    for name, (x, shape) in fields.items():
+        msg = f"Scene.{name} must be {shape} floating-point for capacity C={c}; {_LAYOUT_FIX}"
+        chex.assert_shape(x, shape, custom_message=msg)
+        chex.assert_type(x, float, custom_message=msg)
+    if scene.sh.shape[1] not in (1, 4, 9, 16):
+        raise AssertionError(f"Scene.sh has {scene.sh.shape[1]} coefficients per channel; SH degrees 0-3 "
+                             f"have 1, 4, 9 or 16; {_LAYOUT_FIX}")
+    for bank in (scene.rgb, scene.alpha):
+        if bank is not None:
+            for name in ("bucket", "slot", "size"):
+                chex.assert_shape(getattr(bank, name), (c,), custom_message=(
+                    f"TextureBank.{name} must be ({c},) for capacity C={c}; {_LAYOUT_FIX}"))
+    for name, x, shape in (("K", camera.K, (3, 3)), ("world_to_camera", camera.world_to_camera, (4, 4))):
+        msg = f"Camera.{name} must be {shape} floating-point; {_LAYOUT_FIX}"
+        chex.assert_shape(x, shape, custom_message=msg)
+        chex.assert_type(x, float, custom_message=msg)
+
+
 def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capacity,
             screen_offset=None, active_sh_degree=None) -> RenderOutput:
     TRACE_COUNTS[(config, capacity)] += 1
+    check_inputs(scene, camera)
     H, W, ts = camera.height, camera.width, config.tile_size
     tiles_x, tiles_y = -(-W // ts), -(-H // ts)
     num_tiles = tiles_x * tiles_y

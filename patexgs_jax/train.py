@@ -58,6 +58,7 @@ import sys
 import time
 from pathlib import Path
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -67,7 +68,7 @@ from . import buckets
 from . import checkpoint as ckpt
 from . import compiled
 from . import densify as dens
-from . import losses
+from . import losses, progress
 from . import schedule as sched
 from .metrics import storage_mb
 from .optim import LearningRates, make_optimizer, upgrade_state
@@ -319,6 +320,10 @@ def _view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_co
     ``camera`` and ``image`` (Hb, Wb, 3) may be padded to a size bucket (:mod:`patexgs_jax.buckets`);
     ``valid_hw`` ((2,) int, traced) is then the view's own (H, W): the loss is that of the top-left
     H x W block, so views of every size in one bucket share one compiled step."""
+    chex.assert_shape(image, (camera.height, camera.width, 3), custom_message=(
+        "the training image and its camera disagree; each view's image must be (H, W, 3) at its "
+        "camera's size (a loader or a hand-made view gave another size)"))
+    chex.assert_type(image, float, custom_message="training images are floating-point RGB in [0, 1]")
     offset = jnp.zeros((scene.capacity, 2), scene.means.dtype)
     valid = None if valid_hw is None else buckets.valid_mask(image.shape[:2], valid_hw)
 
@@ -658,7 +663,7 @@ class _Run:
 
     def say(self, msg):
         if self.verbose and self.main:
-            print(msg, flush=True)
+            progress.say(msg)
 
     # -- stage transitions -----------------------------------------------------------------------
     def start_textures(self):
@@ -740,6 +745,14 @@ class _Run:
 
     # -- main loop -------------------------------------------------------------------------------
     def run(self):
+        bar = progress.bar(self.cfg.total_steps, f"train {self.cfg.method}", initial=self.step,
+                           show=self.verbose and self.main)
+        try:
+            self._run(bar)
+        finally:
+            bar.close()
+
+    def _run(self, bar):
         cfg = self.cfg
         total = cfg.total_steps
         t_last = time.perf_counter()
@@ -817,6 +830,7 @@ class _Run:
                 self.t_train += time.perf_counter() - t0
                 window.append((float(m["loss"]), float(m["psnr"])))
             self.step += 1
+            bar.update(1)
             self.after_step(step + 1)
             if self.step % cfg.log_every == 0 or self.step == total:
                 now = time.perf_counter()
@@ -828,6 +842,7 @@ class _Run:
                 t_last = now
                 window.clear()
                 self.log(rec)
+                bar.set_postfix(psnr=f"{rec['psnr']:.2f}", gaussians=rec["gaussians"], refresh=False)
                 self.say(f"step {rec['step']:6d}/{total}  loss {rec['loss']:.4f}  psnr {rec['psnr']:6.2f}  "
                          f"gaussians {rec['gaussians']:7d}  texels {rec['texels']:8d}  "
                          f"{rec['ms_per_step']:7.1f} ms/step")
@@ -1144,6 +1159,8 @@ def _train_cli(args) -> int:
             from .data.synthetic import ensure_default_scene
 
             args.data = str(ensure_default_scene())
+        if jax.process_index() == 0:  # the process that writes; before the data is loaded
+            ckpt.check_output_dir(args.out)
         cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                             iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
                             texture_budget_mb=args.texture_budget_mb, seed=args.seed,

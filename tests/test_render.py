@@ -509,6 +509,26 @@ def test_texture_passes_do_not_change_the_result(name):
             np.testing.assert_allclose(a, b, atol=1e-10 * max(scale, 1.0), rtol=0)
 
 
+def test_inputs_off_the_layout_fail_at_trace_time_naming_the_field():
+    """A Scene or Camera edited by hand against the layout fails before any rendering work, with the
+    field, the expected shape or dtype and how to build one; float64 scenes (the references) pass."""
+    sc, cam = scene(3), camera()
+    render_mod.check_inputs(sc, cam)
+    with jax.enable_x64(True):
+        render_mod.check_inputs(sc.astype(jnp.float64), cam)
+    cases = [
+        (sc.replace(means=sc.means[:, :2]), cam, r"Scene\.means must be \(\d+, 3\)"),
+        (sc.replace(quats=sc.quats[:-1]), cam, r"Scene\.quats must be \(\d+, 4\)"),
+        (sc.replace(active=sc.active.astype(jnp.int32)), cam, r"Scene\.active .* floating-point"),
+        (sc.replace(sh=jnp.zeros((sc.capacity, 2, 3))), cam, r"Scene\.sh has 2 coefficients"),
+        (sc, dataclasses.replace(cam, K=cam.K[:2]), r"Camera\.K must be \(3, 3\)"),
+    ]
+    for bad_scene, bad_cam, match in cases:
+        with pytest.raises(AssertionError, match=match) as err:
+            render_jit(bad_scene, bad_cam, config=RenderConfig(), capacity=CAP)
+        assert "Scene.from_arrays" in str(err.value)
+
+
 def test_texture_pairs_is_validated():
     for bad in (0.0, -0.5, 1.5):
         with pytest.raises(ValueError, match="texture_pairs"):

@@ -70,9 +70,7 @@ def test_runtime_dependencies_are_what_the_package_imports():
     assert _third_party_imports("patexgs_jax", skip={"view.py"}) == runtime
     assert _third_party_imports("patexgs_jax") <= runtime | extras["viewer"]
     assert extras["viewer"] <= extras["test"]
-    # convert_lpips_weights is the optional route from the authors' torch model (torch, lpips): its
-    # docstring says so, and nothing else imports it.
-    assert _third_party_imports("experiments", skip={"convert_lpips_weights.py"}) <= runtime | extras["studies"]
+    assert _third_party_imports("experiments") <= runtime | extras["studies"]
     assert _third_party_imports("tests") <= runtime | extras["test"]
     # The tests run the studies, so the test extra holds everything the studies need.
     assert extras["studies"] <= extras["test"]

@@ -15,10 +15,12 @@ import dataclasses
 import importlib
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -83,17 +85,9 @@ def host(tree):
 
 
 def assert_trees_equal(a, b, what: str, atol: float = 1e-6):
-    """Same structure and shapes; values bitwise equal, or else within ``atol`` (reported)."""
-    la, da = jax.tree_util.tree_flatten(host(a))
-    lb, db = jax.tree_util.tree_flatten(host(b))
-    assert da == db, f"{what}: tree structures differ"
-    worst = 0.0
-    for x, y in zip(la, lb):
-        assert x.shape == y.shape and x.dtype == y.dtype, f"{what}: {x.shape} {x.dtype} vs {y.shape} {y.dtype}"
-        if not np.array_equal(x, y, equal_nan=True):
-            worst = max(worst, float(np.max(np.abs(x.astype(np.float64) - y.astype(np.float64)))))
-    assert worst <= atol, f"{what}: max abs difference {worst:.3g} > {atol}"
-    return worst
+    """Same structure, shapes and dtypes; values within ``atol`` (NaNs equal)."""
+    chex.assert_trees_all_equal_shapes_and_dtypes(a, b, custom_message=what)
+    chex.assert_trees_all_close(a, b, rtol=0, atol=atol, custom_message=what)
 
 
 def all_finite(tree) -> bool:
@@ -249,7 +243,7 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     result = T.train(dataset, cfg, out, resume=True, verbose=False)
     assert result.summary["steps"] == 54
     # CPU XLA runs the same executables on the same inputs: expect bitwise equality.
-    assert assert_trees_equal(result.scene, run_p["result"].scene, "scene") == 0.0
+    chex.assert_trees_all_equal(result.scene, run_p["result"].scene, custom_message="scene")  # bitwise
     final, _ = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
     for key in ("opt_state", "stats", "tex_sizes", "tex_counters", "capacity"):
         assert_trees_equal(final[key], run_p["final"][key], key)
@@ -304,6 +298,19 @@ def test_steady_state_has_one_trace(dataset):
     assert sum(T.STEP_TRACES.values()) - traces == 1
 
 
+def test_progress_bar_when_forced(dataset, capfd, monkeypatch):
+    """PATEXGS_PROGRESS=1 draws the step bar (method, count, ETA) on stderr, progress lines intact."""
+    from patexgs_jax import progress
+
+    monkeypatch.setenv(progress.ENV_VAR, "1")
+    cfg = tiny_config(method="2dgs", iters_2dgs=8, densify=NO_DENSIFY, checkpoint_every=4, log_every=4)
+    T.train(dataset, cfg, None, verbose=True)
+    out, err = capfd.readouterr()
+    assert re.search(r"train 2dgs: +\d+%\|.*\| [0-8]/8 \[\d\d:\d\d<", err), err
+    assert [line.split()[:2] for line in out.splitlines() if line.startswith("step ")] == [["step", "4/8"],
+                                                                                           ["step", "8/8"]]
+
+
 # ------------------------------------------------------------------------------------------------
 # 5. Non-finite steps
 # ------------------------------------------------------------------------------------------------
@@ -325,7 +332,8 @@ def test_bad_views_are_skipped(dataset, tmp_path, capsys):
     ds = dataclasses.replace(dataset, train_views=tuple(views))
     cfg = tiny_config(method="2dgs", iters_2dgs=8, densify=NO_DENSIFY, checkpoint_every=4, log_every=4)
     result = T.train(ds, cfg, tmp_path / "out", verbose=True)
-    said = capsys.readouterr().out
+    said, err = capsys.readouterr()
+    assert "train 2dgs" not in err  # no progress bar: stderr is not a terminal
     for step, name in ((2, "nan-pixels"), (4, "empty"), (6, "nan-pose")):
         assert f"[step {step}] view {name!r}" in said and "update skipped" in said
     s = result.summary
@@ -407,7 +415,7 @@ def test_cli(scene_dir, tmp_path, compile_cache):
     not_dir = tmp_path / "a_file"
     not_dir.write_text("")
     blocked = run_cli("--data", scene_dir, "--method", "2dgs", "--out", not_dir, "--iters-2dgs", 30, cache=cache)
-    assert blocked.returncode == 2 and "error: cannot create checkpoint directory" in blocked.stderr
+    assert blocked.returncode == 2 and "error: cannot write to --out" in blocked.stderr
     assert "Traceback" not in blocked.stderr
     resumed = run_cli("--data", scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, "--resume",
                       cache=cache)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -90,8 +91,7 @@ def test_prune_to_zero_keeps_optimizer_finite():
     before = jax.tree_util.tree_map(np.asarray, scene)
     scene, state = steps(opt, scene, state, zero_grads, 8)
     assert_finite_state(scene, state, "steps on an empty scene")
-    for a, b in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(scene)):
-        np.testing.assert_array_equal(np.asarray(b), a)
+    chex.assert_trees_all_equal(scene, before)
     assert int(state[0].count) == int(state[1].count) == 11
     # Pruning an already empty scene again is a no-op, and the statistics stay consistent.
     scene2, state2, stats2, n = prune_gaussians(scene, state, stats, np.ones(8, bool))

@@ -136,7 +136,8 @@ def detect_format(path) -> str:
     """
     p = Path(path)
     if not p.exists():
-        raise DatasetError(f"Dataset path {p} does not exist.")
+        raise DatasetError(f"Dataset path {p} does not exist: pass a scene folder (COLMAP sparse/0, "
+                           "transforms.json or poses_bounds.npy).")
     if p.is_file():
         if p.suffix == ".json":
             return "nerf"

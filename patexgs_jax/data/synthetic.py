@@ -830,7 +830,9 @@ def main(argv=None) -> int:
     try:
         path = generate(a.out_dir, seed=a.seed, num_views=a.num_views, width=a.width, height=a.height,
                         supersample=a.supersample, num_points=a.num_points, overwrite=a.overwrite, verbose=True)
-    except (FileExistsError, ValueError) as e:
+    except (OSError, ValueError) as e:
+        if isinstance(e, OSError) and e.errno is not None:  # the system's: a path through a file, a full disk
+            e = f"cannot write {a.out_dir} ({e.strerror}: {e.filename}): pass OUT_DIR a folder you can write to."
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(path)

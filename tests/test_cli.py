@@ -1,0 +1,94 @@
+"""Every command line meets bad input with one ``error:`` line that names the problem and the fix,
+a non-zero exit and no traceback, before any scene is made or any code compiled: a missing scene
+folder, an unknown method (or knob), an output folder that cannot be written, and a folder of photos
+without camera poses (pointed to ``python -m patexgs_jax.prepare``)."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+from experiments import mipnerf360, tradeoffs
+from patexgs_jax import prepare, view
+
+train = importlib.import_module("patexgs_jax.train")  # the package's attribute `train` is the function
+
+
+@pytest.fixture
+def bad(tmp_path):
+    """Paths for each kind of bad input: a missing folder, a file where a folder is needed, and
+    photos without poses (as a scene folder's images/ and as a bare folder)."""
+    photos = tmp_path / "capture" / "images"
+    photos.mkdir(parents=True)
+    for i in range(prepare.MIN_IMAGES):
+        (photos / f"{i:04d}.jpg").write_bytes(b"")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    return dict(missing=str(tmp_path / "nope"), unwritable=str(blocker / "out"), scene=str(photos.parent),
+                photos=str(photos), out=str(tmp_path / "out"))
+
+
+def _one_error_line(capsys, code, *needles):
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert code != 0 and "Traceback" not in err, err
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+def _cases(bad):
+    return [
+        (["--data", bad["missing"], "--out", bad["out"]], ("does not exist", "pass a scene folder")),
+        (["--data", bad["missing"], "--out", bad["unwritable"]], ("cannot write to --out", "Not a directory",
+                                                                   "pass --out a folder you can write to")),
+        (["--data", bad["scene"], "--out", bad["out"]], ("no camera poses", "python -m patexgs_jax.prepare")),
+        (["--data", bad["photos"], "--out", bad["out"]], ("no camera poses", "python -m patexgs_jax.prepare")),
+    ]
+
+
+def test_train_cli_bad_input(bad, capsys):
+    for argv, needles in _cases(bad):
+        _one_error_line(capsys, train.main(argv), *needles)
+    code = train.main(["--data", bad["missing"], "--out", bad["out"], "--method", "nerf"])
+    _one_error_line(capsys, code, "unknown method 'nerf'", "choose one of", "patexgs")
+
+
+def test_mipnerf360_cli_bad_input(bad, capsys):
+    for argv, needles in _cases(bad):
+        _one_error_line(capsys, mipnerf360.main(argv + ["--no-compile-cache"]), *needles)
+    code = mipnerf360.main(["--methods", "patexgs,nerf", "--out", bad["out"], "--no-compile-cache"])
+    _one_error_line(capsys, code, "unknown method 'nerf'", "choose one of")
+
+
+def test_tradeoffs_cli_bad_input(bad, capsys):
+    for argv, needles in _cases(bad):
+        _one_error_line(capsys, tradeoffs.main(argv), *needles)
+    code = tradeoffs.main(["--data", bad["missing"], "--knobs", "mip,colour"])
+    _one_error_line(capsys, code, "unknown knob(s) colour", "choose from mip")
+    code = tradeoffs.main(["--data", bad["missing"], "--effects", "--run", bad["missing"]])
+    _one_error_line(capsys, code, "--run", "python -m patexgs_jax.train --out")
+
+
+def test_prepare_cli_bad_input(bad, capsys):
+    code = prepare.main([bad["missing"], bad["out"], "--quiet"])
+    _one_error_line(capsys, code, "does not exist", "pass the folder that holds your photos")
+    code = prepare.main([bad["photos"], bad["unwritable"], "--quiet"])
+    _one_error_line(capsys, code, "cannot write to OUT_DIR", "pass OUT_DIR a folder you can write to")
+
+
+def test_view_cli_bad_input(bad, capsys):
+    _one_error_line(capsys, view.main([bad["missing"]]), "does not exist", "pass a run folder")
+    _one_error_line(capsys, view.main([bad["scene"]]), "no trained run", "pass a run folder")
+
+
+def test_synthetic_and_zoom_ab_cli_bad_input(bad, capsys):
+    from experiments import zoom_ab
+    from patexgs_jax.data import synthetic
+
+    code = synthetic.main([bad["unwritable"]])
+    _one_error_line(capsys, code, "cannot write", "pass OUT_DIR a folder you can write to")
+    code = zoom_ab.main(["--study", bad["missing"]])
+    _one_error_line(capsys, code, "no results.json in --study", "python -m experiments.mipnerf360 --out")
