@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import types
 
 import numpy as np
@@ -88,13 +89,17 @@ def test_training_stops_before_the_first_step_and_the_cli_says_why(tmp_path, not
 
 
 @pytest.mark.slow
-def test_large_training_step_stays_under_its_peak():
+def test_large_training_step_stays_under_its_peak(monkeypatch):
     """A 3000x2000 (6 MP) training step (compiled and run) through the real training loop in a fresh
     process: its peak resident memory (ru_maxrss) stays under 2.5 GiB (measured 2.0 GiB; with the
     whole-image SSIM it grew by 1.4 GiB per megapixel, 6.5 GiB at 4 MP), and the estimate the
-    pre-flight check uses is not below the measurement."""
+    pre-flight check uses is not below the measurement. The process compiles at XLA's default
+    optimisation level, not the suite's level 0 (tests/conftest.py): the memory users get, and
+    this step's run time dominates its compile."""
     from experiments import bench_train
 
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if "xla_backend_optimization_level" not in f]
+    monkeypatch.setenv("XLA_FLAGS", " ".join(flags + ["--xla_backend_optimization_level=3"]))
     r = bench_train.run_memory_case("2dgs", 300, 3000, 2000, steps=0)
     assert "error" not in r, r
     assert r["peak_rss_mib"] < 2560, r

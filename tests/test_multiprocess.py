@@ -50,7 +50,10 @@ def _free_port() -> int:
 
 
 def _env(cache: Path) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device per process
+    env = dict(os.environ)
+    # One CPU device per process: no forced device count (the suite's other XLA flags stay).
+    env["XLA_FLAGS"] = " ".join(f for f in env.get("XLA_FLAGS", "").split()
+                                if not f.startswith("--xla_force_host_platform_device_count"))
     # The repository first on the path: the processes import this checkout wherever the package is installed.
     path = os.pathsep.join(p for p in (str(REPO), env.get("PYTHONPATH", "")) if p)
     env.update(JAX_PLATFORMS="cpu", PYTHONPATH=path, JAX_COMPILATION_CACHE_DIR=str(cache), PYTHONUNBUFFERED="1")

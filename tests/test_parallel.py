@@ -220,8 +220,8 @@ _RESULT = None
 def _results() -> dict:
     global _RESULT
     if _RESULT is None:
-        env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={DEVICES}",
-                   JAX_PLATFORMS="cpu")
+        flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={DEVICES}".strip()
+        env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         proc = subprocess.run([sys.executable, os.path.abspath(__file__)], env=env, cwd=root,
                               capture_output=True, text=True, timeout=600)
