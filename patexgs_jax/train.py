@@ -216,8 +216,8 @@ class TrainConfig:
 
 
 #: The ``cpu`` preset (see :data:`PRESETS`).
-CPU_PRESET = dict(iters_2dgs=1_000, iters_tex=500, warmup_tex=50, growth_interval=30, growth_stop=0.8,
-                  normal_from=500, sh_interval=250, log_every=50, checkpoint_every=250, max_gaussians=8_000,
+CPU_PRESET = dict(iters_2dgs=1_000, iters_tex=400, warmup_tex=40, growth_interval=25, growth_stop=0.8,
+                  normal_from=500, sh_interval=250, log_every=50, checkpoint_every=250, max_gaussians=6_000,
                   densify=dens.DensifyConfig(start=100, stop=700, interval=50, opacity_reset_interval=10_000))
 
 #: Named schedules. ``tiny``: minutes on a 2-core CPU (the embedded-scene default); ``small``: a
@@ -231,7 +231,7 @@ PRESETS = {
                  densify=dens.DensifyConfig(start=100, stop=450, interval=50, opacity_reset_interval=10_000)),
     # cpu: real captures downsampled to about 200-400 px (beer at --factor 4: 175 x 312) on a 2-core
     # CPU in at most about 30 minutes a method, sized from measured step times (docs/tradeoffs.md):
-    # 8,000 Gaussians, 1,000 + 500 steps, 11 growth events.
+    # 6,000 Gaussians, 1,000 + 400 steps, 11 growth events.
     "cpu": CPU_PRESET,
     "small": dict(iters_2dgs=7_000, iters_tex=5_000, warmup_tex=500, growth_interval=100, normal_from=3_500,
                   sh_interval=1_000, densify=dens.DensifyConfig(start=500, stop=3_500, interval=100,
