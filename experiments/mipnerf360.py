@@ -59,20 +59,20 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
          "max_gaussians", "steps", "eval_seconds", "sides_allocated", "sides_final", "sigma",
          "growth_events"}}}}
 
-Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground
-truth (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same
-model's full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
+Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground truth
+(box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same model's
+full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
 ``sides_allocated`` / ``sides_final`` are the runs' texture-side histograms (``{side: Gaussians}``)
 after the allocation and at the end, ``sigma`` the Eq. 7 sigma (null for fixed sizes) and
-``growth_events`` the Eqs. 8-10 events (summary.json's; absent from older files); ``plots/texture_sides.png``
-draws them. ``--methods table4`` runs the rows of the paper's Table 4 like with like:
-``patexgs``, ``patexgs-fixed-4/8/16/32`` and ``patexgs-matched`` (the fixed size whose storage is
-closest to the ``patexgs`` run's). ``lpips`` is null where unavailable (no weights, or images under 31 pixels for AlexNet, 16 for
-VGG16), and the top-level ``"lpips"`` names the network that computed it (null: not computed;
-files written before it was recorded lack it; a study resumed with another ``--lpips-net`` is
-refused); ``train_seconds`` is the wall-clock time of the training steps of both stages (stage 1
-counted for every method; compilation included); ``render_ms`` the median time of one
-full-resolution test render after compilation.
+``growth_events`` the Eqs. 8-10 events (summary.json's; absent from older files);
+``plots/texture_sides.png`` draws them. ``--methods table4`` runs the rows of the paper's Table 4
+like with like: ``patexgs``, ``patexgs-fixed-4/8/16/32`` and ``patexgs-matched`` (the fixed size
+whose storage is closest to the ``patexgs`` run's). ``lpips`` is null where unavailable (no weights,
+or images under 31 pixels for AlexNet, 16 for VGG16), and the top-level ``"lpips"`` names the
+network that computed it (null: not computed; files written before it was recorded lack it; a study
+resumed with another ``--lpips-net`` is refused); ``train_seconds`` is the wall-clock time of the
+training steps of both stages (stage 1 counted for every method; compilation included);
+``render_ms`` the median time of one full-resolution test render after compilation.
 """
 
 from __future__ import annotations

@@ -25,7 +25,8 @@ Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as
 ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
 ``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
 the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: ``patexgs`` with N x N
-textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly),
+textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
+Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly),
 ``patexgs-literal`` (the paper's Eqs. 11-13 read literally: the 2DGS screen-space low-pass and
 lambda_mip 0.4). The ``patexgs`` family, but ``patexgs-literal``, renders its texture stage, and
 is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``); stage 1 is
@@ -739,7 +740,8 @@ class _Run:
                                texels=int(np.sum(sides[act] ** 2)), budget_texels=budget,
                                sides=_side_histogram(sides, act))
         self.log(dict(event="allocation", **self.allocation))
-        how = f"{self.spec['size']}x{self.spec['size']} for every Gaussian" if sigma is None else f"Eq. 7, sigma {sigma:.4g}"
+        n = self.spec["size"]
+        how = f"{n}x{n} for every Gaussian" if sigma is None else f"Eq. 7, sigma {sigma:.4g}"
         self.say(f"[stage 2] allocation ({how}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
                  f"{int(np.sum(sides[act] ** 2))} RGBA texels")
         self.stats = dens.DensifyStats.zeros(self.scene.capacity)
@@ -928,8 +930,8 @@ def growth_steps(cfg: TrainConfig) -> list[int]:
 #: Fields that only matter after the 2DGS stage: runs that agree on every other field have the same
 #: stage 1, which :func:`train` can take from another run's end-of-stage-1 checkpoint.
 STAGE2_FIELDS = frozenset({"method", "iters_tex", "continue_2dgs", "warmup_tex", "growth_interval", "growth_stop", "tau_preset",
-                           "sigma", "texture_budget_mb", "budget_eq7_share", "max_texture_size", "lambda_mip", "checkpoint_every",
-                           "log_every", "max_bad_steps"})
+                           "sigma", "texture_budget_mb", "budget_eq7_share", "max_texture_size", "lambda_mip",
+                           "checkpoint_every", "log_every", "max_bad_steps"})
 
 
 #: Fields that change how a run executes, not what it computes: a run may resume (or take its stage 1

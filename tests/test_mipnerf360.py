@@ -189,7 +189,8 @@ def test_tables_follow_the_paper_layouts():
     t4 = md.split("## Table 4")[1].split("##")[0]
     # Full, 1/4 and 1/8 (a's values: entry 4 is textured-fixed-8 at 24 dB), and the storage
     assert "| Full PSNR | SSIM | LPIPS | 1/4 PSNR | SSIM | LPIPS | 1/8 PSNR | SSIM | LPIPS | storage MB |" in t4
-    assert "| 8 x 8 (Textured Gaussians: no mip, low-pass) | - | 24.00 | 0.800 | 0.200 | 26.00 | 0.900 | 0.100 | 27.00 |" in t4
+    row = "| 8 x 8 (Textured Gaussians: no mip, low-pass) | - | 24.00 | 0.800 | 0.200 | 26.00 | 0.900 | 0.100 | 27.00 |"
+    assert row in t4
     assert "1.50 |" in t4
     # an LPIPS missing at one scale shows as "-", not as a number
     t2 = md.split("## Table 2")[1].split("##")[0]
@@ -202,9 +203,9 @@ def test_tables_follow_the_paper_layouts():
 def test_table4_rows_and_the_side_distribution(tmp_path):
     """The like-with-like rows (patexgs-fixed-N, the storage-matched row) and the side plot drawn from
     the entries' Eq. 7 and final side histograms."""
-    e = lambda p, method, texels, **kw: {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "4": dict(psnr=p, ssim=0.8, lpips=0.2),  # noqa: E731
-                                         "8": dict(psnr=p, ssim=0.8, lpips=0.2), "storage_mb": 1.0,
-                                         "train_seconds": 1.0, "render_ms": 1.0, "num_gaussians": 100, "texels": texels, "method": method, **kw}
+    def e(p, method, texels, **kw):
+        return {**{s: dict(psnr=p, ssim=0.8, lpips=0.2) for s in "148"}, "storage_mb": 1.0, "train_seconds": 1.0,
+                "render_ms": 1.0, "num_gaussians": 100, "texels": texels, "method": method, **kw}
     adaptive = e(21.0, "patexgs", 2 * 1090, sides_allocated={"1": 80, "8": 20}, sides_final={"1": 70, "2": 10, "8": 20},
                  sigma=33.0, growth_events=[dict(step=1, grown=10, texels_added=30, texels=1310)])
     data = {"config": {"preset": "tiny"}, "results": {"a": {"patexgs": adaptive}}}
