@@ -1,7 +1,7 @@
 """The paper's protocol end to end: train, evaluate at zoom-out scales, tabulate, plot.
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
-        [--preset tiny|small|paper] [--factor F] [--out DIR] [--budget 10%|1%|N] [--renders K]
+        [--preset tiny|cpu|small|paper] [--factor F] [--out DIR] [--budget 10%|1%|N] [--renders K]
         [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
         [--coordinator HOST:PORT --num-processes N --process-id I]
 
@@ -56,17 +56,23 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
      "results": {scene: {label: {
          "1": {"psnr", "ssim", "lpips", "alias_psnr", "views"}, "2": {...}, "4": {...}, "8": {...},
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
-         "max_gaussians", "steps", "eval_seconds"}}}}
+         "max_gaussians", "steps", "eval_seconds", "sides_allocated", "sides_final", "sigma",
+         "growth_events"}}}}
 
-Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground
-truth (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same
-model's full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
-``lpips`` is null where unavailable (no weights, or images under 31 pixels for AlexNet, 16 for
-VGG16), and the top-level ``"lpips"`` names the network that computed it (null: not computed;
-files written before it was recorded lack it; a study resumed with another ``--lpips-net`` is
-refused); ``train_seconds`` is the wall-clock time of the training steps of both stages (stage 1
-counted for every method; compilation included); ``render_ms`` the median time of one
-full-resolution test render after compilation.
+Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground truth
+(box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same model's
+full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
+``sides_allocated`` / ``sides_final`` are the runs' texture-side histograms (``{side: Gaussians}``)
+after the allocation and at the end, ``sigma`` the Eq. 7 sigma (null for fixed sizes) and
+``growth_events`` the Eqs. 8-10 events (summary.json's; absent from older files);
+``plots/texture_sides.png`` draws them. ``--methods table4`` runs the rows of the paper's Table 4
+like with like: ``patexgs``, ``patexgs-fixed-4/8/16/32`` and ``patexgs-matched`` (the fixed size
+whose storage is closest to the ``patexgs`` run's). ``lpips`` is null where unavailable (no weights,
+or images under 31 pixels for AlexNet, 16 for VGG16), and the top-level ``"lpips"`` names the
+network that computed it (null: not computed; files written before it was recorded lack it; a study
+resumed with another ``--lpips-net`` is refused); ``train_seconds`` is the wall-clock time of the
+training steps of both stages (stage 1 counted for every method; compilation included);
+``render_ms`` the median time of one full-resolution test render after compilation.
 """
 
 from __future__ import annotations
@@ -89,6 +95,13 @@ RESULTS_SCHEMA = 2
 SCALES = (1, 2, 4, 8)
 EMBEDDED_METHODS = ("2dgs", "patexgs")
 DEFAULT_METHODS = ("2dgs", "textured-fixed-8", "patexgs")
+#: The fixed-size row whose storage matches the adaptive run's ("similar parameters" in the paper's
+#: Table 4): ``patexgs-fixed-N`` with N the side whose N * N texels per Gaussian are closest to the
+#: ``patexgs`` run's mean (trained after it).
+MATCHED = "patexgs-matched"
+#: ``--methods table4``: the rows of the paper's Table 4, like with like (every row is ``patexgs``
+#: with mipmaps; only the texture sizes differ).
+TABLE4_METHODS = ("patexgs", "patexgs-fixed-4", "patexgs-fixed-8", "patexgs-fixed-16", "patexgs-fixed-32", MATCHED)
 #: The paper's nine Mip-NeRF 360 scenes (the order of its per-scene tables).
 MIPNERF360_SCENES = ("bicycle", "flowers", "garden", "stump", "treehill", "room", "counter", "kitchen", "bonsai")
 
@@ -373,6 +386,9 @@ class Study:
         s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True)
         for method in todo:
             key = label(method, self.cfg.budget)
+            if method == MATCHED:
+                method = self.matched_method(name)
+                self.say(f"[{name}] {key}: {method} (storage matched to {label('patexgs', self.cfg.budget)})")
             cfg = self._train_config(method, max_g)
             if method == "2dgs":
                 result = s1
@@ -393,6 +409,15 @@ class Study:
                      f"1/2, 1/4, 1/8 (alias PSNR {' / '.join(_fmt(entry[str(s)]['alias_psnr'], 2) for s in SCALES[1:])}); SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
                      f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
                      f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
+
+    def matched_method(self, scene: str) -> str:
+        """``patexgs-fixed-N`` with N * N closest to the ``patexgs`` run's RGBA texels per Gaussian."""
+        ref = self.data["results"].get(scene, {}).get(label("patexgs", self.cfg.budget))
+        if ref is None:
+            raise StudyError(f"{MATCHED} matches the storage of the patexgs run: list patexgs before it in --methods.")
+        per = ref["texels"] / 2 / max(ref["num_gaussians"], 1)  # texels counts the RGB and the alpha texels
+        n = min(range(1, 33), key=lambda k: abs(k * k - per))
+        return f"patexgs-fixed-{n}"
 
     def _train_config(self, method: str, max_gaussians: int | None = None):
         return dataclasses.replace(self.cfg.train_config(method, max_gaussians), devices=self.devices)
@@ -425,10 +450,13 @@ class Study:
             write_comparison(self.out / "renders" / scene, [k for k in self.data["results"].get(scene, {})] + [key])
         s = result.summary
         entry = {k: v for k, v in ev.items()}
+        alloc = s.get("allocation") or {}
         entry.update(method=cfg.method, storage_mb=s["storage_mb"], num_gaussians=s["num_gaussians"],
                      texels=s["texels"], train_seconds=s["train_seconds"], steps=s["steps"],
                      max_gaussians=cfg.max_gaussians, render_ms=ms,
-                     eval_seconds=time.perf_counter() - t)
+                     eval_seconds=time.perf_counter() - t, sides_allocated=alloc.get("sides"),
+                     sigma=alloc.get("sigma"), sides_final=s.get("sides_final"),
+                     growth_events=s.get("growth_events"))
         return entry
 
 
@@ -466,9 +494,12 @@ def _row_name(key: str, names: dict) -> str:
 
 _TABLE3 = {"patexgs": "Full", "patexgs-no-mip": "w/o mip.", "patexgs-no-alpha-mip": "w/o alpha mip.",
            "patexgs-no-rgb-mip": "w/o RGB mip."}
-_TABLE4 = {"patexgs": "Full", "patexgs-no-adaptive": "8 x 8 + mip (no adaptive)", "textured-fixed-1": "1 x 1",
-           "textured-fixed-2": "2 x 2", "textured-fixed-4": "4 x 4", "textured-fixed-8": "8 x 8",
-           "textured-fixed-16": "16 x 16", "textured-fixed-32": "32 x 32"}
+_TABLE4 = {"patexgs": "Full (adaptive)", "patexgs-no-adaptive": "8 x 8 + mip (no adaptive)",
+           MATCHED: "similar storage",
+           **{f"patexgs-fixed-{n}": f"{n} x {n} + mip" for n in range(1, 33)},
+           **{f"textured-fixed-{n}": f"{n} x {n} (Textured Gaussians: no mip, low-pass)" for n in (1, 2, 4, 8, 16, 32)}}
+#: Zoom-out scales of the Table 4 layout (the paper's full resolution, and two zoomed-out ones).
+TABLE4_SCALES = (1, 4, 8)
 
 
 def _lpips_note(record: dict | None) -> str:
@@ -538,13 +569,18 @@ def tables_markdown(data: dict) -> str:
         out += scale_table("## Table 3: mipmap ablation", t3)
     t4 = [(k, _row_name(k, _TABLE4)) for k in labels if k.partition("(")[0] in _TABLE4]
     if len(t4) >= 2:
+        head = " | ".join(f"{'Full' if sc == 1 else f'1/{sc}'} PSNR | SSIM | LPIPS" for sc in TABLE4_SCALES)
         out += ["## Table 4: adaptive texture allocation", "",
-                "| method | PSNR | SSIM | LPIPS | storage MB |", "| --- | ---: | ---: | ---: | ---: |"]
+                f"| method | sides | {head} | storage MB |", "| --- | --- |" + " ---: |" * (3 * len(TABLE4_SCALES) + 1)]
         for key, name in t4:
-            out.append(f"| {name} | {_fmt(metric(key, 1, 'psnr'), 2)} | {_fmt(metric(key, 1, 'ssim'), 3)} | "
-                       f"{_fmt(metric(key, 1, 'lpips'), 3)} | "
-                       f"{_fmt(_mean_over_scenes(results, key, lambda e: e['storage_mb']), 2)} |")
-        out.append("")
+            methods = {per[key].get("method") for per in results.values() if key in per}
+            cells = [_fmt(metric(key, sc, m), 2 if m == "psnr" else 3) for sc in TABLE4_SCALES
+                     for m in ("psnr", "ssim", "lpips")]
+            out.append(f"| {name} | {', '.join(sorted(m for m in methods if m)) or '-'} | " + " | ".join(cells) +
+                       f" | {_fmt(_mean_over_scenes(results, key, lambda e: e['storage_mb']), 2)} |")
+        out += ["", "Rows named `+ mip` and the adaptive row differ only in their texture sizes (same warm-up, "
+                "mipmaps and prefiltered coverage); the Textured Gaussians rows render without mipmaps, with the "
+                "2DGS low-pass.", ""]
     out += ["## Cost: what the accuracy costs", "",
             "| method | PSNR | Gaussians | texels | storage MB | steps | train s | render ms |",
             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -612,7 +648,45 @@ def write_plots(data: dict, directory) -> list[Path]:
     paths.append(directory / "accuracy_vs_time.png")
     fig.savefig(paths[-1], dpi=120)
     plt.close(fig)
-    return paths
+    side_path = plot_sides(data, directory / "texture_sides.png")
+    return paths + ([side_path] if side_path else [])
+
+
+def plot_sides(data: dict, path) -> Path | None:
+    """The texture-side distribution of each adaptive run (one panel per scene and run): Gaussians per
+    side after the Eq. 7 allocation and at the end (after Eqs. 8-10), and the share of the texels at
+    each side; from the entries' ``sides_allocated`` / ``sides_final`` (summary.json). None if no
+    entry has them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [(scene, key, e) for scene, per in data.get("results", {}).items() for key, e in per.items()
+              if e.get("sides_allocated") and e.get("sides_final") and e.get("sigma") is not None]
+    if not panels:
+        return None
+    fig, axes = plt.subplots(2, len(panels), figsize=(5 * len(panels), 6), squeeze=False)
+    for col, (scene, key, e) in enumerate(panels):
+        for hist, name, dx in ((e["sides_allocated"], "after Eq. 7", -0.2), (e["sides_final"], "at the end", 0.2)):
+            sides = np.array(sorted(int(k) for k in hist))
+            counts = np.array([hist[str(k)] for k in sides], float)
+            axes[0, col].bar(sides + dx, counts, width=0.4, label=name)
+            axes[1, col].bar(sides + dx, counts * sides**2 / np.sum(counts * sides**2), width=0.4, label=name)
+        events = e.get("growth_events") or []
+        axes[0, col].set_title(f"{scene} {key}: sigma {e['sigma']:.3g}, {len(events)} growth events", fontsize=9)
+        axes[0, col].set_yscale("log")
+        axes[0, col].set_ylabel("Gaussians")
+        axes[1, col].set_ylabel("share of the texels")
+        axes[1, col].set_xlabel("texture side")
+        for ax in axes[:, col]:
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 # ------------------------------------------------------------------------------------------------
@@ -653,8 +727,13 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     from patexgs_jax.train import method_spec
 
     methods = list(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
-    for m in methods:
-        method_spec(m)  # unknown names fail before any work
+    if methods == ["table4"]:
+        methods = list(TABLE4_METHODS)
+    for m in methods:  # unknown names fail before any work (before the embedded scene is made)
+        if m != MATCHED:
+            method_spec(m)
+    if MATCHED in methods and ("patexgs" not in methods or methods.index("patexgs") > methods.index(MATCHED)):
+        raise StudyError(f"{MATCHED} matches the storage of the patexgs run: list patexgs before it in --methods.")
     if data is None:
         from patexgs_jax.data.synthetic import ensure_default_scene
 
@@ -691,7 +770,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default=None, help="comma-separated scene names under --data")
     ap.add_argument("--methods", default=None, help="comma-separated methods (default: 2dgs,patexgs on the embedded "
                     f"scene, {','.join(DEFAULT_METHODS)} with --data)")
-    ap.add_argument("--preset", default=None, choices=["tiny", "small", "paper"],
+    ap.add_argument("--preset", default=None, choices=["tiny", "cpu", "small", "paper"],
                     help="iteration schedule (default: tiny without --data, paper with it)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor; "
                     "other scenes: images wider than 1600 px resized to 1600 wide; 1: full size)")

@@ -61,6 +61,7 @@ __all__ = [
     "add_textures",
     "contribution_sizes",
     "default_sigma",
+    "pixel_share_sigma",
     "grow_sizes",
     "initial_texture_sizes",
     "mb_to_texels",
@@ -436,10 +437,39 @@ def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb
 # Eq. 7: initial sizes from contribution counts
 # =============================================================================================
 def default_sigma(height: int, width: int) -> float:
-    """The default Eq. 7 sigma, ``H * W / 1e4`` for training images of H x W pixels."""
+    """The paper's Eq. 7 sigma, ``H * W / 1e4`` for training images of H x W pixels.
+
+    It was set for Mip-NeRF 360 captures (about 200 views of about 1 MP) trained to about a million
+    Gaussians; :func:`pixel_share_sigma` keeps its meaning at other scales (training uses that).
+    """
     if height <= 0 or width <= 0:
         raise ValueError(f"image size must be positive, got {height} x {width}.")
     return float(height) * float(width) / 1e4
+
+
+#: Pixel-views per Gaussian at which Eq. 7 counts one unit of side, as a share of the fair share
+#: ``total_pixels / num_gaussians`` (see :func:`pixel_share_sigma`).
+SIGMA_PIXEL_SHARE = 0.5
+
+
+def pixel_share_sigma(total_pixels: float, num_gaussians: int, share: float = SIGMA_PIXEL_SHARE) -> float:
+    """Eq. 7 sigma from the scene's size: ``share * total_pixels / num_gaussians``.
+
+    ``total_pixels`` is the sum of H * W over the training views and ``num_gaussians`` the active
+    Gaussians, so ``total_pixels / num_gaussians`` is a Gaussian's fair share of the pixel-views
+    (what it would dominate if every Gaussian dominated as much). Eq. 7 sums ``log2(1 + S_ij /
+    sigma)`` over views: more views and more pixels a view raise every T_i, more Gaussians lower
+    each one's S_ij. Where ``S_ij << sigma``, ``T_i ~ sum_j S_ij / (sigma ln 2) = 2 f / ln 2`` for a
+    Gaussian that dominates f times its fair share in all: the same T at any scale (where S_ij is
+    near sigma or above, the log makes T grow more slowly). With ``share = 0.5`` it equals the paper's
+    ``H * W / 1e4`` at the paper's scale (200 views of H * W pixels and 10^6 Gaussians:
+    ``0.5 * 200 H W / 10^6``); on a 128 x 96 scene of 21 views and 3,900 Gaussians the paper's value
+    (1.2) would give 43% of the Gaussians side >= 8 and 99% of the texels to them (docs/tradeoffs.md).
+    """
+    if not total_pixels > 0 or num_gaussians < 1 or not share > 0:
+        raise ValueError(f"need total_pixels > 0, num_gaussians >= 1 and share > 0, got {total_pixels}, "
+                         f"{num_gaussians} and {share}.")
+    return float(share) * float(total_pixels) / float(num_gaussians)
 
 
 def _check_counts(contrib_counts, active=None):

@@ -24,7 +24,9 @@ Stages
 Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as Textured Gaussians),
 ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
 ``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
-the mipmaps without the adaptive allocation), ``patexgs-trilinear`` (mip levels blended trilinearly),
+the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: ``patexgs`` with N x N
+textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
+Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly),
 ``patexgs-literal`` (the paper's Eqs. 11-13 read literally: the 2DGS screen-space low-pass and
 lambda_mip 0.4). The ``patexgs`` family, but ``patexgs-literal``, renders its texture stage, and
 is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``); stage 1 is
@@ -111,9 +113,14 @@ class TrainConfig:
       growth_interval: steps between Eq. 8-10 growth events.
       growth_stop: fraction of stage 2 after which textures stop growing (t_final).
       tau_preset: Eq. 9's initial threshold (NDC gradient units, as densification).
-      sigma: Eq. 7's sigma; None: H * W / 1e4 of the training images (the paper's default).
-      texture_budget_mb: optional texel budget (MiB of RGBA texels): sigma is solved so the initial
-        allocation meets it, and growth is capped at it.
+      sigma: Eq. 7's sigma; None: :func:`patexgs_jax.schedule.pixel_share_sigma` of the training views
+        and the Gaussians at the allocation (the paper's H * W / 1e4 at the paper's scale, the same
+        meaning at other scales).
+      texture_budget_mb: optional texel budget (MiB of RGBA texels): sigma is solved so that the Eq. 7
+        allocation spends ``budget_eq7_share`` of it, and growth (Eqs. 8-10) may spend the rest; the
+        total never exceeds it.
+      budget_eq7_share: the share of ``texture_budget_mb`` the Eq. 7 allocation spends (at least one
+        texel per Gaussian); growth is left the rest.
       max_texture_size: largest texture side.
       lambda_dssim, lambda_normal, lambda_dist: loss weights; ``normal_from`` the first step of
         the normal-consistency term.
@@ -147,6 +154,7 @@ class TrainConfig:
     tau_preset: float = 1e-5
     sigma: float | None = None
     texture_budget_mb: float | None = None
+    budget_eq7_share: float = 0.8
     max_texture_size: int = 32
     lambda_dssim: float = 0.2
     lambda_normal: float = 0.05
@@ -179,6 +187,9 @@ class TrainConfig:
         if self.continue_2dgs < 0 or (self.continue_2dgs and self.method != "2dgs"):
             raise ValueError(f"continue_2dgs (steps that continue the 2DGS stage) must be >= 0 and is for method "
                              f"'2dgs' only, got {self.continue_2dgs} with method {self.method!r}.")
+        if not 0 < self.budget_eq7_share <= 1:
+            raise ValueError(f"budget_eq7_share (the share of the texture budget Eq. 7 spends) must be in (0, 1], got "
+                             f"{self.budget_eq7_share}.")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}.")
         if self.growth_interval < 1 or self.warmup_tex < 0:
@@ -206,15 +217,24 @@ class TrainConfig:
                             background=tuple(self.background))
 
 
+#: The ``cpu`` preset (see :data:`PRESETS`).
+CPU_PRESET = dict(iters_2dgs=1_000, iters_tex=400, warmup_tex=40, growth_interval=25, growth_stop=0.8,
+                  normal_from=500, sh_interval=250, log_every=50, checkpoint_every=250, max_gaussians=6_000,
+                  densify=dens.DensifyConfig(start=100, stop=700, interval=50, opacity_reset_interval=10_000))
+
 #: Named schedules. ``tiny``: minutes on a 2-core CPU (the embedded-scene default); ``small``: a
 #: quick real-scene run; ``paper``: the 2DGS/PATexGS iteration counts (the TrainConfig defaults).
 PRESETS = {
-    # tiny: no opacity reset (it costs more steps to recover than the run has) and sigma = 20: the
-    # paper's H*W/1e4 assumes Mip-NeRF 360 resolutions and Gaussian counts; on a 128x96 scene with
-    # a few thousand Gaussians it would give every Gaussian the largest texture.
-    "tiny": dict(iters_2dgs=600, iters_tex=150, warmup_tex=40, growth_interval=20, normal_from=300,
-                 sh_interval=150, log_every=50, checkpoint_every=200, max_gaussians=4_000, sigma=20.0,
+    # tiny: no opacity reset (it costs more steps to recover than the run has). Its texture stage is
+    # long enough for every stage to act: warm-up, Eq. 7, then growth every 15 steps up to 80% of the
+    # stage (8 events, each followed by training) and 40 steps after the last.
+    "tiny": dict(iters_2dgs=600, iters_tex=200, warmup_tex=40, growth_interval=15, growth_stop=0.8,
+                 normal_from=300, sh_interval=150, log_every=50, checkpoint_every=200, max_gaussians=4_000,
                  densify=dens.DensifyConfig(start=100, stop=450, interval=50, opacity_reset_interval=10_000)),
+    # cpu: real captures downsampled to about 200-400 px (beer at --factor 4: 175 x 312) on a 2-core
+    # CPU in at most about 30 minutes a method, sized from measured step times (docs/tradeoffs.md):
+    # 6,000 Gaussians, 1,000 + 400 steps, 11 growth events.
+    "cpu": CPU_PRESET,
     "small": dict(iters_2dgs=7_000, iters_tex=5_000, warmup_tex=500, growth_interval=100, normal_from=3_500,
                   sh_interval=1_000, densify=dens.DensifyConfig(start=500, stop=3_500, interval=100,
                                                                 opacity_reset_interval=3_000)),
@@ -250,12 +270,23 @@ def preset_config(preset: str = "paper", **overrides) -> TrainConfig:
 
 
 def method_spec(method: str) -> dict:
-    """What a ``--method`` name means: textures (None, "fixed", "adaptive"), fixed size, mip flags and
-    coverage mode (:class:`RenderConfig`: the ``patexgs`` family prefilters, the baselines and
-    ``patexgs-literal`` keep the 2DGS low-pass)."""
+    """What a ``--method`` name means: textures, size, mip flags and coverage mode
+    (:class:`RenderConfig`: the ``patexgs`` family prefilters, the baselines and ``patexgs-literal``
+    keep the 2DGS low-pass).
+
+    ``textures``: None (2DGS); "fixed" (every Gaussian gets ``size`` x ``size`` textures when stage 2
+    starts); "adaptive" (the warm-up textures, then at the allocation step the Eq. 7 sizes and
+    Eqs. 8-10 growth, or, when ``size`` is set, ``size`` x ``size`` for every Gaussian and no growth:
+    ``patexgs-fixed-N``, which differs from ``patexgs`` in the sizes only).
+    """
     base = dict(textures="adaptive", size=None, mip="nearest", rgb_mip=True, alpha_mip=True, coverage="prefilter")
     if method == "2dgs":
         return dict(base, textures=None, mip="none", coverage="lowpass")
+    if method.startswith("patexgs-fixed-"):
+        n = method.rsplit("-", 1)[1]
+        if not n.isdigit() or not 1 <= int(n) <= sched.DEFAULT_MAX_SIZE:
+            raise ValueError(f"patexgs-fixed-N takes N in 1..{sched.DEFAULT_MAX_SIZE}, got {method!r}.")
+        return dict(base, size=int(n))
     if method.startswith("textured-fixed-"):
         n = method.rsplit("-", 1)[1]
         if not n.isdigit() or int(n) not in FIXED_SIZES:
@@ -268,7 +299,8 @@ def method_spec(method: str) -> dict:
                 "patexgs-literal": dict(coverage="lowpass")}
     if method not in variants:
         raise ValueError(f"unknown method {method!r}; choose one of 2dgs, textured-fixed-N (N in "
-                         f"{FIXED_SIZES}), {', '.join(variants)}.")
+                         f"{FIXED_SIZES}), patexgs-fixed-N (N in 1..{sched.DEFAULT_MAX_SIZE}), "
+                         f"{', '.join(variants)}.")
     return dict(base, **variants[method])
 
 
@@ -692,29 +724,35 @@ class _Run:
                 counts.append(np.asarray(renderer(v.camera).max_contrib_count))
         S = np.stack(counts)
         act = np.asarray(self.scene.active) > 0
-        h, w = self.train_views[0].camera.height, self.train_views[0].camera.width
         budget = None
-        if self.cfg.texture_budget_mb is not None:
-            budget = sched.mb_to_texels(self.cfg.texture_budget_mb)
-            sigma = sched.solve_sigma_for_budget(S, budget, max_size=self.cfg.max_texture_size, active=act)
+        if self.spec["size"] is not None:  # patexgs-fixed-N: the same schedule with one size for all
+            sigma = None
+            sides = np.where(act, self.spec["size"], 0).astype(np.int64)
         else:
-            sigma = self.cfg.sigma or sched.default_sigma(h, w)
-        sides = sched.initial_texture_sizes(S, sigma, max_size=self.cfg.max_texture_size, active=act)
+            if self.cfg.texture_budget_mb is not None:
+                budget = sched.mb_to_texels(self.cfg.texture_budget_mb)
+                # Eq. 7 spends its share (at least one texel a Gaussian), growth the rest.
+                target = max(int(round(self.cfg.budget_eq7_share * budget)), int(act.sum()))
+                sigma = sched.solve_sigma_for_budget(S, target, max_size=self.cfg.max_texture_size, active=act)
+            else:
+                pixels = sum(v.camera.height * v.camera.width for v in self.train_views)
+                sigma = self.cfg.sigma or sched.pixel_share_sigma(pixels, int(act.sum()))
+            sides = sched.initial_texture_sizes(S, sigma, max_size=self.cfg.max_texture_size, active=act)
         self.tex_state = sched.TextureScheduleState.create(sides)
         self.scene, self.opt_state, info = sched.resize_textures(self.scene, self.opt_state, sides, sides)
         self.texel_budget = budget
-        self.allocation = dict(step=self.step, sigma=float(sigma), texels=int(np.sum(sides[act] ** 2)),
-                               budget_texels=budget, sides=_side_histogram(sides, act))
+        self.allocation = dict(step=self.step, sigma=None if sigma is None else float(sigma),
+                               texels=int(np.sum(sides[act] ** 2)), budget_texels=budget,
+                               sides=_side_histogram(sides, act))
         self.log(dict(event="allocation", **self.allocation))
-        self.say(f"[stage 2] Eq. 7 allocation (sigma {sigma:.4g}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
+        n = self.spec["size"]
+        how = f"{n}x{n} for every Gaussian" if sigma is None else f"Eq. 7, sigma {sigma:.4g}"
+        self.say(f"[stage 2] allocation ({how}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
                  f"{int(np.sum(sides[act] ** 2))} RGBA texels")
         self.stats = dens.DensifyStats.zeros(self.scene.capacity)
 
     def growth_schedule(self):
-        t0 = self.cfg.iters_2dgs + self.cfg.warmup_tex + self.cfg.growth_interval
-        t_final = max(t0 + 1, self.cfg.iters_2dgs + int(self.cfg.growth_stop * self.cfg.iters_tex))
-        return sched.GrowthSchedule(t0=t0, t_final=t_final, interval=self.cfg.growth_interval,
-                                    tau_preset=self.cfg.tau_preset, max_size=self.cfg.max_texture_size)
+        return growth_schedule(self.cfg)
 
     def check_memory_maps(self):
         """Releases compiled code near the memory-map cap; at the guard's stop share even so, saves a
@@ -866,7 +904,7 @@ class _Run:
             if self.capacity is not None and step % 100 == 0:
                 self.fit_capacity(self.view(step).camera)
             return
-        if self.tex_state is not None:
+        if self.tex_state is not None and self.spec["size"] is None:
             schedule = self.growth_schedule()
             if schedule.is_growth_step(step):
                 grad = self.stats.mean_grad()
@@ -887,11 +925,28 @@ class _Run:
                 self.stats = dens.DensifyStats.zeros(self.scene.capacity)
 
 
+def growth_schedule(cfg: TrainConfig) -> sched.GrowthSchedule:
+    """The Eqs. 8-10 schedule of a run: growth every ``growth_interval`` steps from one interval after
+    the Eq. 7 allocation (step ``iters_2dgs + warmup_tex``) up to ``growth_stop`` of the texture stage."""
+    t0 = cfg.iters_2dgs + cfg.warmup_tex + cfg.growth_interval
+    t_final = max(t0 + 1, cfg.iters_2dgs + int(cfg.growth_stop * cfg.iters_tex))
+    return sched.GrowthSchedule(t0=t0, t_final=t_final, interval=cfg.growth_interval, tau_preset=cfg.tau_preset,
+                                max_size=cfg.max_texture_size)
+
+
+def growth_steps(cfg: TrainConfig) -> list[int]:
+    """The steps (completed steps, as :meth:`_Run.after_step` counts them) at which growth events run."""
+    if method_spec(cfg.method)["textures"] != "adaptive" or method_spec(cfg.method)["size"] is not None:
+        return []
+    g = growth_schedule(cfg)
+    return [t for t in range(g.t0, min(g.t_final, cfg.total_steps) + 1) if g.is_growth_step(t)]
+
+
 #: Fields that only matter after the 2DGS stage: runs that agree on every other field have the same
 #: stage 1, which :func:`train` can take from another run's end-of-stage-1 checkpoint.
 STAGE2_FIELDS = frozenset({"method", "iters_tex", "continue_2dgs", "warmup_tex", "growth_interval", "growth_stop", "tau_preset",
-                           "sigma", "texture_budget_mb", "max_texture_size", "lambda_mip", "checkpoint_every",
-                           "log_every", "max_bad_steps"})
+                           "sigma", "texture_budget_mb", "budget_eq7_share", "max_texture_size", "lambda_mip",
+                           "checkpoint_every", "log_every", "max_bad_steps"})
 
 
 #: Fields that change how a run executes, not what it computes: a run may resume (or take its stage 1

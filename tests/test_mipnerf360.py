@@ -187,13 +187,41 @@ def test_tables_follow_the_paper_layouts():
     assert "| Full |" in t3 and "| w/o mip. |" in t3 and "| w/o RGB mip. |" in t3 and "| Full(10%) |" in t3
     assert "2dgs" not in t3
     t4 = md.split("## Table 4")[1].split("##")[0]
-    assert "| 8 x 8 |" in t4 and "1.50 |" in t4
+    # Full, 1/4 and 1/8 (a's values: entry 4 is textured-fixed-8 at 24 dB), and the storage
+    assert "| Full PSNR | SSIM | LPIPS | 1/4 PSNR | SSIM | LPIPS | 1/8 PSNR | SSIM | LPIPS | storage MB |" in t4
+    row = "| 8 x 8 (Textured Gaussians: no mip, low-pass) | - | 24.00 | 0.800 | 0.200 | 26.00 | 0.900 | 0.100 | 27.00 |"
+    assert row in t4
+    assert "1.50 |" in t4
     # an LPIPS missing at one scale shows as "-", not as a number
     t2 = md.split("## Table 2")[1].split("##")[0]
     assert "| 2dgs | 21.00 | 0.800 | 0.200 | 22.00 | 0.850 | - |" in t2
     # the alias PSNR beside each zoomed-out scale's metrics ("-" where an entry lacks it)
     assert "| 1/2 PSNR | SSIM | LPIPS | alias PSNR |" in t2
     assert "| 2dgs | 21.00 | 0.800 | 0.200 | 22.00 | 0.850 | - | - | 23.00 | 0.900 | 0.100 | 30.00 |" in t2
+
+
+def test_table4_rows_and_the_side_distribution(tmp_path):
+    """The like-with-like rows (patexgs-fixed-N, the storage-matched row) and the side plot drawn from
+    the entries' Eq. 7 and final side histograms."""
+    def e(p, method, texels, **kw):
+        return {**{s: dict(psnr=p, ssim=0.8, lpips=0.2) for s in "148"}, "storage_mb": 1.0, "train_seconds": 1.0,
+                "render_ms": 1.0, "num_gaussians": 100, "texels": texels, "method": method, **kw}
+    adaptive = e(21.0, "patexgs", 2 * 1090, sides_allocated={"1": 80, "8": 20}, sides_final={"1": 70, "2": 10, "8": 20},
+                 sigma=33.0, growth_events=[dict(step=1, grown=10, texels_added=30, texels=1310)])
+    data = {"config": {"preset": "tiny"}, "results": {"a": {"patexgs": adaptive}}}
+    study = mn.Study.__new__(mn.Study)
+    study.data, study.cfg = data, mn.StudyConfig()
+    assert study.matched_method("a") == "patexgs-fixed-3"  # 10.9 RGBA texels a Gaussian: 3 x 3 is closest
+    data["results"]["a"].update({"patexgs-fixed-4": e(20.5, "patexgs-fixed-4", 3200),
+                                 mn.MATCHED: e(20.0, "patexgs-fixed-3", 1800)})
+    t4 = mn.tables_markdown(data).split("## Table 4")[1].split("##")[0]
+    assert "| Full (adaptive) | patexgs |" in t4 and "| 4 x 4 + mip | patexgs-fixed-4 |" in t4
+    assert "| similar storage | patexgs-fixed-3 |" in t4
+    path = mn.plot_sides(data, tmp_path / "sides.png")
+    assert path is not None and path.stat().st_size > 0
+    assert mn.plot_sides({"results": {"a": {mn.MATCHED: data["results"]["a"][mn.MATCHED]}}}, tmp_path / "x.png") is None
+    with pytest.raises(mn.StudyError, match="list patexgs before it"):
+        mn.run(methods=[mn.MATCHED, "patexgs"], out=tmp_path / "o")
 
 
 def test_lpips_network_is_named_and_never_mixed(tmp_path, monkeypatch):

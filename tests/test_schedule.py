@@ -21,7 +21,7 @@ from hypothesis import given, settings, strategies as st
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
 from patexgs_jax.metrics import storage_mb
 from patexgs_jax.optim import adam_moments, make_optimizer
-from patexgs_jax.schedule import (GrowthSchedule, TextureScheduleState, add_textures, default_sigma,
+from patexgs_jax.schedule import (GrowthSchedule, TextureScheduleState, add_textures, default_sigma, pixel_share_sigma,
                                   grow_sizes, initial_texture_sizes, mb_to_texels, resample_matrix,
                                   resize_textures, side_of, solve_sigma_for_budget, texels_to_mb,
                                   total_texels)
@@ -329,6 +329,20 @@ def test_eq7_hand_computed():
     np.testing.assert_array_equal(initial_texture_sizes(S, 3.0), [1, 1, 9, 1])
     np.testing.assert_array_equal(side_of([0.0, 0.2, 1.49, 1.5, 2.5, 40.0]), [0, 1, 1, 2, 3, 32])
     assert default_sigma(800, 1000) == 80.0
+    # The scale-free default equals the paper's at its scale (200 views, 10^6 Gaussians) ...
+    assert pixel_share_sigma(200 * 800 * 1000, 10**6) == pytest.approx(default_sigma(800, 1000))
+    # ... and gives about the same T to a Gaussian that dominates the same share (here all) of its fair
+    # share of the pixel-views, spread over its views, at a far smaller scale (21 views, 3,900 Gaussians).
+    from patexgs_jax.schedule import contribution_sizes
+
+    small = pixel_share_sigma(21 * 96 * 128, 3900)
+    S_paper = np.full((200, 1), 800 * 1000 / 10**6)
+    S_small = np.full((21, 1), 96 * 128 / 3900)
+    T_paper, T_small = contribution_sizes(S_paper, default_sigma(800, 1000)), contribution_sizes(S_small, small)
+    np.testing.assert_allclose(T_small, T_paper, rtol=0.05)  # (the log costs 4% at 21 views)
+    assert 2.5 < T_paper[0] < 3.0  # (about 2 / ln 2 = 2.9)
+    with pytest.raises(ValueError, match="num_gaussians"):
+        pixel_share_sigma(1000, 0)
     with pytest.raises(ValueError):
         initial_texture_sizes(S[0], 1.0)
     with pytest.raises(ValueError):

@@ -374,17 +374,53 @@ def test_repeated_nonfinite_steps_stop_the_run(dataset, tmp_path):
 # ------------------------------------------------------------------------------------------------
 # 6. Texture budget
 # ------------------------------------------------------------------------------------------------
-def test_texture_budget_met_by_allocation(dataset):
+def test_texture_budget_leaves_growth_room_and_is_met(dataset):
+    """Eq. 7 spends budget_eq7_share of the budget (within 1%), growth the rest: it grows into the
+    room left and the total never passes the budget; spending the room meets it within 1%."""
     mb = 0.09
-    target = sched.mb_to_texels(mb)
-    run = T._Run(dataset, tiny_config(texture_budget_mb=mb), None, verbose=False)
+    budget = sched.mb_to_texels(mb)
+    cfg = tiny_config(texture_budget_mb=mb, budget_eq7_share=0.6)
+    run = T._Run(dataset, cfg, None, verbose=False)
     run.fresh()
     run.start_textures()
     run.allocate_textures()
     texels = run.scene.texel_count()
     assert texels["rgb"] == texels["alpha"] == run.allocation["texels"]
-    assert abs(texels["rgb"] - target) <= 0.01 * target, (texels, target)
-    assert run.allocation["budget_texels"] == run.texel_budget == target
+    assert abs(texels["rgb"] - 0.6 * budget) <= 0.01 * 0.6 * budget, (texels, budget)
+    assert run.allocation["budget_texels"] == run.texel_budget == budget
+    # Growth with a gradient that selects every textured Gaussian at every event: it fills the room.
+    act = np.asarray(run.scene.active) > 0
+    schedule = run.growth_schedule()
+    state = run.tex_state
+    top = int(np.flatnonzero(act)[0])
+    for t in T.growth_steps(cfg):
+        grad = np.where(act, 0.95 * schedule.tau_high(t, 1.0), 0.0)  # inside Eq. 8's band ...
+        grad[top] = 1.0  # ... under tau_max = 1
+        state, sides, sel = state.step(grad, t, schedule, active=act, texel_budget=run.texel_budget)
+        assert sched.total_texels(sides, act) <= budget
+    grown = sched.total_texels(state.sides(cfg.max_texture_size), act)
+    assert grown > texels["rgb"] and abs(grown - budget) <= 0.01 * budget, (grown, budget)
+
+
+def test_patexgs_fixed_differs_from_patexgs_only_in_sizes(dataset):
+    """patexgs-fixed-N: the patexgs warm-up and render settings, N x N at the allocation, no growth."""
+    assert T.method_spec("patexgs-fixed-3") == dict(T.method_spec("patexgs"), size=3)
+    cfg = tiny_config(method="patexgs-fixed-3")
+    assert cfg.render_config() == tiny_config().render_config()
+    run = T._Run(dataset, cfg, None, verbose=False)
+    run.fresh()
+    run.start_textures()
+    act = np.asarray(run.scene.active) > 0
+    assert np.all(np.asarray(run.scene.alpha.size)[act] == 5)  # the same warm-up textures as patexgs
+    run.allocate_textures()
+    for bank in (run.scene.rgb, run.scene.alpha):
+        assert np.all(np.asarray(bank.size)[act] == 3) and np.all(np.asarray(bank.size)[~act] == 0)
+    assert run.allocation["sigma"] is None and run.allocation["sides"] == {"3": int(act.sum())}
+    scene = run.scene
+    run.after_step(T.growth_schedule(cfg).t0)  # a growth step of patexgs: nothing grows
+    assert run.scene is scene and run.growth_events == []
+    with pytest.raises(ValueError, match="patexgs-fixed-N"):
+        T.TrainConfig(method="patexgs-fixed-33")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -460,13 +496,27 @@ def test_iteration_overrides_scale_the_texture_schedule_or_are_refused():
     paper = T.preset_config("paper", iters_tex=600)  # the paper's 1,000-step warm-up, scaled to 20
     assert (paper.warmup_tex, paper.growth_interval) == (20, 2) and paper.warmup_tex < paper.iters_tex
     kept = T.preset_config("tiny", iters_tex=60, warmup_tex=7)  # given fields are kept
-    assert (kept.warmup_tex, kept.growth_interval) == (7, 8)
+    assert (kept.warmup_tex, kept.growth_interval) == (7, 4)  # 15 * 60 / 200 = 4.5, rounded half to even
     assert T.preset_config("tiny") == T.TrainConfig(**tiny)
     with pytest.raises(ValueError, match=r"warm-up.*only 30 steps.*--iters-tex"):
         T.TrainConfig(method="patexgs", iters_tex=30, warmup_tex=30)
     T.TrainConfig(method="textured-fixed-4", iters_tex=30, warmup_tex=30)  # no Eq. 7: nothing to skip
     with pytest.raises(ValueError, match="growth_interval"):
         T.TrainConfig(growth_interval=0)
+
+
+@pytest.mark.parametrize("preset", ["tiny", "cpu"])
+def test_presets_give_every_texture_stage_room(preset):
+    """Warm-up, then Eq. 7, then several growth events, each followed by a whole interval of training
+    (the run_p fixture checks that the events fire and grow textures)."""
+    cfg = T.preset_config(preset, method="patexgs")
+    alloc = cfg.iters_2dgs + cfg.warmup_tex
+    steps = T.growth_steps(cfg)
+    assert cfg.iters_2dgs < alloc < steps[0] and len(steps) >= 5, steps
+    assert np.all(np.diff(steps) == cfg.growth_interval)
+    assert steps[-1] + cfg.growth_interval <= cfg.total_steps  # the last event's textures are trained
+    for fixed in ("patexgs-fixed-4", "textured-fixed-4", "2dgs"):
+        assert T.growth_steps(T.preset_config(preset, method=fixed)) == []
 
 
 def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_path, monkeypatch):
