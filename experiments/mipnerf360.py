@@ -385,9 +385,11 @@ class Study:
         self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(todo)}")
         s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True)
         for method in todo:
-            key = label(method, self.cfg.budget)
+            key = run_key = label(method, self.cfg.budget)
             if method == MATCHED:
                 method = self.matched_method(name)
+                # Trained in that size's own folder: a study that also lists it trains it once.
+                run_key = label(method, self.cfg.budget)
                 self.say(f"[{name}] {key}: {method} (storage matched to {label('patexgs', self.cfg.budget)})")
             cfg = self._train_config(method, max_g)
             if method == "2dgs":
@@ -398,7 +400,7 @@ class Study:
                     raise StudyError(f"no end-of-stage-1 checkpoint in {s1_dir}/checkpoints for {method}; "
                                      "delete that run folder to train stage 1 again.")
                 self.say(f"[{name}] {key}")
-                result = train(ds, cfg, runs / key, resume=True, verbose=self.verbose, stage1=ck,
+                result = train(ds, cfg, runs / run_key, resume=True, verbose=self.verbose, stage1=ck,
                                evaluate_everywhere=True)
             entry = self.evaluate(name, key, result, ds, cfg)
             self.data["results"].setdefault(name, {})[key] = entry
