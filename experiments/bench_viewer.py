@@ -160,7 +160,10 @@ def main(argv=None) -> int:
           f"{'prev. ms':>9s} {'fps':>6s} {'first s':>8s} {'recomp':>6s}")
     rows = []
     if "tiny" in models:
-        rows += bench(*tiny_model(args.run), args.sizes, args.repeats, args.preview)
+        tiny = bench(*tiny_model(args.run), args.sizes, args.repeats, args.preview)
+        for r in tiny:  # which trained model: the figures depend on its splats' screen sizes
+            r["run"] = args.run or "runs/bench_viewer/patexgs"
+        rows += tiny
     if "synthetic" in models and args.gaussians > 0:
         rows += bench(*synthetic_model(args.gaussians), args.sizes, args.repeats, args.preview)
     if args.json:
