@@ -22,10 +22,11 @@ import numpy as np
 
 from patexgs_jax import compiled, progress
 from patexgs_jax.buckets import ViewRenderer
+from patexgs_jax.camera import ZOOM_SCALES
 from patexgs_jax.render import RenderConfig
 
 #: The zoom-out factors of the paper's Table 2 (1 = full resolution).
-SCALES = (1, 2, 4, 8)
+SCALES = ZOOM_SCALES
 
 #: Image sizes whose LPIPS and SSIM programs an evaluation keeps compiled at a time.
 MAX_METRIC_PROGRAMS = 8

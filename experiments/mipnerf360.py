@@ -90,9 +90,10 @@ from pathlib import Path
 import numpy as np
 
 from patexgs_jax import progress
+from patexgs_jax.camera import ZOOM_SCALES
 
 RESULTS_SCHEMA = 2
-SCALES = (1, 2, 4, 8)
+SCALES = ZOOM_SCALES
 EMBEDDED_METHODS = ("2dgs", "patexgs")
 DEFAULT_METHODS = ("2dgs", "textured-fixed-8", "patexgs")
 #: The fixed-size row whose storage matches the adaptive run's ("similar parameters" in the paper's

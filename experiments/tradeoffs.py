@@ -85,11 +85,12 @@ import numpy as np
 
 from experiments import provenance
 from patexgs_jax import progress
+from patexgs_jax.camera import ZOOM_SCALES
+from patexgs_jax.train import FIXED_SIZES
 
 KNOBS = ("mip", "texture", "budget", "iters", "sh")
-SCALES = (1, 2, 4, 8)
+SCALES = ZOOM_SCALES
 MIP_METHODS = {"none": "patexgs-no-mip", "nearest": "patexgs", "trilinear": "patexgs-trilinear"}
-FIXED_SIZES = (1, 2, 4, 8, 16, 32)
 BUDGET_FRACTIONS = (1.0, 0.1, 0.01)
 ITER_FRACTIONS = (0.25, 0.5, 1.0)
 SH_DEGREES = (0, 1, 2, 3)

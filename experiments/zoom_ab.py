@@ -29,9 +29,10 @@ import jax
 
 from experiments.evaluation import evaluate_scales, render_ms, usable
 from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
+from patexgs_jax.camera import ZOOM_SCALES
 from patexgs_jax.render import RenderConfig
 
-SCALES = (1, 2, 4, 8)
+SCALES = ZOOM_SCALES
 
 #: Named render settings (mip flags of the run's method are applied on top: see :func:`_config`).
 VARIANTS = {

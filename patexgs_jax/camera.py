@@ -18,6 +18,10 @@ import dataclasses
 import jax
 import numpy as np
 
+#: The zoom-out factors of the paper's protocol (Table 2; 1 = full resolution): the studies evaluate
+#: and the viewer renders at ``Camera.scaled(s)`` for each.
+ZOOM_SCALES = (1, 2, 4, 8)
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)

@@ -41,11 +41,11 @@ import numpy as np
 
 from . import textures as tex
 from .buckets import ViewRenderer, release_scene_programs
-from .camera import Camera
+from .camera import ZOOM_SCALES, Camera
 from .render import RenderConfig
 
 #: Render scales (zoom-out factors) the viewer offers.
-SCALES = (1, 2, 4, 8)
+SCALES = ZOOM_SCALES
 #: View modes, in the order the viewer lists them.
 VIEWS = ("rgb", "depth", "normal", "alpha", "mip level", "texture side")
 #: Coverage modes: key -> label.
