@@ -89,6 +89,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.provenance import write_json
 from patexgs_jax import progress
 from patexgs_jax.camera import ZOOM_SCALES
 
@@ -193,12 +194,6 @@ def _version() -> dict:
     except importlib.metadata.PackageNotFoundError:
         pkg = None
     return dict(patexgs_jax=pkg, git=git, jax=jax.__version__, results_schema=RESULTS_SCHEMA)
-
-
-def _write_json(path: Path, data) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
 
 
 def _save_png(path: Path, image: np.ndarray) -> None:
@@ -352,7 +347,7 @@ class Study:
     def save(self) -> None:
         if not self.main:
             return
-        _write_json(self.path, self.data)
+        write_json(self.path, self.data)
         (self.out / "tables.md").write_text(tables_markdown(self.data))
         try:
             write_plots(self.data, self.out / "plots")

@@ -20,7 +20,7 @@ import platform
 import subprocess
 from pathlib import Path
 
-__all__ = ["git_commit", "header", "write_benchmark_json"]
+__all__ = ["git_commit", "header", "write_benchmark_json", "write_json"]
 
 _REPO = Path(__file__).resolve().parent
 
@@ -65,12 +65,18 @@ def header(schema: int) -> dict:
                 backend=jax.default_backend(), devices=len(jax.devices()))
 
 
-def write_benchmark_json(path, results: list, schema: int, **extra) -> Path:
-    """Writes ``{header(schema), **extra, "results": results}`` to ``path`` atomically (a reader never
-    sees half a file, and an interrupted sweep keeps its last complete write). Returns the path."""
+def write_json(path, obj) -> Path:
+    """Writes ``obj`` as JSON to ``path`` atomically: a reader never sees half a file, and an
+    interrupted study or sweep keeps its last complete write. Returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(dict(header(schema), **extra, results=results), indent=1))
+    tmp.write_text(json.dumps(obj, indent=1))
     os.replace(tmp, path)
     return path
+
+
+def write_benchmark_json(path, results: list, schema: int, **extra) -> Path:
+    """Writes ``{header(schema), **extra, "results": results}`` to ``path`` with :func:`write_json`.
+    Returns the path."""
+    return write_json(path, dict(header(schema), **extra, results=results))

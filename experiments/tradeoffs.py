@@ -84,6 +84,7 @@ from typing import Sequence
 import numpy as np
 
 from experiments import provenance
+from experiments.provenance import write_json
 from patexgs_jax import progress
 from patexgs_jax.camera import ZOOM_SCALES
 from patexgs_jax.train import FIXED_SIZES
@@ -316,12 +317,6 @@ def plot(study: dict, path) -> Path:
 # ------------------------------------------------------------------------------------------------
 # The study
 # ------------------------------------------------------------------------------------------------
-def _write_json(path: Path, obj) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    tmp.replace(path)
-
-
 def _latest_scene(run_dir: Path):
     from patexgs_jax import checkpoint as ckpt
 
@@ -467,7 +462,7 @@ class Study:
 
     def save(self) -> None:
         self.state["pareto"] = pareto_sets(self.state["runs"], self.scales)
-        _write_json(self.path, self.state)
+        write_json(self.path, self.state)
         (self.out / "tradeoffs.md").write_text(markdown(self.state))
 
     def run(self, knobs=KNOBS, **plan_kw) -> dict:
@@ -600,7 +595,7 @@ def export_reduced(scene, rc, effects, path) -> Path:
 
     sc, r = without(scene, rc, effects)
     path = export_ply(sc, path)
-    _write_json(path.with_suffix(".render.json"), dict(dataclasses.asdict(r), dropped_effects=list(effects)))
+    write_json(path.with_suffix(".render.json"), dict(dataclasses.asdict(r), dropped_effects=list(effects)))
     return path
 
 
@@ -639,7 +634,7 @@ def run_effects(run_dir, dataset, out_dir, *, scales=SCALES, drop_below=None, ex
                   f"render x{s}: {res['full']['render_ms'][s]:.1f} ms -> {red['render_ms'][s]:.1f} ms per frame; "
                   f"XLA flops {_fmt(flops['full'], 0)} -> {_fmt(flops['reduced'], 0)}; PSNR "
                   + " / ".join(f"{res['full']['psnr'][k]:.2f}->{red['psnr'][k]:.2f}" for k in red["psnr"]), flush=True)
-    _write_json(out_dir / "effects.json", res)
+    write_json(out_dir / "effects.json", res)
     return res
 
 

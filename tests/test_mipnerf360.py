@@ -10,7 +10,6 @@ from __future__ import annotations
 import importlib
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -238,7 +237,7 @@ def test_lpips_network_is_named_and_never_mixed(tmp_path, monkeypatch):
     assert "LPIPS: v0.1, AlexNet trunk (`alex`, weights lpips_alex.npz)." in mn.tables_markdown(study.data)
     assert "LPIPS: not computed" in mn.tables_markdown({"results": {}})
     study.data["results"] = {"a": {"2dgs": {"1": dict(psnr=20.0, ssim=0.5, lpips=0.3)}}}
-    mn._write_json(study.path, study.data)
+    mn.write_json(study.path, study.data)
     # resuming with the other trunk would mix two networks' figures in one table
     with pytest.raises(mn.StudyError, match="--lpips-net alex"):
         mn.Study(out, cfg, use_lpips=True, lpips_net="vgg", verbose=False)
