@@ -50,6 +50,10 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+#: Where the ``tiny`` model is trained (or reused) when ``--run`` is not given.
+DEFAULT_RUN = "runs/bench_viewer/patexgs"
+
+
 def tiny_model(run: str | None):
     """(name, scene, render config, (wxyz, position, fov)) of the trained ``tiny`` model."""
     from patexgs_jax import viewing as vw
@@ -60,7 +64,7 @@ def tiny_model(run: str | None):
     if run is None:
         from patexgs_jax.train import preset_config, train
 
-        out = Path("runs/bench_viewer/patexgs")
+        out = Path(DEFAULT_RUN)
         if not (out / "summary.json").exists():
             print(f"training the tiny patexgs model on the embedded scene into {out} (minutes) ...", flush=True)
             train(data, preset_config("tiny", method="patexgs"), out, resume=True, verbose=False)
@@ -162,7 +166,7 @@ def main(argv=None) -> int:
     if "tiny" in models:
         tiny = bench(*tiny_model(args.run), args.sizes, args.repeats, args.preview)
         for r in tiny:  # which trained model: the figures depend on its splats' screen sizes
-            r["run"] = args.run or "runs/bench_viewer/patexgs"
+            r["run"] = args.run or DEFAULT_RUN
         rows += tiny
     if "synthetic" in models and args.gaussians > 0:
         rows += bench(*synthetic_model(args.gaussians), args.sizes, args.repeats, args.preview)

@@ -52,11 +52,10 @@ VIEWS = ("rgb", "depth", "normal", "alpha", "mip level", "texture side")
 MODES = {"patexgs": "PATexGS (prefilter)", "literal": "literal Eqs. 11-13 (2DGS low-pass)",
          "mip-off": "mip off (prefilter, level 0 only)"}
 #: The compositor schedule of the viewer's frames (:class:`RenderConfig` fields that change the work's
-#: order, not the image: within 1e-6). A trained ``tiny`` model's view lists ~160 splats per tile
-#: (190k (splat, tile) pairs at 640 x 480, 14x bench_render's random 5k-splat scene), so a frame is
-#: almost all compositing; 16 tiles of 16-splat chunks (the same 64k-pair block as the default 8 x 32)
-#: took 17% less CPU per frame than the default there and 15% less on the 50k-splat synthetic scene
-#: (docs/performance.md).
+#: order, not the image: within 1e-6). A trained model's view lists far more splats per tile than a
+#: training batch's random views, so a frame is almost all compositing, which smaller chunks over
+#: more tiles at once (the same 64k-pair block as the default 8 x 32) run faster
+#: (docs/performance.md has the A/B).
 FRAME_SCHEDULE = dict(tile_batch=16, chunk=16)
 #: Colours of mip levels 0, 1, 2, ... (the last one repeats for higher levels).
 LEVEL_COLOURS = np.array([[0.15, 0.35, 0.95], [0.1, 0.8, 0.9], [0.2, 0.85, 0.25], [0.95, 0.9, 0.15],
