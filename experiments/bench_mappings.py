@@ -53,21 +53,23 @@ class Meter:
 
     # -- counting ---------------------------------------------------------------------------------
     def _enter(self, phase: str) -> None:
-        T = importlib.import_module("patexgs_jax.train")
+        from patexgs_jax.training.step import STEP_TRACES
+
         R = importlib.import_module("patexgs_jax.render")
         self.phase = phase
         maps = self.maps()
         self.phases.setdefault(phase, dict(peak=maps, start=maps, end=maps, compiles=0, step_traces=0,
                                            render_traces=0, seconds=0.0, by_function=collections.Counter()))
-        self._marks = (sum(T.STEP_TRACES.values()), sum(R.TRACE_COUNTS.values()), time.perf_counter())
+        self._marks = (sum(STEP_TRACES.values()), sum(R.TRACE_COUNTS.values()), time.perf_counter())
 
     def _leave(self) -> None:
-        T = importlib.import_module("patexgs_jax.train")
+        from patexgs_jax.training.step import STEP_TRACES
+
         R = importlib.import_module("patexgs_jax.render")
         p = self.phases[self.phase]
         p["end"] = self.maps()
         p["peak"] = max(p["peak"], p["end"])
-        p["step_traces"] += sum(T.STEP_TRACES.values()) - self._marks[0]
+        p["step_traces"] += sum(STEP_TRACES.values()) - self._marks[0]
         p["render_traces"] += sum(R.TRACE_COUNTS.values()) - self._marks[1]
         p["seconds"] += time.perf_counter() - self._marks[2]
 
@@ -122,19 +124,21 @@ class Meter:
 
 def instrument(meter: Meter) -> None:
     """Hooks the study's training runs, training steps, evaluations and evaluated views."""
-    T = importlib.import_module("patexgs_jax.train")
+    from patexgs_jax import training
+    from patexgs_jax.training.trainer import Trainer
+
     M = importlib.import_module("experiments.mipnerf360")
     E = importlib.import_module("experiments.evaluation")
 
-    orig_after = T._Run.after_step
+    orig_after = Trainer.after_step
 
     def after_step(self, step):
         orig_after(self, step)
         meter.record(f"step {step}")
 
-    T._Run.after_step = after_step
+    Trainer.after_step = after_step
 
-    orig_train = T.train  # (the study imports it when it runs)
+    orig_train = training.train  # (the study imports it from patexgs_jax.training when it runs)
 
     def train(ds, cfg, *args, **kw):
         meter.set_phase(f"train {cfg.method}")
@@ -143,7 +147,7 @@ def instrument(meter: Meter) -> None:
         finally:
             meter.set_phase("setup")
 
-    T.train = train
+    training.train = train
 
     orig_eval = M.Study.evaluate
 

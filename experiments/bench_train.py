@@ -10,7 +10,7 @@ and the step's peak memory at real image sizes.
 Each case trains a fixed random scene (seeded; ``--gaussians`` splats around the synthetic scene's
 centre, SH degree 3) on the fixed views of the embedded synthetic scene
 (:mod:`patexgs_jax.data.synthetic`: its cameras at ``--sizes``, its analytic ground truth), through
-the real training loop (``patexgs_jax.train``'s run: view order, the jitted step with donated
+the real training loop (:class:`patexgs_jax.training.trainer.Trainer`: view order, the jitted step with donated
 state, the host-side checks) with densification off so shapes stay fixed. Configurations:
 ``2dgs`` (no textures), ``tex8`` (every Gaussian an 8x8 RGBA texture, no mipmaps: Textured
 Gaussians), ``tex8-mip`` (8x8 RGBA with per-pixel mipmaps, Eq. 11, and the 2DGS low-pass: the
@@ -95,24 +95,25 @@ def make_scene(n, tex, seed=0):
 def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None):
     """Times ``steps + 1`` training steps; returns one result row. ``on_step()`` is called after
     each step, once its results are ready."""
-    import importlib
 
     import jax
     import numpy as np
 
     from patexgs_jax import RenderConfig
     from patexgs_jax.densify import DensifyConfig, DensifyStats
+    from patexgs_jax.training import TrainConfig
+    from patexgs_jax.training.step import STEP_TRACES
+    from patexgs_jax.training.trainer import Trainer
 
-    T = importlib.import_module("patexgs_jax.train")  # the module (the package's `train` is the function)
     tex, mip, coverage = CONFIGS[name]
     off = DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_interval=10**9)
-    cfg = T.TrainConfig(method="2dgs", iters_2dgs=steps + 1, sh_interval=1, normal_from=0, densify=off,
+    cfg = TrainConfig(method="2dgs", iters_2dgs=steps + 1, sh_interval=1, normal_from=0, densify=off,
                         log_every=10**9, checkpoint_every=10**9, batch_size=batch_size, devices=devices)
     ds = types.SimpleNamespace(train_views=views, test_views=[], points=None, colors=None,
                                normalization=types.SimpleNamespace(radius=2.0))
     stamps = []
 
-    class Run(T._Run):
+    class Run(Trainer):
         def after_step(self, step):
             super().after_step(step)
             jax.block_until_ready(self.scene.means)
@@ -131,7 +132,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None):
     orig = run.step_fn
 
     def step_fn():
-        traces.setdefault(run.step, sum(T.STEP_TRACES.values()))
+        traces.setdefault(run.step, sum(STEP_TRACES.values()))
         return orig()
 
     run.step_fn = step_fn
@@ -140,7 +141,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None):
     first = stamps[0] - t0
     steady = np.diff(np.asarray(stamps))
     ms = 1e3 * float(np.median(steady)) if len(steady) else float("nan")  # steps=0: the first step only
-    recompiles = sum(T.STEP_TRACES.values()) - traces[1] if 1 in traces else 0
+    recompiles = sum(STEP_TRACES.values()) - traces[1] if 1 in traces else 0
     n_dev = 1 if batch_size == 1 else len(run.data_mesh().devices.flat)
     return dict(config=name, gaussians=n, width=views[0].camera.width, height=views[0].camera.height,
                 batch_size=batch_size, devices=n_dev, ms_per_step=ms, ms_per_view=ms / batch_size,

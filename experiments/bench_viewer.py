@@ -62,7 +62,7 @@ def tiny_model(run: str | None):
 
     data = load(ensure_default_scene(verbose=False), verbose=False)
     if run is None:
-        from patexgs_jax.train import preset_config, train
+        from patexgs_jax.training import preset_config, train
 
         out = Path(DEFAULT_RUN)
         if not (out / "summary.json").exists():

@@ -34,9 +34,9 @@ MAX_METRIC_PROGRAMS = 8
 
 def usable(view) -> bool:
     """False for views training and evaluation leave out (empty or non-finite image or camera)."""
-    from patexgs_jax.train import _view_problem
+    from patexgs_jax.training.evaluation import view_problem
 
-    return _view_problem(view.camera, view.image) is None
+    return view_problem(view.camera, view.image) is None
 
 
 def render_view(scene, camera, config: RenderConfig, *, active_sh_degree=None):

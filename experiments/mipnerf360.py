@@ -18,7 +18,7 @@ one (4 outdoors, 2 indoors); other scenes' images wider than 1600 px are resized
 
 For each scene:
   1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every textured
-     method starts from its end-of-stage-1 checkpoint (:func:`patexgs_jax.train.stage1_checkpoint`),
+     method starts from its end-of-stage-1 checkpoint (:func:`patexgs_jax.training.stage1_checkpoint`),
      so method comparisons start from the same 2DGS model, as in the paper. Every method trains
      the same number of steps: ``2dgs`` continues its stage for the texture stage's steps
      (``TrainConfig.continue_2dgs``), so a textured method's gain is not extra training.
@@ -269,7 +269,7 @@ class StudyConfig:
     train_overrides: dict | None = None  # further TrainConfig fields (JSON-able values), Python API only
 
     def train_config(self, method: str, max_gaussians: int | None = None):
-        from patexgs_jax.train import preset_config
+        from patexgs_jax.training import preset_config
 
         cfg = preset_config(self.preset, method=method, iters_2dgs=self.iters_2dgs, iters_tex=self.iters_tex,
                             max_gaussians=max_gaussians if max_gaussians is not None else self.max_gaussians,
@@ -279,9 +279,9 @@ class StudyConfig:
         return cfg
 
     def record(self) -> dict:
-        from patexgs_jax.train import _config_dict
+        from patexgs_jax.training.config import config_dict
 
-        return dict(dataclasses.asdict(self), train_config=_config_dict(self.train_config("patexgs")))
+        return dict(dataclasses.asdict(self), train_config=config_dict(self.train_config("patexgs")))
 
 
 class Study:
@@ -357,7 +357,7 @@ class Study:
     # -- one scene ---------------------------------------------------------------------------------
     def run_scene(self, name: str, path: Path, methods) -> None:
         from patexgs_jax.data import load
-        from patexgs_jax.train import stage1_checkpoint, train
+        from patexgs_jax.training import stage1_checkpoint, train
 
         todo = [m for m in methods if not self.done(name, label(m, self.cfg.budget))]
         if not todo:
@@ -712,7 +712,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     Args:
       data: ROOT (folder of scenes or one scene); None: the embedded synthetic scene.
       scenes: optional list of scene names under ROOT.
-      methods: list of method names (see :func:`patexgs_jax.train.method_spec`).
+      methods: list of method names (see :meth:`patexgs_jax.training.Method.from_name`).
       out: output directory.
       renders: test views kept as side-by-side PNGs per method and scale (0: none).
       use_lpips: compute LPIPS when its weights are installed.
@@ -722,14 +722,14 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
       **config: :class:`StudyConfig` fields (preset, factor, budget, iters_2dgs, iters_tex,
         max_gaussians, seed, test_views, train_overrides).
     """
-    from patexgs_jax.train import method_spec
+    from patexgs_jax.training import Method
 
     methods = list(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
     if methods == ["table4"]:
         methods = list(TABLE4_METHODS)
     for m in methods:  # unknown names fail before any work (before the embedded scene is made)
         if m != MATCHED:
-            method_spec(m)
+            Method.from_name(m)
     if MATCHED in methods and ("patexgs" not in methods or methods.index("patexgs") > methods.index(MATCHED)):
         raise StudyError(f"{MATCHED} matches the storage of the patexgs run: list patexgs before it in --methods.")
     if data is None:

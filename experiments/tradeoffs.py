@@ -20,7 +20,7 @@ Study (the first form)
     compressed by the same factor;
   * ``sh``: the final SH degree 0 ... 3.
 
-  Variants that differ only in stage-2 settings (``patexgs_jax.train.STAGE2_FIELDS``: mip, texture
+  Variants that differ only in stage-2 settings (``patexgs_jax.training.config.STAGE2_FIELDS``: mip, texture
   kind) share one 2DGS stage: each distinct stage 1 is trained once, as a ``2dgs`` run, and the
   textured runs start from its end-of-stage-1 checkpoint. That ``2dgs`` run continues its stage for
   the texture stage's steps, so every entry of a knob trains the same number of steps.
@@ -87,7 +87,7 @@ from experiments import provenance
 from experiments.provenance import write_json
 from patexgs_jax import progress
 from patexgs_jax.camera import ZOOM_SCALES
-from patexgs_jax.train import FIXED_SIZES
+from patexgs_jax.training import FIXED_SIZES
 
 KNOBS = ("mip", "texture", "budget", "iters", "sh")
 SCALES = ZOOM_SCALES
@@ -112,7 +112,7 @@ class Entry:
     knob: str
     label: str
     value: object
-    config: object  # patexgs_jax.train.TrainConfig
+    config: object  # patexgs_jax.training.TrainConfig
 
 
 def config_json(cfg) -> dict:
@@ -147,7 +147,7 @@ def stage1_config(cfg, base):
     """The ``2dgs`` run whose end-of-stage-1 checkpoint is ``cfg``'s stage 1 (stage-2 fields from
     ``base``). It continues its stage for ``base``'s texture steps, so that it is also the study's
     equal-steps 2DGS entry (its stage-1 checkpoint is kept, see ``train.stage1_checkpoint``)."""
-    from patexgs_jax.train import STAGE2_FIELDS
+    from patexgs_jax.training.config import STAGE2_FIELDS
 
     fields = {f: getattr(base, f) for f in STAGE2_FIELDS if f not in ("method", "continue_2dgs")}
     return dataclasses.replace(cfg, method="2dgs", continue_2dgs=base.iters_tex, **fields)
@@ -406,7 +406,7 @@ class Study:
 
     def _train(self, cfg, stage1=None):
         """Trains (or resumes) ``cfg`` into its run directory; returns (scene, summary)."""
-        from patexgs_jax.train import train
+        from patexgs_jax.training import train
 
         d = self.run_dir(cfg)
         if (d / "summary.json").exists():
@@ -417,7 +417,7 @@ class Study:
 
     def ensure(self, cfg) -> dict:
         """The evaluated record of ``cfg``'s run (trained and evaluated unless already recorded)."""
-        from patexgs_jax.train import stage1_checkpoint
+        from patexgs_jax.training import stage1_checkpoint
 
         rid = run_id(cfg)
         if self.recorded(rid):
@@ -499,8 +499,7 @@ def load_trained(run_dir):
     scene (or ``scene.ply`` + sidecar without checkpoints) and its method's render configuration."""
     from patexgs_jax import checkpoint as ckpt
     from patexgs_jax.export import load_ply
-    from patexgs_jax.render import RenderConfig
-    from patexgs_jax.train import method_spec
+    from patexgs_jax.training import Method
 
     run_dir = Path(run_dir)
     summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else None
@@ -513,10 +512,9 @@ def load_trained(run_dir):
     else:
         raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply: pass --run a folder "
                                 "that python -m patexgs_jax.train --out wrote.")
-    spec = method_spec(cfg.get("method", "patexgs"))
     lam = cfg.get("lambda_mip")
-    rc = RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"], coverage=spec["coverage"],
-                      lambda_mip=None if lam is None else float(lam), background=tuple(cfg.get("background", (0, 0, 0))))
+    rc = Method.from_name(cfg.get("method", "patexgs")).render_config(
+        lambda_mip=None if lam is None else float(lam), background=cfg.get("background", (0, 0, 0)))
     return scene, rc, summary
 
 
@@ -704,7 +702,7 @@ def main(argv=None) -> int:
                         drop_below=args.drop_effects_below, export_path=args.export, verbose=not args.quiet,
                         max_views=args.render_views)
             return 0
-        from patexgs_jax.train import preset_config
+        from patexgs_jax.training import preset_config
 
         preset = args.preset or ("tiny" if synthetic else "paper")
         over = dict(STUDY_DEFAULTS.get(preset, {}))

@@ -80,7 +80,7 @@ def probe(scene, views, config: RenderConfig, scales=SCALES) -> dict:
 
 def main(argv=None) -> int:
     from patexgs_jax.data import load
-    from patexgs_jax.train import TrainConfig
+    from patexgs_jax.training import TrainConfig
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--study", required=True, help="an experiments.mipnerf360 output folder")

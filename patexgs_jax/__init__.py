@@ -6,11 +6,15 @@ Conventions (cameras, kernel, textures, mip levels) are fixed in :mod:`patexgs_j
 # pycolmap's extension bundles and exports its own zlib; if it is loaded before the system zlib,
 # later zlib users (PNG writing) corrupt the heap. Loading zlib first makes import order safe.
 import zlib  # noqa: F401  (see patexgs_jax/data/__init__.py)
+from typing import TYPE_CHECKING
 
 from .camera import Camera, look_at
 from .render import Capacity, RenderConfig, RenderOutput, render, render_jit
 from .scene import Scene, random_scene
 from .textures import TextureBank
+
+if TYPE_CHECKING:  # imported on first use (see __getattr__)
+    from .training import TrainConfig, TrainResult, train
 
 __all__ = [
     "Camera",
@@ -32,13 +36,13 @@ _LAZY = ("train", "TrainConfig", "TrainResult")
 
 
 def __getattr__(name):
-    # Training pulls in optax, scipy and the data loaders: imported on first use. Not importing the
-    # submodule here also keeps `python -m patexgs_jax.train` free of runpy's double-import warning.
+    # Training pulls in optax, scipy and the data loaders: imported on first use, from the training
+    # package. The module patexgs_jax.train (the command line) is not imported, so this attribute is
+    # the function and `python -m patexgs_jax.train` stays free of runpy's double-import warning.
     if name in _LAZY:
-        import importlib
+        from . import training
 
-        mod = importlib.import_module(".train", __name__)
         for n in _LAZY:
-            globals()[n] = getattr(mod, n)  # also replaces the submodule attribute import just set
+            globals()[n] = getattr(training, n)
         return globals()[name]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

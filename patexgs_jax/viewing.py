@@ -129,13 +129,11 @@ class LoadedRun:
 
 def render_config_of(train_config: dict) -> RenderConfig:
     """The render configuration of a run's method from its saved training configuration (a dict)."""
-    from .train import method_spec
+    from .training import Method
 
-    spec = method_spec(train_config.get("method", "patexgs"))
     lam = train_config.get("lambda_mip")
-    return RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"],
-                        coverage=spec["coverage"], lambda_mip=None if lam is None else float(lam),
-                        background=tuple(train_config.get("background", (0.0, 0.0, 0.0))))
+    return Method.from_name(train_config.get("method", "patexgs")).render_config(
+        lambda_mip=None if lam is None else float(lam), background=train_config.get("background", (0.0, 0.0, 0.0)))
 
 
 def load_run(entry: RunEntry) -> LoadedRun:

@@ -5,14 +5,11 @@ without camera poses (pointed to ``python -m patexgs_jax.prepare``)."""
 
 from __future__ import annotations
 
-import importlib
-
 import pytest
 
 from experiments import mipnerf360, tradeoffs
 from patexgs_jax import prepare, view
-
-train = importlib.import_module("patexgs_jax.train")  # the package's attribute `train` is the function
+from patexgs_jax.training import cli as train_cli
 
 
 @pytest.fixture
@@ -51,8 +48,8 @@ def _cases(bad):
 
 def test_train_cli_bad_input(bad, capsys):
     for argv, needles in _cases(bad):
-        _one_error_line(capsys, train.main(argv), *needles)
-    code = train.main(["--data", bad["missing"], "--out", bad["out"], "--method", "nerf"])
+        _one_error_line(capsys, train_cli.main(argv), *needles)
+    code = train_cli.main(["--data", bad["missing"], "--out", bad["out"], "--method", "nerf"])
     _one_error_line(capsys, code, "unknown method 'nerf'", "choose one of", "patexgs")
 
 

@@ -30,8 +30,8 @@ TRAIN_SCRIPT = textwrap.dedent("""
     from patexgs_jax import checkpoint as ckpt
     from patexgs_jax.data import load
     from patexgs_jax.densify import DensifyConfig
-    import importlib
-    T = importlib.import_module("patexgs_jax.train")
+    from patexgs_jax.training import TrainConfig, train
+    from patexgs_jax.training.trainer import Trainer
 
     scene_dir, out = sys.argv[1], sys.argv[2]
     if os.environ.get("SLOW_CHECKPOINT_WRITES"):
@@ -42,16 +42,16 @@ TRAIN_SCRIPT = textwrap.dedent("""
             time.sleep(0.05)
             return real(*a, **k)
         np.lib.format.write_array = slow
-    cfg = T.TrainConfig(method="2dgs", iters_2dgs=16, checkpoint_every=2, log_every=2, max_gaussians=300,
+    cfg = TrainConfig(method="2dgs", iters_2dgs=16, checkpoint_every=2, log_every=2, max_gaussians=300,
                         sh_degree=1, sh_interval=4,
                         densify=DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000))
     ds = load(scene_dir, factor=1, test_every=5, verbose=False)
-    orig = T._Run.after_step
+    orig = Trainer.after_step
     def after_step(self, step):
         orig(self, step)
         print("STEP", step, flush=True)
-    T._Run.after_step = after_step
-    res = T.train(ds, cfg, out, resume=True, verbose=False)
+    Trainer.after_step = after_step
+    res = train(ds, cfg, out, resume=True, verbose=False)
     print("DONE", res.summary["steps"], flush=True)
 """)
 

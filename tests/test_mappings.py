@@ -18,9 +18,12 @@ from patexgs_jax import schedule as sched
 from patexgs_jax.data import load
 from patexgs_jax.data.synthetic import generate
 from patexgs_jax.densify import DensifyConfig
+from patexgs_jax.training.config import TrainConfig
+from patexgs_jax.training.run import train
+from patexgs_jax.training.step import STEP_TRACES, view_loss_and_grads
+from patexgs_jax.training.trainer import Trainer
 
 R = importlib.import_module("patexgs_jax.render")
-T = importlib.import_module("patexgs_jax.train")
 
 needs_proc = pytest.mark.skipif(compiled.memory_maps() is None, reason="needs /proc (Linux)")
 
@@ -155,27 +158,27 @@ class _Simulated(compiled.MapGuard):
 
 
 def test_training_compiles_per_tile_grid_and_stops_near_the_map_limit(mixed_sizes, tmp_path, monkeypatch):
-    cfg = T.TrainConfig(method="2dgs", iters_2dgs=12, sh_interval=4, normal_from=2, checkpoint_every=100,
+    cfg = TrainConfig(method="2dgs", iters_2dgs=12, sh_interval=4, normal_from=2, checkpoint_every=100,
                         log_every=100, densify=DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000))
-    start = sum(T.STEP_TRACES.values())
+    start = sum(STEP_TRACES.values())
     # Stop once both tile grids compiled (the check after a compile sees it).
-    guard = _Simulated(lambda: sum(T.STEP_TRACES.values()) - start >= 2)
+    guard = _Simulated(lambda: sum(STEP_TRACES.values()) - start >= 2)
     out = tmp_path / "run"
     with pytest.raises(compiled.MapLimitReached) as err:
-        T.train(mixed_sizes, cfg, out, verbose=False, map_guard=guard)
+        train(mixed_sizes, cfg, out, verbose=False, map_guard=guard)
     msg = str(err.value)
     for words in ("950 memory mappings", "limit of 1,000", "vm.max_map_count", "--resume", "resume=True",
                   "sysctl -w vm.max_map_count", str(out / "checkpoints")):
         assert words in msg, (words, msg)
-    assert sum(T.STEP_TRACES.values()) - start == 2  # 6 sizes, 2 tile grids: 2 programs
+    assert sum(STEP_TRACES.values()) - start == 2  # 6 sizes, 2 tile grids: 2 programs
     stopped = ckpt.read_metadata(ckpt.latest_checkpoint(out / "checkpoints"))["step"]
     assert 2 <= stopped < cfg.total_steps
     # Resumed in a fresh guard's care, the run completes; the stopped run's steps are kept.
-    mid = sum(T.STEP_TRACES.values())
-    result = T.train(mixed_sizes, cfg, out, resume=True, verbose=False)
+    mid = sum(STEP_TRACES.values())
+    result = train(mixed_sizes, cfg, out, resume=True, verbose=False)
     assert result.summary["steps"] == cfg.total_steps and result.summary["skipped_steps"] == 0
     assert np.isfinite(result.summary["test_psnr"])
-    assert sum(T.STEP_TRACES.values()) - mid <= 2
+    assert sum(STEP_TRACES.values()) - mid <= 2
 
 
 def test_padded_step_matches_the_cropped_loss(mixed_sizes):
@@ -183,12 +186,12 @@ def test_padded_step_matches_the_cropped_loss(mixed_sizes):
     densification statistic, the screen-offset gradient, included)."""
     import jax.numpy as jnp
 
-    cfg = T.TrainConfig(method="2dgs", iters_2dgs=4)
-    run = T._Run(mixed_sizes, cfg, None, verbose=False)
+    cfg = TrainConfig(method="2dgs", iters_2dgs=4)
+    run = Trainer(mixed_sizes, cfg, None, verbose=False)
     run.fresh()
     v = mixed_sizes.train_views[1]  # 45 x 30 in a 48 x 32 bucket
     cam = buckets.padded_camera(v.camera)
-    grads = jax.jit(functools.partial(T._view_loss_and_grads, render_config=cfg.render_config(1),
+    grads = jax.jit(functools.partial(view_loss_and_grads, render_config=cfg.render_config(1),
                                       capacity=R.Capacity.fit(4096), lambda_dssim=0.2, lambda_dist=0.1))
     args = (jnp.int32(1), jnp.float32(0.05))
     (want, (_, l1_want, mse_want)), (g_want, off_want) = grads(run.scene, v.camera, jnp.asarray(v.image), *args)

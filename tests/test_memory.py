@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
-import importlib
 import os
 import types
 
 import numpy as np
 import pytest
+from data_builders import make_colmap_scene  # noqa: E402
 
 import patexgs_jax.data as data
 from patexgs_jax import memory
 from patexgs_jax.camera import Camera
-
-from data_builders import make_colmap_scene  # noqa: E402
-
-T = importlib.import_module("patexgs_jax.train")  # the module (the package's `train` is the function)
+from patexgs_jax.training.cli import main
+from patexgs_jax.training.config import TrainConfig
+from patexgs_jax.training.run import train
 
 
 def _fake_dataset(width, height, n=20, factor=1):
@@ -77,11 +76,11 @@ def test_training_stops_before_the_first_step_and_the_cli_says_why(tmp_path, not
     ds = data.load(tmp_path / "scene", test_every=0, verbose=False)
     small = memory.plan_training_memory([(32, 24)] * 4, 2 ** 4, False, ds.image_cache, available=0)
     monkeypatch.setattr(memory, "available_bytes", lambda: small.needed + 1)
-    cfg = T.TrainConfig(method="2dgs", iters_2dgs=5, max_gaussians=16)
+    cfg = TrainConfig(method="2dgs", iters_2dgs=5, max_gaussians=16)
     with pytest.raises(memory.NotEnoughMemory, match="64x48"):
-        T.train(ds, cfg, tmp_path / "run", verbose=False)
+        train(ds, cfg, tmp_path / "run", verbose=False)
     assert not list((tmp_path / "run").glob("checkpoints/*.npz"))
-    code = T.main(["--data", str(tmp_path / "scene"), "--out", str(tmp_path / "cli"), "--method", "2dgs",
+    code = main(["--data", str(tmp_path / "scene"), "--out", str(tmp_path / "cli"), "--method", "2dgs",
                    "--max-gaussians", "16", "--iters-2dgs", "5"])
     err = capsys.readouterr().err
     assert code == 2 and "error: Not enough memory to train at 64x48" in err and "--factor 2" in err

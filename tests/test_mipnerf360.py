@@ -7,7 +7,6 @@ One study (two methods, stage 1 shared) is run once per module; the other tests 
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 
@@ -15,9 +14,11 @@ import numpy as np
 import pytest
 
 from experiments import mipnerf360 as mn
+from patexgs_jax import training
 from patexgs_jax.data.synthetic import generate
-
-T = importlib.import_module("patexgs_jax.train")
+from patexgs_jax.training.config import TrainConfig, config_dict, stage1_key
+from patexgs_jax.training.run import load_stage1, stage1_checkpoint
+from patexgs_jax.training.trainer import Trainer
 
 STUDY = dict(preset="tiny", iters_2dgs=12, iters_tex=8, max_gaussians=300, test_views=2,
              # Eq. 7 allocation after 2 texture steps; no growth event (each re-bucketing compiles a step).
@@ -123,7 +124,7 @@ def test_resume_skips_finished_entries(study, scene_dir, monkeypatch):
     def no_training(*a, **k):
         raise AssertionError("a finished entry was trained again")
 
-    monkeypatch.setattr(T, "train", no_training)
+    monkeypatch.setattr(training, "train", no_training)  # the study imports it when it runs
     again = mn.run(str(scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False, **STUDY)
     assert again["results"] == data["results"]
 
@@ -154,23 +155,24 @@ def test_changed_protocol_is_refused(study, scene_dir):
 
 
 def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
-    cfg = T.TrainConfig(method="patexgs", iters_2dgs=5, iters_tex=3, warmup_tex=1)
-    other = T.TrainConfig(method="2dgs", iters_2dgs=5, lambda_normal=0.5)
-    assert T.stage1_key(cfg) == T.stage1_key(T.TrainConfig(method="2dgs", iters_2dgs=5, iters_tex=99))
-    assert T.stage1_key(cfg) != T.stage1_key(other)
+    cfg = TrainConfig(method="patexgs", iters_2dgs=5, iters_tex=3, warmup_tex=1)
+    other = TrainConfig(method="2dgs", iters_2dgs=5, lambda_normal=0.5)
+    assert stage1_key(cfg) == stage1_key(TrainConfig(method="2dgs", iters_2dgs=5, iters_tex=99))
+    assert stage1_key(cfg) != stage1_key(other)
     from patexgs_jax import checkpoint as ckpt
 
     path = ckpt.save_checkpoint(ckpt.checkpoint_path(tmp_path / "checkpoints", 5), {"x": 1},
-                                dict(config=T._config_dict(other), step=5))
-    assert T.stage1_checkpoint(tmp_path, cfg) is None
-    run = T._Run.__new__(T._Run)
+                                dict(config=config_dict(other), step=5))
+    assert stage1_checkpoint(tmp_path, cfg) is None
+    run = Trainer.__new__(Trainer)
     with pytest.raises(ValueError, match="lambda_normal"):
-        T._load_stage1(run, path, cfg)
+        load_stage1(run, path, cfg)
 
 
 def test_tables_follow_the_paper_layouts():
     e = lambda p: {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "2": dict(psnr=p + 1, ssim=0.85, lpips=None),  # noqa: E731
-                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0), "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
+                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0),
+                   "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
                    "storage_mb": 1.5, "num_gaussians": 100, "texels": 10, "train_seconds": 3.0, "render_ms": 4.0}
     keys = ["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-rgb-mip", "textured-fixed-8", "patexgs(10%)"]
     data = {"config": {"preset": "tiny"},

@@ -18,7 +18,6 @@ so every gradient entry agrees to ``RTOL * |g| + ATOL * max|g of its leaf|``.
 
 from __future__ import annotations
 
-import importlib
 import json
 import os
 import subprocess
@@ -90,9 +89,8 @@ def _setup():
 
 def _config(batch_size, devices):
     from patexgs_jax.densify import DensifyConfig
-
-    T = importlib.import_module("patexgs_jax.train")
-    return T.TrainConfig(method="2dgs", iters_2dgs=8, batch_size=batch_size, devices=devices, sh_degree=1,
+    from patexgs_jax.training.config import TrainConfig
+    return TrainConfig(method="2dgs", iters_2dgs=8, batch_size=batch_size, devices=devices, sh_degree=1,
                          sh_interval=4, normal_from=4, lambda_dist=0.01, log_every=4, checkpoint_every=100,
                          densify=DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000))
 
@@ -125,13 +123,12 @@ def check_equivalence(ds, scene):
     import jax.numpy as jnp
 
     from patexgs_jax.optim import adam_moments
-
-    T = importlib.import_module("patexgs_jax.train")
+    from patexgs_jax.training.trainer import Trainer
     views = ds.train_views[:4]
     images = [v.image for v in views]
     res, runs = {}, {}
     for n in (DEVICES, 1):
-        run = runs[n] = T._Run(ds, _config(4, n), None, verbose=False)
+        run = runs[n] = Trainer(ds, _config(4, n), None, verbose=False)
         sh, wn = _start(run, scene, 1024)
         data = run.batch_inputs(views, images)
         new_scene, new_opt, new_stats, m = run.step_fn()(run.scene, run.opt_state, run.stats, *data, sh, wn)
@@ -139,7 +136,7 @@ def check_equivalence(ds, scene):
         res[n] = dict(loss=float(m["loss"]), g=jax.tree_util.tree_map(lambda x: x / 0.1, adam_moments(new_opt)[0]),
                       scene=new_scene, stats=new_stats, devices=len(new_scene.means.sharding.device_set),
                       batch_devices=len(data[1].sharding.device_set))
-    single = T._Run(ds, _config(1, None), None, verbose=False)
+    single = Trainer(ds, _config(1, None), None, verbose=False)
     sh, wn = _start(single, scene, 1024)
     losses, grads, stats = [], [], single.stats
     for v in views:
@@ -168,28 +165,29 @@ def check_training(run, scene):
     """8 steps of batch 4 on 4 devices, starting at capacity 256 (overflows on the first batch)."""
     import jax
 
-    T = importlib.import_module("patexgs_jax.train")
+    from patexgs_jax.training.step import STEP_TRACES
+    from patexgs_jax.training.trainer import Trainer
     _start(run, scene, 256)
     n = len(run.train_views)
     bad = [s for s in range(run.cfg.total_steps)  # steps whose batch holds the non-finite view 5
            if any(run.train_views[np.random.default_rng([run.cfg.seed, k // n]).permutation(n)[k % n]].name == "v5"
                   for k in range(4 * s, 4 * s + 4))]
     calls = []
-    orig = T._Run.step_fn
+    orig = Trainer.step_fn
 
     def step_fn(self):
         calls.append((self.step, self.capacity.pairs))
         return orig(self)
 
-    T._Run.step_fn = step_fn
-    traces = sum(T.STEP_TRACES.values())
+    Trainer.step_fn = step_fn
+    traces = sum(STEP_TRACES.values())
     try:
         run.run()
     finally:
-        T._Run.step_fn = orig
+        Trainer.step_fn = orig
     moved = float(np.max(np.abs(np.asarray(run.scene.means) - np.asarray(scene.means))))
     return dict(steps=run.step, skipped=run.skipped, expected_skipped=len(bad), bad_steps=bad,
-                traces=sum(T.STEP_TRACES.values()) - traces, calls=calls, capacity=run.capacity.pairs,
+                traces=sum(STEP_TRACES.values()) - traces, calls=calls, capacity=run.capacity.pairs,
                 mesh=len(run.data_mesh().devices.flat), moved=moved,
                 finite=bool(all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(run.scene))),
                 stats_count=float(np.sum(np.asarray(run.stats.count))))

@@ -9,15 +9,14 @@ the notebook test's, so in one pytest process the two reuse compiled steps.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 
 import numpy as np
 import pytest
 
 from experiments import tradeoffs as tr
-
-T = importlib.import_module("patexgs_jax.train")
+from patexgs_jax import training
+from patexgs_jax.training.config import preset_config, stage1_key
 
 # The notebook's PATEXGS_NOTEBOOK_TINY settings (see notebooks/explore.ipynb).
 TINY = dict(iters_2dgs=20, iters_tex=8, warmup_tex=3, growth_interval=1000, normal_from=10, sh_interval=5,
@@ -25,7 +24,7 @@ TINY = dict(iters_2dgs=20, iters_tex=8, warmup_tex=3, growth_interval=1000, norm
 
 
 def base_config(**kw):
-    return T.preset_config("tiny", method="patexgs", **dict(TINY, **kw))
+    return preset_config("tiny", method="patexgs", **dict(TINY, **kw))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -64,16 +63,17 @@ def test_pareto_front_matches_definition():
 
 
 def test_plan_shares_stage1_where_only_stage2_differs():
-    base = T.preset_config("tiny", method="patexgs", iters_tex=60)
+    base = preset_config("tiny", method="patexgs", iters_tex=60)
     entries = tr.plan(base, tr.KNOBS, base_gaussians=3900)
     by = {(e.knob, e.label): e.config for e in entries}
     assert entries[0].config == base
-    key = T.stage1_key(base)
+    key = stage1_key(base)
     for knob in ("mip", "texture"):
         for (k, _), cfg in by.items():
             if k == knob:
-                assert T.stage1_key(cfg) == key
-    assert {by[("mip", m)].render_config().mip for m in ("none", "nearest", "trilinear")} == {"none", "nearest", "trilinear"}
+                assert stage1_key(cfg) == key
+    mips = ("none", "nearest", "trilinear")
+    assert {by[("mip", m)].render_config().mip for m in mips} == set(mips)
     assert by[("texture", "fixed 1x1")].method == "textured-fixed-1"
     assert by[("budget", "10%")].max_gaussians == 390 and by[("budget", "1%")].max_gaussians == 39
     assert by[("budget", "100%")] == base
@@ -83,7 +83,7 @@ def test_plan_shares_stage1_where_only_stage2_differs():
     assert [by[("sh", f"degree {d}")].sh_degree for d in range(4)] == [0, 1, 2, 3]
     for (k, _), cfg in by.items():
         if k in ("budget", "iters", "sh") and cfg != base:
-            assert T.stage1_key(cfg) != key
+            assert stage1_key(cfg) != key
     # Without the base run's count only the 100 % budget entry is planned.
     assert [e.label for e in tr.plan(base, ["budget"])] == ["100%"]
     # The stage-1 run of a textured entry is the texture knob's 2DGS entry.
@@ -97,7 +97,8 @@ def test_markdown_table():
         run=rid, method=method, train_seconds=ts, render_ms={"1": ms, "2": ms / 4}, psnr={"1": p1, "2": p2},
         ssim={"1": 0.5, "2": 0.5}, num_gaussians=100, storage_mb=1.5)
     study = dict(data="/x/scene", preset="tiny", scales=[1, 2], machine="test",
-                 runs={"a": run("a", "patexgs", 100.0, 50.0, 25.0, 24.0), "b": run("b", "2dgs", 50.0, 10.0, 22.0, 24.5)},
+                 runs={"a": run("a", "patexgs", 100.0, 50.0, 25.0, 24.0),
+                       "b": run("b", "2dgs", 50.0, 10.0, 22.0, 24.5)},
                  knobs={"texture": [dict(label="adaptive", value="adaptive", run="a"),
                                     dict(label="none (2DGS)", value=0, run="b"),
                                     dict(label="fixed 4x4", value=4, run="c")]})
@@ -163,7 +164,8 @@ def test_study_end_to_end(study):
     # Pareto fronts hold evaluated runs and agree with pareto_front on the stored numbers.
     ids = list(runs)
     for s in ("1", "2"):
-        want = [ids[i] for i in tr.pareto_front([runs[r]["render_ms"][s] for r in ids], [runs[r]["psnr"][s] for r in ids])]
+        front = tr.pareto_front([runs[r]["render_ms"][s] for r in ids], [runs[r]["psnr"][s] for r in ids])
+        want = [ids[i] for i in front]
         assert saved["pareto"]["render_ms"][s] == want
     assert (st.out / "tradeoffs.png").stat().st_size > 10_000
     md = (st.out / "tradeoffs.md").read_text()
@@ -178,7 +180,7 @@ def test_study_resume_skips_finished(study, dataset, monkeypatch):
     def no_training(*a, **k):
         raise AssertionError("a finished run was trained again")
 
-    monkeypatch.setattr(T, "train", no_training)
+    monkeypatch.setattr(training, "train", no_training)  # the study imports it when it runs
     again = tr.Study(dataset, st.base, st.out, data_name="embedded", preset="tiny", scales=(1, 2), verbose=False,
                      render_views=1)
     assert again.run(["texture"], fixed_sizes=(1,))["runs"] == state["runs"]
@@ -221,7 +223,7 @@ def test_effects_and_reduced_export(study, dataset, tmp_path):
     res = tr.run_effects(run_dir, dataset, tmp_path, scales=(1,), drop_below=1e9, verbose=False, max_views=1)
     assert json.loads((tmp_path / "effects.json").read_text())["reduced"]["dropped"] == list(tr.EFFECTS)
     full = res["full"]["psnr"]["1"]
-    for e, v in res["effects"].items():
+    for v in res["effects"].values():
         assert v["gain_db"]["1"] == pytest.approx(full - v["off"]["psnr"]["1"], abs=1e-9)
     # The reduced export: no textures, DC colour only, no mipmaps; it loads and renders the same
     # image as switching the effects off in memory, with no more work.

@@ -12,7 +12,6 @@ runs mostly hit compiled code; the CLI subprocesses share a persistent compilati
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import os
 import re
@@ -27,22 +26,26 @@ import numpy as np
 import pytest
 
 from patexgs_jax import checkpoint as ckpt
+from patexgs_jax import densify as dens
 from patexgs_jax import losses
 from patexgs_jax import schedule as sched
 from patexgs_jax.data import load
 from patexgs_jax.data.synthetic import generate
 from patexgs_jax.densify import DensifyConfig
 from patexgs_jax.optim import adam_moments
-
-# The package attribute ``patexgs_jax.train`` is the train() function; this is the module.
-T = importlib.import_module("patexgs_jax.train")
+from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
+from patexgs_jax.training.evaluation import evaluate
+from patexgs_jax.training.run import stage1_checkpoint, train
+from patexgs_jax.training.step import STEP_TRACES
+from patexgs_jax.training.strategies import TextureStage, growth_schedule, growth_steps
+from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
 
 BEER = Path(__file__).resolve().parents[2] / "shared" / "data" / "beer"
 PER_GAUSSIAN = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
 NO_DENSIFY = DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000)
 
 
-def tiny_config(**kw) -> T.TrainConfig:
+def tiny_config(**kw) -> TrainConfig:
     """The main run's settings: 30 2DGS steps (densify at 3, 6, 9; the first doubles the capacity
     512 -> 1024, capped at 700 Gaussians), then 24 texture steps (warm-up 3, allocation at 33,
     growth at 36, 39, ..., 48, textures up to 6 x 6)."""
@@ -52,7 +55,7 @@ def tiny_config(**kw) -> T.TrainConfig:
                 densify=DensifyConfig(start=2, stop=12, interval=3, prune_opacity=0.095,
                                       opacity_reset_interval=10_000))
     base.update(kw)
-    return T.TrainConfig(**base)
+    return TrainConfig(**base)
 
 
 class Killed(Exception):
@@ -62,7 +65,7 @@ class Killed(Exception):
 def train_killed(dataset, config, out, kill_after: int, resume: bool):
     """Trains until ``kill_after`` steps are complete (after their host-side work, before a
     checkpoint of that step is written), then 'dies'."""
-    orig = T._Run.after_step
+    orig = Trainer.after_step
 
     def after_step(self, step):
         orig(self, step)
@@ -70,9 +73,9 @@ def train_killed(dataset, config, out, kill_after: int, resume: bool):
             raise Killed(step)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(T._Run, "after_step", after_step)
+        mp.setattr(Trainer, "after_step", after_step)
         with pytest.raises(Killed):
-            T.train(dataset, config, out, resume=resume, verbose=False)
+            train(dataset, config, out, resume=resume, verbose=False)
 
 
 def ckpt_step(out) -> int:
@@ -149,9 +152,9 @@ def run_p(dataset, tmp_path_factory):
     cfg = tiny_config()
     out = tmp_path_factory.mktemp("run_p")
     rec = dict(keys=set(), problems=[], capacities=set(), pruned=0, checks=0)
-    init = T.init_scene(dataset.points, dataset.colors, cfg)
-    rec["psnr_init"] = T.evaluate(init, dataset.train_views, cfg.render_config())["psnr"]
-    orig_step_fn, orig_after, orig_start = T._Run.step_fn, T._Run.after_step, T._Run.start_textures
+    init = init_scene(dataset.points, dataset.colors, cfg)
+    rec["psnr_init"] = evaluate(init, dataset.train_views, cfg.render_config())["psnr"]
+    orig_step_fn, orig_after, orig_start = Trainer.step_fn, Trainer.after_step, TextureStage.start
 
     def step_fn(self):
         rec["keys"].add((self.capacity, shape_key(self.scene, self.opt_state, self.stats)))
@@ -166,17 +169,17 @@ def run_p(dataset, tmp_path_factory):
         rec["problems"] += [f"step {step}: {p}" for p in alignment_problems(self.scene, self.opt_state)]
         rec["checks"] += 1
 
-    def start_textures(self):
-        rec["psnr_stage1"] = T.evaluate(self.scene, self.train_views, self.render_cfg)["psnr"]
-        orig_start(self)
+    def start_textures(self, state):
+        rec["psnr_stage1"] = evaluate(state.scene, self.train_views, self.render_config)["psnr"]
+        return orig_start(self, state)
 
-    traces = sum(T.STEP_TRACES.values())
+    traces = sum(STEP_TRACES.values())
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(T._Run, "step_fn", step_fn)
-        mp.setattr(T._Run, "after_step", after_step)
-        mp.setattr(T._Run, "start_textures", start_textures)
-        result = T.train(dataset, cfg, out, verbose=False)
-    rec["traces"] = sum(T.STEP_TRACES.values()) - traces
+        mp.setattr(Trainer, "step_fn", step_fn)
+        mp.setattr(Trainer, "after_step", after_step)
+        mp.setattr(TextureStage, "start", start_textures)
+        result = train(dataset, cfg, out, verbose=False)
+    rec["traces"] = sum(STEP_TRACES.values()) - traces
     tree, meta = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
     return dict(cfg=cfg, out=out, result=result, rec=rec, final=tree, meta=meta)
 
@@ -240,7 +243,7 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     # ... and after two growth events (resumes with a texture schedule state).
     train_killed(dataset, cfg, out, kill_after=41, resume=True)
     assert ckpt_step(out) == 39
-    result = T.train(dataset, cfg, out, resume=True, verbose=False)
+    result = train(dataset, cfg, out, resume=True, verbose=False)
     assert result.summary["steps"] == 54
     # CPU XLA runs the same executables on the same inputs: expect bitwise equality.
     chex.assert_trees_all_equal(result.scene, run_p["result"].scene, custom_message="scene")  # bitwise
@@ -251,15 +254,15 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     for key in ("allocation", "growth_events", "sides_final"):
         assert result.summary[key] == run_p["result"].summary[key], key
     # A finished run resumes to itself; without resume the directory is refused.
-    again = T.train(dataset, cfg, out, resume=True, verbose=False)
+    again = train(dataset, cfg, out, resume=True, verbose=False)
     assert_trees_equal(again.scene, result.scene, "scene after a no-op resume")
     with pytest.raises(FileExistsError, match="resume"):
-        T.train(dataset, cfg, out, verbose=False)
+        train(dataset, cfg, out, verbose=False)
     with pytest.raises(ValueError, match=r"different configuration \(seed differ"):
-        T.train(dataset, dataclasses.replace(cfg, seed=1), out, resume=True, verbose=False)
+        train(dataset, dataclasses.replace(cfg, seed=1), out, resume=True, verbose=False)
     # Fields that only change how a run executes may differ on resume.
     other = dataclasses.replace(cfg, log_every=7, checkpoint_every=cfg.checkpoint_every + 1, devices=1)
-    assert_trees_equal(T.train(dataset, other, out, resume=True, verbose=False).scene, result.scene, "log_every")
+    assert_trees_equal(train(dataset, other, out, resume=True, verbose=False).scene, result.scene, "log_every")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -292,10 +295,10 @@ def test_recompiles_counted(run_p):
 
 def test_steady_state_has_one_trace(dataset):
     cfg = tiny_config(method="2dgs", iters_2dgs=12, densify=NO_DENSIFY)
-    traces = sum(T.STEP_TRACES.values())
-    result = T.train(dataset, cfg, None, verbose=False)
+    traces = sum(STEP_TRACES.values())
+    result = train(dataset, cfg, None, verbose=False)
     assert result.summary["recompiles"] == 1
-    assert sum(T.STEP_TRACES.values()) - traces == 1
+    assert sum(STEP_TRACES.values()) - traces == 1
 
 
 def test_progress_bar_when_forced(dataset, capfd, monkeypatch):
@@ -304,7 +307,7 @@ def test_progress_bar_when_forced(dataset, capfd, monkeypatch):
 
     monkeypatch.setenv(progress.ENV_VAR, "1")
     cfg = tiny_config(method="2dgs", iters_2dgs=8, densify=NO_DENSIFY, checkpoint_every=4, log_every=4)
-    T.train(dataset, cfg, None, verbose=True)
+    train(dataset, cfg, None, verbose=True)
     out, err = capfd.readouterr()
     assert re.search(r"train 2dgs: +\d+%\|.*\| [0-8]/8 \[\d\d:\d\d<", err), err
     assert [line.split()[:2] for line in out.splitlines() if line.startswith("step ")] == [["step", "4/8"],
@@ -331,7 +334,7 @@ def test_bad_views_are_skipped(dataset, tmp_path, capsys):
     views[perm[6]] = BadView(bad_pose, views[perm[6]].image, "nan-pose")
     ds = dataclasses.replace(dataset, train_views=tuple(views))
     cfg = tiny_config(method="2dgs", iters_2dgs=8, densify=NO_DENSIFY, checkpoint_every=4, log_every=4)
-    result = T.train(ds, cfg, tmp_path / "out", verbose=True)
+    result = train(ds, cfg, tmp_path / "out", verbose=True)
     said, err = capsys.readouterr()
     assert "train 2dgs" not in err  # no progress bar: stderr is not a terminal
     for step, name in ((2, "nan-pixels"), (4, "empty"), (6, "nan-pose")):
@@ -362,12 +365,12 @@ def test_repeated_nonfinite_steps_stop_the_run(dataset, tmp_path):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(losses, "photometric", nan_loss)
         with pytest.raises(FloatingPointError, match="3 consecutive non-finite steps"):
-            T.train(dataset, cfg, out, resume=True, verbose=False)
+            train(dataset, cfg, out, resume=True, verbose=False)
     assert ckpt.latest_checkpoint(out / "checkpoints") == good and good.read_bytes() == good_bytes
     tree, _ = ckpt.load_checkpoint(good)
     assert all_finite(tree["scene"]) and all_finite(tree["opt_state"])
     # The kept checkpoint resumes normally once the cause is gone.
-    result = T.train(dataset, cfg, out, resume=True, verbose=False)
+    result = train(dataset, cfg, out, resume=True, verbose=False)
     assert result.summary["steps"] == 12 and all_finite(result.scene)
 
 
@@ -380,23 +383,24 @@ def test_texture_budget_leaves_growth_room_and_is_met(dataset):
     mb = 0.09
     budget = sched.mb_to_texels(mb)
     cfg = tiny_config(texture_budget_mb=mb, budget_eq7_share=0.6)
-    run = T._Run(dataset, cfg, None, verbose=False)
+    run = Trainer(dataset, cfg, None, verbose=False)
     run.fresh()
-    run.start_textures()
-    run.allocate_textures()
+    tex = run.textures
+    run.state = tex.start(run.state)
+    run.state = tex.allocate(run.state, run.step)
     texels = run.scene.texel_count()
-    assert texels["rgb"] == texels["alpha"] == run.allocation["texels"]
+    assert texels["rgb"] == texels["alpha"] == tex.allocation["texels"]
     assert abs(texels["rgb"] - 0.6 * budget) <= 0.01 * 0.6 * budget, (texels, budget)
-    assert run.allocation["budget_texels"] == run.texel_budget == budget
+    assert tex.allocation["budget_texels"] == tex.texel_budget == budget
     # Growth with a gradient that selects every textured Gaussian at every event: it fills the room.
     act = np.asarray(run.scene.active) > 0
-    schedule = run.growth_schedule()
-    state = run.tex_state
+    schedule = tex.schedule
+    state = tex.state
     top = int(np.flatnonzero(act)[0])
-    for t in T.growth_steps(cfg):
+    for t in growth_steps(cfg):
         grad = np.where(act, 0.95 * schedule.tau_high(t, 1.0), 0.0)  # inside Eq. 8's band ...
         grad[top] = 1.0  # ... under tau_max = 1
-        state, sides, sel = state.step(grad, t, schedule, active=act, texel_budget=run.texel_budget)
+        state, sides, sel = state.step(grad, t, schedule, active=act, texel_budget=tex.texel_budget)
         assert sched.total_texels(sides, act) <= budget
     grown = sched.total_texels(state.sides(cfg.max_texture_size), act)
     assert grown > texels["rgb"] and abs(grown - budget) <= 0.01 * budget, (grown, budget)
@@ -404,23 +408,23 @@ def test_texture_budget_leaves_growth_room_and_is_met(dataset):
 
 def test_patexgs_fixed_differs_from_patexgs_only_in_sizes(dataset):
     """patexgs-fixed-N: the patexgs warm-up and render settings, N x N at the allocation, no growth."""
-    assert T.method_spec("patexgs-fixed-3") == dict(T.method_spec("patexgs"), size=3)
+    assert Method.from_name("patexgs-fixed-3") == dataclasses.replace(Method.from_name("patexgs"), size=3)
     cfg = tiny_config(method="patexgs-fixed-3")
     assert cfg.render_config() == tiny_config().render_config()
-    run = T._Run(dataset, cfg, None, verbose=False)
+    run = Trainer(dataset, cfg, None, verbose=False)
     run.fresh()
-    run.start_textures()
+    run.state = run.textures.start(run.state)
     act = np.asarray(run.scene.active) > 0
     assert np.all(np.asarray(run.scene.alpha.size)[act] == 5)  # the same warm-up textures as patexgs
-    run.allocate_textures()
+    run.state = run.textures.allocate(run.state, run.step)
     for bank in (run.scene.rgb, run.scene.alpha):
         assert np.all(np.asarray(bank.size)[act] == 3) and np.all(np.asarray(bank.size)[~act] == 0)
-    assert run.allocation["sigma"] is None and run.allocation["sides"] == {"3": int(act.sum())}
+    assert run.textures.allocation["sigma"] is None and run.textures.allocation["sides"] == {"3": int(act.sum())}
     scene = run.scene
-    run.after_step(T.growth_schedule(cfg).t0)  # a growth step of patexgs: nothing grows
-    assert run.scene is scene and run.growth_events == []
+    run.after_step(growth_schedule(cfg).t0)  # a growth step of patexgs: nothing grows
+    assert run.scene is scene and run.textures.growth_events == []
     with pytest.raises(ValueError, match="patexgs-fixed-N"):
-        T.TrainConfig(method="patexgs-fixed-33")
+        TrainConfig(method="patexgs-fixed-33")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -465,58 +469,58 @@ def test_cli(scene_dir, tmp_path, compile_cache):
 # 8. Methods
 # ------------------------------------------------------------------------------------------------
 ALL_METHODS = (["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-alpha-mip", "patexgs-no-rgb-mip",
-                "patexgs-no-adaptive"] + [f"textured-fixed-{n}" for n in T.FIXED_SIZES])
+                "patexgs-no-adaptive"] + [f"textured-fixed-{n}" for n in FIXED_SIZES])
 
 
 @pytest.mark.parametrize("method", ALL_METHODS)
 def test_method_names_parse(method):
-    spec = T.method_spec(method)
-    cfg = T.TrainConfig(method=method)
+    spec = Method.from_name(method)
+    cfg = TrainConfig(method=method)
     rc = cfg.render_config()
-    assert spec["textures"] in (None, "fixed", "adaptive")
-    assert (spec["textures"] is None) == (method == "2dgs") == (cfg.total_steps == cfg.iters_2dgs)
+    assert spec.textures in (None, "fixed", "adaptive")
+    assert (spec.textures is None) == (method == "2dgs") == (cfg.total_steps == cfg.iters_2dgs)
     assert (rc.mip == "none") == (method == "2dgs" or method.startswith("textured-fixed") or method.endswith("no-mip"))
-    if spec["textures"] == "fixed":
-        assert spec["size"] == (8 if method == "patexgs-no-adaptive" else int(method.rsplit("-", 1)[1]))
+    if spec.textures == "fixed":
+        assert spec.size == (8 if method == "patexgs-no-adaptive" else int(method.rsplit("-", 1)[1]))
 
 
 @pytest.mark.parametrize("method", ["textured-fixed-5", "textured-fixed-", "textured-fixed-x", "patexgs-no",
                                     "3dgs", ""])
 def test_bad_method_names(method):
     with pytest.raises(ValueError, match="method|textured-fixed-N"):
-        T.TrainConfig(method=method)
+        TrainConfig(method=method)
 
 
 def test_iteration_overrides_scale_the_texture_schedule_or_are_refused():
     """--iters-tex scales the preset's warm-up and growth interval (Eq. 7 and growth still happen);
     an explicit schedule whose warm-up outlasts the texture stage is refused with the fix."""
-    tiny = T.PRESETS["tiny"]
-    cfg = T.preset_config("tiny", iters_tex=2 * tiny["iters_tex"])
+    tiny = PRESETS["tiny"]
+    cfg = preset_config("tiny", iters_tex=2 * tiny["iters_tex"])
     assert (cfg.warmup_tex, cfg.growth_interval) == (2 * tiny["warmup_tex"], 2 * tiny["growth_interval"])
-    paper = T.preset_config("paper", iters_tex=600)  # the paper's 1,000-step warm-up, scaled to 20
+    paper = preset_config("paper", iters_tex=600)  # the paper's 1,000-step warm-up, scaled to 20
     assert (paper.warmup_tex, paper.growth_interval) == (20, 2) and paper.warmup_tex < paper.iters_tex
-    kept = T.preset_config("tiny", iters_tex=60, warmup_tex=7)  # given fields are kept
+    kept = preset_config("tiny", iters_tex=60, warmup_tex=7)  # given fields are kept
     assert (kept.warmup_tex, kept.growth_interval) == (7, 4)  # 15 * 60 / 200 = 4.5, rounded half to even
-    assert T.preset_config("tiny") == T.TrainConfig(**tiny)
+    assert preset_config("tiny") == TrainConfig(**tiny)
     with pytest.raises(ValueError, match=r"warm-up.*only 30 steps.*--iters-tex"):
-        T.TrainConfig(method="patexgs", iters_tex=30, warmup_tex=30)
-    T.TrainConfig(method="textured-fixed-4", iters_tex=30, warmup_tex=30)  # no Eq. 7: nothing to skip
+        TrainConfig(method="patexgs", iters_tex=30, warmup_tex=30)
+    TrainConfig(method="textured-fixed-4", iters_tex=30, warmup_tex=30)  # no Eq. 7: nothing to skip
     with pytest.raises(ValueError, match="growth_interval"):
-        T.TrainConfig(growth_interval=0)
+        TrainConfig(growth_interval=0)
 
 
 @pytest.mark.parametrize("preset", ["tiny", "cpu"])
 def test_presets_give_every_texture_stage_room(preset):
     """Warm-up, then Eq. 7, then several growth events, each followed by a whole interval of training
     (the run_p fixture checks that the events fire and grow textures)."""
-    cfg = T.preset_config(preset, method="patexgs")
+    cfg = preset_config(preset, method="patexgs")
     alloc = cfg.iters_2dgs + cfg.warmup_tex
-    steps = T.growth_steps(cfg)
+    steps = growth_steps(cfg)
     assert cfg.iters_2dgs < alloc < steps[0] and len(steps) >= 5, steps
     assert np.all(np.diff(steps) == cfg.growth_interval)
     assert steps[-1] + cfg.growth_interval <= cfg.total_steps  # the last event's textures are trained
     for fixed in ("patexgs-fixed-4", "textured-fixed-4", "2dgs"):
-        assert T.growth_steps(T.preset_config(preset, method=fixed)) == []
+        assert growth_steps(preset_config(preset, method=fixed)) == []
 
 
 def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_path, monkeypatch):
@@ -524,16 +528,16 @@ def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_p
     after its stage), and keeps its end-of-stage-1 checkpoint out of the rotation for the others."""
     late = DensifyConfig(start=7, stop=12, interval=1, opacity_reset_interval=10_000)  # due after step 6 only
     calls = []
-    real = T.dens.densify_and_prune
-    monkeypatch.setattr(T.dens, "densify_and_prune", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = dens.densify_and_prune
+    monkeypatch.setattr(dens, "densify_and_prune", lambda *a, **k: calls.append(1) or real(*a, **k))
     cfg = tiny_config(method="2dgs", iters_2dgs=6, continue_2dgs=4, densify=late, checkpoint_every=2)
     assert cfg.total_steps == 10
-    res = T.train(dataset, cfg, tmp_path / "2dgs", verbose=False)
+    res = train(dataset, cfg, tmp_path / "2dgs", verbose=False)
     assert res.summary["steps"] == 10 and res.summary["texels"] == 0 and calls == []
     assert ckpt_step(tmp_path / "2dgs") == 10
     tex = tiny_config(method="textured-fixed-2", iters_2dgs=6, iters_tex=4, densify=late, checkpoint_every=2)
-    s1 = T.stage1_checkpoint(tmp_path / "2dgs", tex)
-    assert s1 is not None and s1.parent.name == T.STAGE1_DIR and ckpt.read_metadata(s1)["step"] == 6
+    s1 = stage1_checkpoint(tmp_path / "2dgs", tex)
+    assert s1 is not None and s1.parent.name == STAGE1_DIR and ckpt.read_metadata(s1)["step"] == 6
     tree, _ = ckpt.load_checkpoint(s1)
     assert 0 < float(tree["t_train"]) < res.summary["train_seconds"]
     with pytest.raises(ValueError, match="continue_2dgs.*'2dgs' only"):
@@ -542,11 +546,11 @@ def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_p
 
 def test_textured_fixed_8(dataset):
     cfg = tiny_config(method="textured-fixed-8", iters_2dgs=3, iters_tex=3, densify=NO_DENSIFY)
-    run = T._Run(dataset, cfg, None, verbose=False)  # the loop of train(), without the final evaluation
+    run = Trainer(dataset, cfg, None, verbose=False)  # the loop of train(), without the final evaluation
     run.fresh()
     run.run()
     scene = run.scene
-    assert run.step == 6 and run.skipped == 0 and run.tex_state is None and all_finite(scene)
+    assert run.step == 6 and run.skipped == 0 and run.textures.state is None and all_finite(scene)
     act = np.asarray(scene.active) > 0
     for name in ("rgb", "alpha"):
         bank = getattr(scene, name)
@@ -572,8 +576,8 @@ def test_real_capture_beer(tmp_path):
     ds = dataclasses.replace(ds, train_views=tuple(v for v, s in zip(ds.train_views, sizes) if s == common),
                              test_views=tuple(v for v in ds.test_views
                                               if (v.camera.width, v.camera.height) == common))
-    cfg = T.TrainConfig(method="2dgs", iters_2dgs=30, max_gaussians=1000, densify=NO_DENSIFY, log_every=10)
-    result = T.train(ds, cfg, None, verbose=False)
+    cfg = TrainConfig(method="2dgs", iters_2dgs=30, max_gaussians=1000, densify=NO_DENSIFY, log_every=10)
+    result = train(ds, cfg, None, verbose=False)
     s = result.summary
     assert s["steps"] == 30 and s["skipped_steps"] == 0 and s["num_gaussians"] == 1000
     assert all_finite(result.scene) and np.isfinite(s["train_psnr"])

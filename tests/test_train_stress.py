@@ -8,8 +8,6 @@ Host-side and eager: no renderer compile.
 
 from __future__ import annotations
 
-import importlib
-
 import chex
 import jax
 import jax.numpy as jnp
@@ -21,8 +19,10 @@ from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import random_scene
 from patexgs_jax.densify import DensifyConfig, DensifyStats, densify_and_prune, prune_gaussians
 from patexgs_jax.optim import LearningRates, adam_moments, make_optimizer
+from patexgs_jax.training.config import TrainConfig
+from patexgs_jax.training.run import train
+from patexgs_jax.training.trainer import Trainer
 
-T = importlib.import_module("patexgs_jax.train")
 RADIUS = 2.0
 LR = LearningRates(means_steps=5)
 
@@ -108,7 +108,7 @@ def test_capacity_growth_several_times_keeps_optimizer_finite():
                         max_world_scale=None)
     caps = [scene.capacity]
     for k in range(4):
-        scene, state = steps(opt, scene, state, lambda s: random_grads(s, rng, scale=10.0 ** (3 * k - 4)), 2)
+        scene, state = steps(opt, scene, state, lambda s, k=k: random_grads(s, rng, scale=10.0 ** (3 * k - 4)), 2)
         C = scene.capacity
         stats = DensifyStats(grad_sum=jnp.ones(C), count=jnp.ones(C), max_radius=jnp.zeros(C))
         scene, state, _, info = densify_and_prune(scene, state, stats, cfg, RADIUS, k)
@@ -159,7 +159,7 @@ class TinyData:
 
 def _never_run(monkeypatch):
     calls = []
-    monkeypatch.setattr(T._Run, "run", lambda self: calls.append("run"))
+    monkeypatch.setattr(Trainer, "run", lambda self: calls.append("run"))
     return calls
 
 
@@ -173,7 +173,7 @@ def test_unwritable_output_fails_before_training(tmp_path, monkeypatch, errno, m
     # A full disk fails the probe's write/fsync; a read-only one its creation.
     monkeypatch.setattr(ckpt.os, "fsync", fail) if errno == 28 else monkeypatch.setattr(ckpt.tempfile, "mkstemp", fail)
     with pytest.raises(ckpt.CheckpointError, match=f"not writable: {msg}"):
-        T.train(TinyData(), T.TrainConfig(method="2dgs", iters_2dgs=5), tmp_path / "out", verbose=False)
+        train(TinyData(), TrainConfig(method="2dgs", iters_2dgs=5), tmp_path / "out", verbose=False)
     assert calls == []
 
 
@@ -184,5 +184,5 @@ def test_too_little_space_for_checkpoints_fails_before_training(tmp_path, monkey
     real = ckpt.shutil.disk_usage
     monkeypatch.setattr(ckpt.shutil, "disk_usage", lambda p: real(p)._replace(free=64 * 1024))
     with pytest.raises(ckpt.CheckpointError, match=r"MiB free.*MiB are needed"):
-        T.train(TinyData(), T.TrainConfig(method="2dgs", iters_2dgs=5), tmp_path / "out", verbose=False)
+        train(TinyData(), TrainConfig(method="2dgs", iters_2dgs=5), tmp_path / "out", verbose=False)
     assert calls == []

@@ -1,0 +1,29 @@
+"""Training: configuration, the jitted step, the host-side strategies, the run and its command line.
+
+One module a concern:
+
+- :mod:`.config`: :class:`TrainConfig`, the methods (:class:`Method`), the presets;
+- :mod:`.step`: the jitted single-view and batched steps;
+- :mod:`.strategies`: densification and the texture stage, called between steps;
+- :mod:`.trainer`: the host loop (:class:`~.trainer.Trainer`);
+- :mod:`.run`: :func:`train` (resume, stage-1 sharing, outputs);
+- :mod:`.evaluation`: the PSNR / SSIM a run reports;
+- :mod:`.cli`: ``python -m patexgs_jax.train``.
+"""
+
+from .config import FIXED_SIZES, METHODS, PRESETS, Method, TrainConfig, preset_config
+from .evaluation import evaluate
+from .run import TrainResult, stage1_checkpoint, train
+
+__all__ = [
+    "FIXED_SIZES",
+    "METHODS",
+    "Method",
+    "PRESETS",
+    "TrainConfig",
+    "TrainResult",
+    "evaluate",
+    "preset_config",
+    "stage1_checkpoint",
+    "train",
+]

@@ -1,0 +1,183 @@
+"""One training run from start to outputs: :func:`train`, with resume and stage-1 sharing."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from .. import checkpoint as ckpt
+from .. import compiled
+from ..metrics import storage_mb
+from ..scene import Scene
+from .config import STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
+from .evaluation import evaluate
+from .strategies import side_histogram
+from .trainer import STAGE1_DIR, Trainer
+
+__all__ = ["STAGE2_FIELDS", "TrainResult", "load_stage1", "stage1_checkpoint", "train"]
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What :func:`train` returns: the trained scene and the summary written to ``summary.json``."""
+
+    scene: Scene
+    summary: dict
+    out_dir: Path | None
+
+
+def stage1_checkpoint(run_dir, config: TrainConfig) -> Path | None:
+    """The end-of-2DGS-stage checkpoint of the run in ``run_dir`` usable by ``config``, or None: the
+    run's final checkpoint if it ended there, else the copy kept in ``checkpoints/stage1/``."""
+    directory = Path(run_dir) / "checkpoints"
+    paths = list(reversed(ckpt.list_checkpoints(directory))) + list(reversed(ckpt.list_checkpoints(
+        directory / STAGE1_DIR)))
+    for path in paths:
+        try:
+            meta = ckpt.read_metadata(path)
+        except ckpt.CheckpointError:
+            continue
+        cfg = meta.get("config") or {}
+        if meta.get("step") == config.iters_2dgs and stage1_part(cfg) == stage1_key(config):
+            return path
+    return None
+
+
+def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
+    """Starts ``run`` from the stage-1 checkpoint ``path``, after checking that it was trained with
+    ``config``'s 2DGS-stage settings and ended at the end of that stage."""
+    meta = ckpt.read_metadata(path)
+    cfg = stage1_part(meta.get("config") or {})
+    want = stage1_key(config)
+    if cfg != want:
+        diff = sorted(k for k in set(cfg) | set(want) if cfg.get(k) != want.get(k))
+        raise ValueError(f"stage-1 checkpoint {path} was trained with different 2DGS-stage settings "
+                         f"({', '.join(diff)}); train stage 1 again or pass a matching checkpoint.")
+    if meta.get("step") != config.iters_2dgs:
+        raise ValueError(f"stage-1 checkpoint {path} is at step {meta.get('step')}, not at the end of the "
+                         f"2DGS stage (step {config.iters_2dgs}).")
+    tree, _ = ckpt.load_checkpoint(path)
+    run.load_state(tree)
+    run.capacity = None  # refit for this method's render configuration
+    run.say(f"stage 1 from {path} ({run.t_train:.0f} s of 2DGS training)")
+
+
+def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
+          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
+          evaluate_everywhere: bool = False, end_distributed: bool = False,
+          check_memory: bool = True) -> TrainResult:
+    """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
+
+    Args:
+      dataset: a loaded dataset (train/test views, points).
+      config: :class:`TrainConfig`.
+      out_dir: where checkpoints, ``log.jsonl``, ``scene.ply`` (+ texture sidecar) and
+        ``summary.json`` go; None keeps everything in memory.
+      resume: continue from the newest complete checkpoint in ``out_dir`` if there is one.
+      verbose: print progress.
+      stage1: start from the end of another run's 2DGS stage instead of training it again: a
+        checkpoint file written at step ``config.iters_2dgs`` by a run whose config agrees with
+        ``config`` outside :data:`STAGE2_FIELDS` (see :func:`stage1_checkpoint`). The stage-1
+        training time is carried over into ``train_seconds``. Ignored when resuming.
+      map_guard: when the process nears the kernel's memory-map cap, compiled code is released and,
+        if that is not enough, the run checkpoints and raises :class:`compiled.MapLimitReached`
+        (default ``compiled.MapGuard()``: release at half the cap, stop at 90%).
+      evaluate_everywhere, end_distributed: with several processes (``jax.distributed``, see
+        :mod:`patexgs_jax.parallel`) every process trains and process 0 alone writes the outputs
+        and, by default, evaluates (the others' summaries have None metrics). With
+        ``evaluate_everywhere`` every process evaluates (the processes stay in step for what
+        follows); with ``end_distributed`` ``jax.distributed`` is shut down once training is done,
+        so the other processes can exit while process 0 evaluates and writes (the command line's
+        choice; nothing cross-process can follow).
+      check_memory: before the first step, compare the step's estimated memory with the memory
+        available (:func:`patexgs_jax.memory.check_training_memory`; CPU backend only).
+    Returns:
+      :class:`TrainResult`.
+    Raises:
+      compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
+      parallel.DistributedError: with several processes, they do not start from the same state, or
+        one of them stopped (the message says what to do).
+      memory.NotEnoughMemory: the step would not fit in memory (the message names a factor that fits).
+    """
+    # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
+    # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
+    from .. import parallel
+
+    compiled.release_compiled_code()
+    if jax.process_count() > 1:  # the batch must split evenly over every process's devices
+        parallel.num_batch_devices(config.batch_size, config.devices)
+    out = None if out_dir is None else Path(out_dir)
+    main = parallel.is_main_process()
+    if out is not None and main:
+        ckpt.check_writable(out)
+        ckpt.check_writable(out / "checkpoints")
+    run = Trainer(dataset, config, out, verbose, map_guard)
+    latest = ckpt.latest_checkpoint(out / "checkpoints") if (out is not None and resume) else None
+    if latest is not None:
+        tree, meta = ckpt.load_checkpoint(latest)
+        saved, wanted = comparable_config(meta.get("config") or {}), comparable_config(config_dict(config))
+        if saved != wanted:
+            differ = sorted(k for k in wanted if saved.get(k) != wanted[k])
+            raise ValueError(f"checkpoint {latest} was written with a different configuration ({', '.join(differ)} "
+                             "differ); resume with the same settings or choose a new output directory.")
+        run.load_state(tree)
+        run.say(f"resuming from {latest} at step {run.step}")
+    else:
+        if out is not None and not resume and ckpt.latest_checkpoint(out / "checkpoints") is not None:
+            raise FileExistsError(f"{out} already holds checkpoints; pass resume=True (--resume) to continue "
+                                  "that run, or choose another output directory.")
+        if stage1 is not None:
+            load_stage1(run, Path(stage1), config)
+        else:
+            run.fresh()
+    if out is not None and main:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
+        ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
+            np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
+    if jax.process_count() > 1:  # every process starts from the same state (data; checkpoint when resuming)
+        parallel.check_same("the starting state (step and a checksum of the scene); every process needs the same "
+                            "--data and, to resume, must see process 0's --out folder (a shared filesystem)",
+                            [run.step, parallel.tree_checksum(run.scene)])
+    if check_memory:  # a clear stop now rather than the kernel's OOM kill mid-step
+        from .. import memory
+
+        memory.check_training_memory(dataset, gaussians=max(run.scene.capacity, config.max_gaussians or 0),
+                                     textured=run.spec.textures is not None)
+    run.run()
+    scene = run.scene
+    texels = scene.texel_count()
+    summary: dict[str, Any] = dict(method=config.method, steps=run.step, train_seconds=run.t_train,
+                   num_gaussians=scene.num_active(), texels=texels["rgb"] + texels["alpha"],
+                   texels_rgb=texels["rgb"], texels_alpha=texels["alpha"],
+                   storage_mb=storage_mb(scene.num_active(), int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]),
+                   recompiles=run.recompiles, skipped_steps=run.skipped, allocation=run.textures.allocation,
+                   growth_events=run.textures.growth_events,
+                   sides_final=None if scene.rgb is None else side_histogram(
+                       np.asarray(scene.rgb.size), np.asarray(scene.active) > 0),
+                   stage1_from=None if stage1 is None else str(stage1))
+    if end_distributed and jax.process_count() > 1:
+        jax.distributed.shutdown()  # the processes are done with each other (every one calls this)
+    if main or evaluate_everywhere:
+        train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
+        test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
+    else:  # evaluation and outputs are process 0's
+        train_eval = test_eval = dict(psnr=None, ssim=None)
+    summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],
+                   config=config_dict(config))
+    if out is not None and main:
+        from ..export import export_ply
+
+        export_ply(scene, out / "scene.ply")
+        tmp = out / "summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=1))
+        tmp.replace(out / "summary.json")
+    if verbose and main:
+        print(f"done: train PSNR {summary['train_psnr']:.2f}, test PSNR "
+              f"{summary['test_psnr'] if summary['test_psnr'] is None else round(summary['test_psnr'], 2)}, "
+              f"{summary['num_gaussians']} Gaussians, {summary['texels']} texels, "
+              f"{summary['storage_mb']:.2f} MB, {summary['train_seconds']:.0f} s", flush=True)
+    return TrainResult(scene=scene, summary=summary, out_dir=out)
