@@ -37,6 +37,7 @@ Conventions, fixed for the whole package:
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Iterable
 
 import jax
@@ -47,6 +48,7 @@ from jax import lax
 __all__ = [
     "BYTES_PER_MB",
     "FLOATS_PER_GAUSSIAN_BASE",
+    "FLOATS_PER_RGBA_TEXEL",
     "STRIP_PIXELS",
     "psnr",
     "mean_psnr",
@@ -57,8 +59,11 @@ __all__ = [
     "sum_over_row_strips",
     "dssim_loss",
     "l1_dssim_loss",
+    "mb_to_texels",
+    "scene_storage",
     "storage_mb",
     "texel_count",
+    "texels_to_mb",
 ]
 
 BYTES_PER_MB = 2**20
@@ -66,6 +71,9 @@ BYTES_PER_MB = 2**20
 
 FLOATS_PER_GAUSSIAN_BASE = 3 + 2 + 4 + 1
 """Per-Gaussian floats besides colour: mean 3, scales 2 (2D Gaussians), rotation quaternion 4, opacity 1."""
+
+FLOATS_PER_RGBA_TEXEL = 4
+"""Floats per RGBA texel (3 RGB + 1 alpha); the unit of texel budgets (:mod:`patexgs_jax.adaptive`)."""
 
 
 # --------------------------------------------------------------------------------------------- PSNR
@@ -365,3 +373,30 @@ def storage_mb(
     values = int(num_gaussians) * (FLOATS_PER_GAUSSIAN_BASE + 3 * int(sh_coeffs))
     values += 3 * int(texels_rgb) + int(texels_alpha)
     return values * bytes_per_value / BYTES_PER_MB
+
+
+def mb_to_texels(mb: float, floats_per_texel: int = FLOATS_PER_RGBA_TEXEL, bytes_per_value: int = 4) -> int:
+    """Texels that fit in ``mb`` MiB (floor), consistent with :func:`storage_mb`.
+
+    With the default 4 floats (RGBA) a texel costs 16 bytes, so ``storage_mb(0, 0, t, t) <= mb`` for
+    ``t = mb_to_texels(mb)``.
+    """
+    if not mb >= 0 or floats_per_texel <= 0 or bytes_per_value <= 0:
+        raise ValueError("mb must be >= 0 and floats_per_texel, bytes_per_value positive.")
+    return int(math.floor(mb * BYTES_PER_MB / (floats_per_texel * bytes_per_value) + 1e-9))
+
+
+def texels_to_mb(texels: int, floats_per_texel: int = FLOATS_PER_RGBA_TEXEL, bytes_per_value: int = 4) -> float:
+    """MiB taken by ``texels`` texels of ``floats_per_texel`` floats (inverse of :func:`mb_to_texels`)."""
+    return int(texels) * floats_per_texel * bytes_per_value / BYTES_PER_MB
+
+
+def scene_storage(scene) -> dict:
+    """What a scene stores, for its active Gaussians: ``{"gaussians", "texels_rgb", "texels_alpha",
+    "texels", "storage_mb"}`` (texels as :meth:`patexgs_jax.Scene.texel_count`, storage as
+    :func:`storage_mb`)."""
+    n = scene.num_active()
+    texels = scene.texel_count()
+    return dict(gaussians=n, texels_rgb=texels["rgb"], texels_alpha=texels["alpha"],
+                texels=texels["rgb"] + texels["alpha"],
+                storage_mb=storage_mb(n, int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]))

@@ -453,10 +453,8 @@ def _programs() -> tuple:
 
 
 def scene_stats(scene) -> dict:
-    """``{"gaussians", "texels", "storage_mb"}`` of a scene (storage as :func:`metrics.storage_mb`)."""
-    from .metrics import storage_mb
+    """``{"gaussians", "texels", "storage_mb"}`` of a scene (see :func:`metrics.scene_storage`)."""
+    from .metrics import scene_storage
 
-    n = scene.num_active()
-    texels = scene.texel_count()
-    return dict(gaussians=n, texels=texels["rgb"] + texels["alpha"],
-                storage_mb=storage_mb(n, int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]))
+    size = scene_storage(scene)
+    return {k: size[k] for k in ("gaussians", "texels", "storage_mb")}

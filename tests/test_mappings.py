@@ -14,10 +14,10 @@ import pytest
 
 from patexgs_jax import Camera, RenderConfig, buckets, compiled, look_at, random_scene
 from patexgs_jax import checkpoint as ckpt
-from patexgs_jax import schedule as sched
 from patexgs_jax.data import load
 from patexgs_jax.data.synthetic import generate
 from patexgs_jax.densify import DensifyConfig
+from patexgs_jax.rebucket import resize_textures
 from patexgs_jax.training.config import TrainConfig
 from patexgs_jax.training.run import train
 from patexgs_jax.training.step import STEP_TRACES, view_loss_and_grads
@@ -105,7 +105,7 @@ def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded():
     for side in (1, 3, 6):  # each growth changes the texture buckets: a new layout, new programs
         if side > 1:
             n = scene.capacity
-            scene, _, info = sched.resize_textures(scene, None, np.full(n, side), np.full(n, 3))
+            scene, _, info = resize_textures(scene, None, np.full(n, side), np.full(n, 3))
         traces = sum(R.TRACE_COUNTS.values())
         with buckets.ViewRenderer(scene, CFG) as renderer:
             cams = [_camera(w, h) for w, h in SIZES]

@@ -1,4 +1,5 @@
-"""Adaptive texture allocation: re-bucketing with moments, Eqs. 7-10, budgets, schedule state.
+"""Adaptive texture sizes (:mod:`patexgs_jax.adaptive`: Eqs. 7-10, budgets, schedule state) and
+re-bucketing with moments (:mod:`patexgs_jax.rebucket`).
 
 Everything but one test is host-side numpy; the rendering-invariance test compiles the renderer
 once (one small camera, one scene shape: the resize there keeps every bucket shape).
@@ -16,15 +17,25 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
-from patexgs_jax.metrics import storage_mb
+from patexgs_jax.adaptive import (
+    GrowthSchedule,
+    TextureScheduleState,
+    contribution_sizes,
+    default_sigma,
+    grow_sizes,
+    initial_texture_sizes,
+    pixel_share_sigma,
+    side_of,
+    solve_sigma_for_budget,
+    total_texels,
+)
+from patexgs_jax.metrics import mb_to_texels, storage_mb, texels_to_mb
 from patexgs_jax.optim import adam_moments, make_optimizer
-from patexgs_jax.schedule import (GrowthSchedule, TextureScheduleState, add_textures, default_sigma, pixel_share_sigma,
-                                  grow_sizes, initial_texture_sizes, mb_to_texels, resample_matrix,
-                                  resize_textures, side_of, solve_sigma_for_budget, texels_to_mb,
-                                  total_texels)
+from patexgs_jax.rebucket import add_textures, resample_matrix, resize_textures
 
 render_mod = importlib.import_module("patexgs_jax.render")  # the package attribute is the function
 
@@ -333,7 +344,6 @@ def test_eq7_hand_computed():
     assert pixel_share_sigma(200 * 800 * 1000, 10**6) == pytest.approx(default_sigma(800, 1000))
     # ... and gives about the same T to a Gaussian that dominates the same share (here all) of its fair
     # share of the pixel-views, spread over its views, at a far smaller scale (21 views, 3,900 Gaussians).
-    from patexgs_jax.schedule import contribution_sizes
 
     small = pixel_share_sigma(21 * 96 * 128, 3900)
     S_paper = np.full((200, 1), 800 * 1000 / 10**6)
@@ -537,8 +547,8 @@ def test_new_texels_have_their_own_bias_correction():
     updates, st3 = opt.update(grads, st2, s2)
     lr = LearningRates()
     for i in (0, 1, 3):
-        np.testing.assert_allclose(tex_of(updates.rgb, s2.rgb, i), -lr.texture_rgb * np.sign(tex_of(grads.rgb, s2.rgb, i)),
-                                   rtol=1e-5)
+        np.testing.assert_allclose(tex_of(updates.rgb, s2.rgb, i),
+                                   -lr.texture_rgb * np.sign(tex_of(grads.rgb, s2.rgb, i)), rtol=1e-5)
         np.testing.assert_allclose(tex_of(updates.alpha, s2.alpha, i),
                                    -lr.texture_alpha * np.sign(tex_of(grads.alpha, s2.alpha, i)), rtol=1e-5)
     age = st3[0].age

@@ -25,13 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from patexgs_jax import adaptive, losses
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import densify as dens
-from patexgs_jax import losses
-from patexgs_jax import schedule as sched
 from patexgs_jax.data import load
 from patexgs_jax.data.synthetic import generate
 from patexgs_jax.densify import DensifyConfig
+from patexgs_jax.metrics import mb_to_texels
 from patexgs_jax.optim import adam_moments
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
 from patexgs_jax.training.evaluation import evaluate
@@ -204,7 +204,7 @@ def test_both_stages_improve(run_p):
     assert s["texels"] > 0 and s["texels_rgb"] == s["texels_alpha"] >= alloc["texels"]
     scene = run_p["result"].scene
     act = np.asarray(scene.active) > 0
-    np.testing.assert_array_equal(np.asarray(scene.rgb.size)[act], sched.side_of(sizes, 6)[act])
+    np.testing.assert_array_equal(np.asarray(scene.rgb.size)[act], adaptive.side_of(sizes, 6)[act])
     assert np.all(np.asarray(scene.rgb.size)[act] >= 1) and np.all(np.asarray(scene.rgb.size)[~act] == 0)
     assert all_finite(scene)
     log = [json.loads(line) for line in (run_p["out"] / "log.jsonl").read_text().splitlines()]
@@ -381,7 +381,7 @@ def test_texture_budget_leaves_growth_room_and_is_met(dataset):
     """Eq. 7 spends budget_eq7_share of the budget (within 1%), growth the rest: it grows into the
     room left and the total never passes the budget; spending the room meets it within 1%."""
     mb = 0.09
-    budget = sched.mb_to_texels(mb)
+    budget = mb_to_texels(mb)
     cfg = tiny_config(texture_budget_mb=mb, budget_eq7_share=0.6)
     run = Trainer(dataset, cfg, None, verbose=False)
     run.fresh()
@@ -401,8 +401,8 @@ def test_texture_budget_leaves_growth_room_and_is_met(dataset):
         grad = np.where(act, 0.95 * schedule.tau_high(t, 1.0), 0.0)  # inside Eq. 8's band ...
         grad[top] = 1.0  # ... under tau_max = 1
         state, sides, sel = state.step(grad, t, schedule, active=act, texel_budget=tex.texel_budget)
-        assert sched.total_texels(sides, act) <= budget
-    grown = sched.total_texels(state.sides(cfg.max_texture_size), act)
+        assert adaptive.total_texels(sides, act) <= budget
+    grown = adaptive.total_texels(state.sides(cfg.max_texture_size), act)
     assert grown > texels["rgb"] and abs(grown - budget) <= 0.01 * budget, (grown, budget)
 
 

@@ -12,7 +12,7 @@ import dataclasses
 import json
 
 from .. import densify as dens
-from .. import schedule as sched
+from ..adaptive import DEFAULT_MAX_SIZE
 from ..optim import LearningRates
 from ..render import RenderConfig
 
@@ -69,8 +69,8 @@ class Method:
         :data:`FIXED_SIZES`) or ``patexgs-fixed-N`` (N in 1..32). Raises ValueError otherwise."""
         if name.startswith("patexgs-fixed-"):
             n = name.rsplit("-", 1)[1]
-            if not n.isdigit() or not 1 <= int(n) <= sched.DEFAULT_MAX_SIZE:
-                raise ValueError(f"patexgs-fixed-N takes N in 1..{sched.DEFAULT_MAX_SIZE}, got {name!r}.")
+            if not n.isdigit() or not 1 <= int(n) <= DEFAULT_MAX_SIZE:
+                raise ValueError(f"patexgs-fixed-N takes N in 1..{DEFAULT_MAX_SIZE}, got {name!r}.")
             return cls(size=int(n))
         if name.startswith("textured-fixed-"):
             n = name.rsplit("-", 1)[1]
@@ -79,7 +79,7 @@ class Method:
             return cls(textures="fixed", size=int(n), mip="none", coverage="lowpass")
         if name not in METHODS:
             raise ValueError(f"unknown method {name!r}; choose one of 2dgs, textured-fixed-N (N in "
-                             f"{FIXED_SIZES}), patexgs-fixed-N (N in 1..{sched.DEFAULT_MAX_SIZE}), "
+                             f"{FIXED_SIZES}), patexgs-fixed-N (N in 1..{DEFAULT_MAX_SIZE}), "
                              f"{', '.join(n for n in METHODS if n != '2dgs')}.")
         return METHODS[name]
 
@@ -122,7 +122,7 @@ class TrainConfig:
       growth_interval: steps between Eq. 8-10 growth events.
       growth_stop: fraction of stage 2 after which textures stop growing (t_final).
       tau_preset: Eq. 9's initial threshold (NDC gradient units, as densification).
-      sigma: Eq. 7's sigma; None: :func:`patexgs_jax.schedule.pixel_share_sigma` of the training views
+      sigma: Eq. 7's sigma; None: :func:`patexgs_jax.adaptive.pixel_share_sigma` of the training views
         and the Gaussians at the allocation (the paper's H * W / 1e4 at the paper's scale, the same
         meaning at other scales).
       texture_budget_mb: optional texel budget (MiB of RGBA texels): sigma is solved so that the Eq. 7

@@ -12,7 +12,7 @@ import numpy as np
 
 from .. import checkpoint as ckpt
 from .. import compiled
-from ..metrics import storage_mb
+from ..metrics import scene_storage
 from ..scene import Scene
 from .config import STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
 from .evaluation import evaluate
@@ -149,16 +149,15 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
                                      textured=run.spec.textures is not None)
     run.run()
     scene = run.scene
-    texels = scene.texel_count()
-    summary: dict[str, Any] = dict(method=config.method, steps=run.step, train_seconds=run.t_train,
-                   num_gaussians=scene.num_active(), texels=texels["rgb"] + texels["alpha"],
-                   texels_rgb=texels["rgb"], texels_alpha=texels["alpha"],
-                   storage_mb=storage_mb(scene.num_active(), int(scene.sh.shape[1]), texels["rgb"], texels["alpha"]),
-                   recompiles=run.recompiles, skipped_steps=run.skipped, allocation=run.textures.allocation,
-                   growth_events=run.textures.growth_events,
-                   sides_final=None if scene.rgb is None else side_histogram(
-                       np.asarray(scene.rgb.size), np.asarray(scene.active) > 0),
-                   stage1_from=None if stage1 is None else str(stage1))
+    size = scene_storage(scene)
+    summary: dict[str, Any] = dict(
+        method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
+        texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
+        storage_mb=size["storage_mb"], recompiles=run.recompiles, skipped_steps=run.skipped,
+        allocation=run.textures.allocation, growth_events=run.textures.growth_events,
+        sides_final=None if scene.rgb is None else side_histogram(np.asarray(scene.rgb.size),
+                                                                  np.asarray(scene.active) > 0),
+        stage1_from=None if stage1 is None else str(stage1))
     if end_distributed and jax.process_count() > 1:
         jax.distributed.shutdown()  # the processes are done with each other (every one calls this)
     if main or evaluate_everywhere:

@@ -16,9 +16,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .. import buckets
+from .. import adaptive, buckets
 from .. import densify as dens
-from .. import schedule as sched
+from ..metrics import mb_to_texels
+from ..rebucket import add_textures, resize_textures
 from ..render import RenderConfig
 from ..scene import Scene
 from .config import TrainConfig
@@ -60,12 +61,12 @@ class Densification:
         return TrainState(scene, opt_state, stats)
 
 
-def growth_schedule(cfg: TrainConfig) -> sched.GrowthSchedule:
+def growth_schedule(cfg: TrainConfig) -> adaptive.GrowthSchedule:
     """The Eqs. 8-10 schedule of a run: growth every ``growth_interval`` steps from one interval after
     the Eq. 7 allocation (step ``iters_2dgs + warmup_tex``) up to ``growth_stop`` of the texture stage."""
     t0 = cfg.iters_2dgs + cfg.warmup_tex + cfg.growth_interval
     t_final = max(t0 + 1, cfg.iters_2dgs + int(cfg.growth_stop * cfg.iters_tex))
-    return sched.GrowthSchedule(t0=t0, t_final=t_final, interval=cfg.growth_interval, tau_preset=cfg.tau_preset,
+    return adaptive.GrowthSchedule(t0=t0, t_final=t_final, interval=cfg.growth_interval, tau_preset=cfg.tau_preset,
                                 max_size=cfg.max_texture_size)
 
 
@@ -85,10 +86,10 @@ def side_histogram(sides, active) -> dict:
 
 class TextureStage:
     """The texture stage of a textured method: textures at its start, the Eq. 6-7 allocation after
-    the warm-up and the Eqs. 8-10 growth events (:mod:`patexgs_jax.schedule`). Does nothing for
-    ``2dgs``.
+    the warm-up and the Eqs. 8-10 growth events (:mod:`patexgs_jax.adaptive`; the textures are
+    resized by :mod:`patexgs_jax.rebucket`). Does nothing for ``2dgs``.
 
-    Its own state: ``state`` (the :class:`patexgs_jax.schedule.TextureScheduleState`, None before the
+    Its own state: ``state`` (the :class:`patexgs_jax.adaptive.TextureScheduleState`, None before the
     allocation), ``texel_budget`` (RGBA texels, or None), ``allocation`` and ``growth_events`` (what
     ``summary.json`` reports). ``log`` receives event records (``log.jsonl``), ``say`` progress lines.
     """
@@ -99,18 +100,18 @@ class TextureStage:
         self.train_views, self.render_config = train_views, render_config
         self.log, self.say = log, say
         self.schedule = growth_schedule(config)
-        self.state: sched.TextureScheduleState | None = None
+        self.state: adaptive.TextureScheduleState | None = None
         self.texel_budget: int | None = None
         self.allocation: dict | None = None
         self.growth_events: list[dict] = []  # one dict per Eq. 8-10 event that grew textures
 
-    def load(self, state: sched.TextureScheduleState | None, allocation: dict | None, growth_events) -> None:
+    def load(self, state: adaptive.TextureScheduleState | None, allocation: dict | None, growth_events) -> None:
         """Restores the strategy's state from a checkpoint."""
         self.state = state
         self.allocation = allocation
         self.growth_events = list(growth_events or [])
         if state is not None and self.cfg.texture_budget_mb is not None:
-            self.texel_budget = sched.mb_to_texels(self.cfg.texture_budget_mb)
+            self.texel_budget = mb_to_texels(self.cfg.texture_budget_mb)
 
     def before_step(self, state: TrainState, step: int) -> TrainState:
         cfg = self.cfg
@@ -129,10 +130,10 @@ class TextureStage:
             n = self.spec.size
             assert n is not None  # every "fixed" method has a size (Method.from_name)
             sizes = np.where(act, n, 0)
-            scene, opt_state, _ = sched.add_textures(scene, opt_state, self.optimizer, sizes, sizes)
+            scene, opt_state, _ = add_textures(scene, opt_state, self.optimizer, sizes, sizes)
             self.say(f"[stage 2] every Gaussian gets a {n}x{n} RGBA texture")
         else:
-            scene, opt_state, _ = sched.add_textures(scene, opt_state, self.optimizer, np.where(act, 1, 0),
+            scene, opt_state, _ = add_textures(scene, opt_state, self.optimizer, np.where(act, 1, 0),
                                                      np.where(act, 5, 0))
             self.say(f"[stage 2] 5x5 alpha + 1x1 RGB textures; warm-up {self.cfg.warmup_tex} steps")
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(state.scene.capacity))
@@ -154,25 +155,25 @@ class TextureStage:
             sides = np.where(act, self.spec.size, 0).astype(np.int64)
         else:
             if cfg.texture_budget_mb is not None:
-                budget = sched.mb_to_texels(cfg.texture_budget_mb)
+                budget = mb_to_texels(cfg.texture_budget_mb)
                 # Eq. 7 spends its share (at least one texel a Gaussian), growth the rest.
                 target = max(int(round(cfg.budget_eq7_share * budget)), int(act.sum()))
-                sigma = sched.solve_sigma_for_budget(S, target, max_size=cfg.max_texture_size, active=act)
+                sigma = adaptive.solve_sigma_for_budget(S, target, max_size=cfg.max_texture_size, active=act)
             else:
                 pixels = sum(v.camera.height * v.camera.width for v in self.train_views)
-                sigma = cfg.sigma or sched.pixel_share_sigma(pixels, int(act.sum()))
-            sides = sched.initial_texture_sizes(S, sigma, max_size=cfg.max_texture_size, active=act)
-        self.state = sched.TextureScheduleState.create(sides)
-        scene, opt_state, _ = sched.resize_textures(scene, state.opt_state, sides, sides)
+                sigma = cfg.sigma or adaptive.pixel_share_sigma(pixels, int(act.sum()))
+            sides = adaptive.initial_texture_sizes(S, sigma, max_size=cfg.max_texture_size, active=act)
+        self.state = adaptive.TextureScheduleState.create(sides)
+        scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides)
         self.texel_budget = budget
         self.allocation = dict(step=step, sigma=None if sigma is None else float(sigma),
-                               texels=int(np.sum(sides[act] ** 2)), budget_texels=budget,
+                               texels=adaptive.total_texels(sides, act), budget_texels=budget,
                                sides=side_histogram(sides, act))
         self.log(dict(event="allocation", **self.allocation))
         n = self.spec.size
         how = f"{n}x{n} for every Gaussian" if sigma is None else f"Eq. 7, sigma {sigma:.4g}"
         self.say(f"[stage 2] allocation ({how}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
-                 f"{int(np.sum(sides[act] ** 2))} RGBA texels")
+                 f"{adaptive.total_texels(sides, act)} RGBA texels")
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(scene.capacity))
 
     def after_step(self, state: TrainState, step: int) -> TrainState:
@@ -189,10 +190,10 @@ class TextureStage:
         self.state, sides, sel = self.state.step(grad, step, self.schedule, active=act,
                                                  texel_budget=self.texel_budget)
         if sel.any():
-            scene, opt_state, _ = sched.resize_textures(scene, opt_state, sides, sides)
+            scene, opt_state, _ = resize_textures(scene, opt_state, sides, sides)
             event = dict(step=step, grown=int(np.sum(sides[act] > before[act])),
-                         texels_added=int(np.sum(sides[act] ** 2) - np.sum(before[act] ** 2)),
-                         texels=int(np.sum(sides[act] ** 2)))
+                         texels_added=adaptive.total_texels(sides, act) - adaptive.total_texels(before, act),
+                         texels=adaptive.total_texels(sides, act))
             self.growth_events.append(event)
             self.log(dict(event="growth", **event))
             self.say(f"[stage 2] Eq. 8-10 growth at step {step}: {event['grown']} Gaussians grew, "

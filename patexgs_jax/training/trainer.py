@@ -42,7 +42,7 @@ import numpy as np
 from .. import buckets, compiled, progress
 from .. import checkpoint as ckpt
 from .. import densify as dens
-from .. import schedule as sched
+from ..adaptive import TextureScheduleState
 from ..optim import make_optimizer, upgrade_state
 from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
@@ -177,7 +177,7 @@ class Trainer:
         tex = None
         if tree["tex_sizes"] is not None:
             c = tree["tex_counters"]
-            tex = sched.TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
+            tex = TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
         self.textures.load(tex, tree.get("allocation"), tree.get("growth_events"))
         self.capacity = Capacity(int(tree["capacity"][0])) if int(tree["capacity"][0]) > 0 else None
         self.step, self.skipped, self.recompiles = (int(v) for v in tree["counters"])

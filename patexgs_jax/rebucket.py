@@ -1,0 +1,402 @@
+"""Re-bucketing: texture banks resized (or created) with their Adam moments, for texture growth.
+
+Re-bucketing (:func:`resize_textures`)
+  A texture whose side changes from n to m is resampled exactly as the renderer samples it
+  (:mod:`patexgs_jax.textures`): new texel j sits at splat-plane position ``-3 + 6 j / (m - 1)``
+  and, when the texture grows (m > n), takes the bilinear, edge-clamped, align-corners value of
+  the old n x n texture there; when it shrinks (m < n), the mean of that interpolant over the new
+  texel's cell (an area filter that keeps the texture's mean; see :func:`resample_matrix`). Either
+  way the resampling is one separable linear map ``R_{m,n} X R_{m,n}^T`` with non-negative weights
+  summing to one per row. Growth from 1 x 1 is therefore exact (a constant), and so is any n -> m
+  with (m - 1) a multiple of (n - 1) (the new grid contains the old grid, and the bilinear
+  interpolant is unchanged), e.g. 2 -> any m, 3 -> 5, 5 -> 9. The Adam moments ``mu`` and ``nu``
+  of the texels are resampled by the same map (``nu`` stays >= 0). A texture appearing (0 -> m) starts as the
+  bank's neutral value (RGB offset 0, alpha multiplier 1: rendering is unchanged) with zero
+  moments; a texture disappearing (n -> 0) frees its slot.
+
+  Slots are stable: a Gaussian whose bucket does not change keeps its slot (if its side is
+  unchanged its whole slot, padding included, is copied bit-exactly); a Gaussian changing bucket
+  takes the lowest free slot of its new bucket after all departures are freed. Bucket capacities
+  are powers of two that only grow (by doubling) and buckets are never removed, so the set of
+  shapes the jitted step sees stays small; :class:`ResizeInfo` says when they changed.
+
+Everything here is host-side numpy between jitted steps; every function is pure. Which sizes to
+give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .scene import Scene
+from .textures import TextureBank, bucket_of
+
+__all__ = [
+    "ALPHA_NEUTRAL",
+    "MAX_TEXTURE_SIZE",
+    "RGB_NEUTRAL",
+    "ResizeInfo",
+    "add_textures",
+    "resample_matrix",
+    "resample_texture",
+    "resize_textures",
+]
+
+#: Largest texture side :func:`resize_textures` accepts by default (bucket 9 = 512 x 512 slots).
+MAX_TEXTURE_SIZE = 512
+#: Values of a newly created texture (rendering-neutral: RGB offset 0, alpha multiplier 1).
+RGB_NEUTRAL = 0.0
+ALPHA_NEUTRAL = 1.0
+_BANKS = ("rgb", "alpha")
+
+
+# =============================================================================================
+# Resampling
+# =============================================================================================
+def _hat_integral(x: np.ndarray) -> np.ndarray:
+    """``F(x) = integral_{-inf}^{x} max(0, 1 - |s|) ds``: the antiderivative of a unit hat."""
+    x = np.clip(x, -1.0, 1.0)
+    return np.where(x <= 0.0, 0.5 * (x + 1.0) ** 2, 1.0 - 0.5 * (1.0 - x) ** 2)
+
+
+def resample_matrix(n_in: int, n_out: int) -> np.ndarray:
+    """(n_out, n_in) float64 resampling matrix: non-negative weights, each row summing to one.
+
+    Growing or keeping the side (``n_out >= n_in``): row j holds the bilinear weights of the old
+    texels at new texel j's position ``-3 + 6 j / (n_out - 1)``, with the renderer's edge clamp
+    (the renderer's own sampling; exact integer arithmetic for the positions).
+
+    Shrinking (``n_out < n_in``): an area filter. New texel j is the mean of the old texture's
+    bilinear interpolant over its cell, ``[-3 + 6 (j - 1/2) / (n_out - 1), -3 + 6 (j + 1/2) /
+    (n_out - 1)]`` cut to [-3, 3] (the whole square when ``n_out == 1``). The cells tile the square
+    with the widths the new interpolant's trapezoid rule gives its texels, so the interpolant's mean
+    over the square is kept exactly: a texture that shrinks keeps its mean colour and coverage, and
+    every old texel contributes (point-sampling a 5 x 5 texture at side 2 would read only its corners).
+    """
+    n_in, n_out = int(n_in), int(n_out)
+    if n_in < 1 or n_out < 1:
+        raise ValueError(f"resample sizes must be >= 1, got {n_in} -> {n_out}.")
+    R = np.zeros((n_out, n_in))
+    if n_in == 1:
+        R[:, 0] = 1.0
+        return R
+    if n_out < n_in:
+        # In old-grid units t in [0, n_in - 1]: old texel a is the hat max(0, 1 - |t - a|).
+        last = n_in - 1.0
+        if n_out == 1:
+            lo, hi = np.array([0.0]), np.array([last])
+        else:
+            h = last / (n_out - 1)
+            c = np.arange(n_out) * h
+            lo, hi = np.maximum(c - h / 2, 0.0), np.minimum(c + h / 2, last)
+        a = np.arange(n_in)[None, :]
+        R = (_hat_integral(hi[:, None] - a) - _hat_integral(lo[:, None] - a)) / (hi - lo)[:, None]
+        return R / R.sum(axis=1, keepdims=True)  # (sums are one up to rounding; make them exact-er)
+    for j in range(n_out):
+        # Old-grid coordinate t = j (n_in - 1) / (n_out - 1) = a0 + f.
+        num, den = j * (n_in - 1), n_out - 1
+        a0, rem = divmod(num, den)
+        f = rem / den
+        if a0 >= n_in - 1:  # the last texel: clamp like the renderer (a0 = n - 2, f = 1)
+            a0, f = n_in - 2, 1.0
+        R[j, a0] += 1.0 - f
+        R[j, a0 + 1] += f
+    return R
+
+
+def resample_texture(tex, n_out: int) -> np.ndarray:
+    """Resamples textures to side ``n_out`` (float64 math, float32 result).
+
+    Args:
+      tex: (..., n, n, ch) textures.
+      n_out: new side m >= 1.
+    Returns:
+      (..., m, m, ch) float32.
+    """
+    tex = np.asarray(tex, np.float64)
+    if tex.ndim < 3 or tex.shape[-3] != tex.shape[-2]:
+        raise ValueError(f"textures must have shape (..., n, n, ch), got {tex.shape}.")
+    R = resample_matrix(tex.shape[-3], n_out)
+    return np.einsum("ma,...abc,nb->...mnc", R, tex, R).astype(np.float32)
+
+
+# =============================================================================================
+# Re-bucketing
+# =============================================================================================
+@dataclasses.dataclass(frozen=True)
+class ResizeInfo:
+    """What :func:`resize_textures` / :func:`add_textures` did, per bank (keys "rgb", "alpha").
+
+    Attributes:
+      changed: textures whose side changed (including appearing / disappearing ones).
+      texels_before, texels_after: stored texels (sum of n*n over all textured slots, active or
+        not; multiply by 3 for RGB floats).
+      capacities_before, capacities_after: bucket capacities (empty tuple: no bank).
+      shapes_changed: some bucket was added or grew, or a bank was added: the jitted training
+        step will recompile.
+    """
+
+    changed: dict
+    texels_before: dict
+    texels_after: dict
+    capacities_before: dict
+    capacities_after: dict
+    shapes_changed: bool
+
+    @property
+    def num_changed(self) -> int:
+        """Total number of changed textures over both banks."""
+        return int(sum(self.changed.values()))
+
+
+@dataclasses.dataclass(frozen=True)
+class _BankPlan:
+    old_size: np.ndarray   # (C,) int64
+    new_size: np.ndarray
+    old_bucket: np.ndarray
+    old_slot: np.ndarray
+    new_bucket: np.ndarray
+    new_slot: np.ndarray
+    capacities: tuple
+    channels: int
+
+
+def _next_pow2(x: int) -> int:
+    return 1 if x <= 1 else 1 << (int(x) - 1).bit_length()
+
+
+def _check_sizes(sizes, C: int, name: str, max_size: int) -> np.ndarray:
+    arr = np.asarray(sizes)
+    if arr.shape != (C,):
+        raise ValueError(f"{name} must have shape (C,) = ({C},), got {arr.shape}.")
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must hold integer sides, got dtype {arr.dtype}.")
+    if arr.dtype.kind == "f" and (not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr))):
+        raise ValueError(f"{name} must hold integer sides (exact integers), got non-integers.")
+    out = arr.astype(np.int64)
+    if np.any(out < 0):
+        raise ValueError(f"{name} must be >= 0 (0 = no texture), got min {out.min()}.")
+    if np.any(out > max_size):
+        raise ValueError(f"{name} has a side {out.max()} > max_size {max_size}.")
+    return out
+
+
+def _bank_indices(bank: TextureBank):
+    size = np.asarray(bank.size).astype(np.int64)
+    bucket = np.asarray(bank.bucket).astype(np.int64)
+    slot = np.asarray(bank.slot).astype(np.int64)
+    return size, bucket, slot
+
+
+def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int) -> _BankPlan:
+    old_size, old_bucket, old_slot = _bank_indices(bank)
+    C = old_size.shape[0]
+    # ceil(log2 n) = bit_length(n - 1) = frexp(n - 1) exponent; -1 for no texture.
+    new_bucket = np.where(new_size > 0, np.frexp(np.maximum(new_size - 1, 0).astype(np.float64))[1], -1)
+    new_bucket = new_bucket.astype(np.int64)
+    nb = max([bank.num_buckets] + [int(b) + 1 for b in new_bucket if b >= 0])
+    old_caps = list(bank.capacities) + [0] * (nb - bank.num_buckets)
+    stay = (new_size > 0) & (new_bucket == old_bucket)
+    new_slot = np.zeros(C, np.int64)
+    new_slot[stay] = old_slot[stay]
+    caps = []
+    for b in range(nb):
+        staying = np.flatnonzero(stay & (new_bucket == b))
+        arriving = np.flatnonzero(~stay & (new_bucket == b))
+        count = staying.size + arriving.size
+        cap = old_caps[b]
+        if count > cap:
+            cap = max(cap, _next_pow2(max(min_capacity, 1)))
+            while cap < count:
+                cap *= 2
+        used = np.zeros(cap, bool)
+        used[old_slot[staying]] = True
+        free = np.flatnonzero(~used)
+        new_slot[arriving] = free[: arriving.size]
+        caps.append(cap)
+    return _BankPlan(old_size, new_size, old_bucket, old_slot, new_bucket, new_slot, tuple(caps),
+                     bank.channels)
+
+
+def _apply_plan(plan: _BankPlan, old_buckets, fresh_value: float | np.ndarray):
+    """New bucket arrays (list of float32 numpy) from old ones following ``plan``."""
+    old = [np.asarray(b) for b in old_buckets]
+    ch = plan.channels
+    new = [np.zeros((cap, 1 << b, 1 << b, ch), np.float32) for b, cap in enumerate(plan.capacities)]
+    n_old, n_new = plan.old_size, plan.new_size
+    same = (n_new > 0) & (n_new == n_old)
+    for b in range(len(new)):
+        idx = np.flatnonzero(same & (plan.new_bucket == b))
+        if idx.size:
+            new[b][plan.new_slot[idx]] = old[b][plan.old_slot[idx]]  # bit-exact, padding included
+    changed = (n_new > 0) & (n_new != n_old)
+    fresh = changed & (n_old == 0)
+    for m in np.unique(n_new[fresh]):
+        idx = np.flatnonzero(fresh & (n_new == m))
+        new[bucket_of(m)][plan.new_slot[idx], :m, :m] = fresh_value
+    resampled = changed & (n_old > 0)
+    pairs = np.stack([n_old[resampled], n_new[resampled]], axis=1) if resampled.any() else np.zeros((0, 2))
+    for n, m in np.unique(pairs, axis=0).astype(np.int64):
+        idx = np.flatnonzero(resampled & (n_old == n) & (n_new == m))
+        src = old[bucket_of(n)][plan.old_slot[idx], :n, :n]
+        new[bucket_of(m)][plan.new_slot[idx], :m, :m] = resample_texture(src, m)
+    return new
+
+
+def _bank_from_plan(plan: _BankPlan, buckets, with_indices: bool) -> TextureBank:
+    C = plan.new_size.shape[0]
+    if with_indices:
+        bucket, slot, size = plan.new_bucket, np.where(plan.new_size > 0, plan.new_slot, 0), plan.new_size
+    else:  # moment trees: index leaves are zeros
+        bucket = slot = size = np.zeros(C)
+    return TextureBank(buckets=tuple(jnp.asarray(b) for b in buckets),
+                       bucket=jnp.asarray(bucket, jnp.float32), slot=jnp.asarray(slot, jnp.float32),
+                       size=jnp.asarray(size, jnp.float32), channels=plan.channels)
+
+
+def _empty_bank(C: int, channels: int) -> TextureBank:
+    return TextureBank(buckets=(), bucket=jnp.full((C,), -1.0, jnp.float32),
+                       slot=jnp.zeros((C,), jnp.float32), size=jnp.zeros((C,), jnp.float32),
+                       channels=channels)
+
+
+def _map_scene_nodes(opt_state, fn: Callable[[Scene], Scene]):
+    """Applies ``fn`` to every Scene-shaped node (Adam's mu and nu) of an optimiser state."""
+    return jax.tree_util.tree_map(lambda x: fn(x) if isinstance(x, Scene) else x, opt_state,
+                                  is_leaf=lambda x: isinstance(x, Scene))
+
+
+def _check_moment_bank(mbank, bank: TextureBank, name: str):
+    if mbank is None or tuple(x.shape for x in mbank.buckets) != tuple(x.shape for x in bank.buckets):
+        raise ValueError(f"the optimiser state's moments of the {name!r} bank do not match the scene's "
+                         "bucket shapes; was opt_state made for this scene?")
+
+
+def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capacity: int = 1,
+                    max_size: int = MAX_TEXTURE_SIZE):
+    """Changes texture sides, resampling texels and their Adam moments (see the module docstring).
+
+    Args:
+      scene: the parameters; the banks being resized must exist (use :func:`add_textures` first).
+      opt_state: optimiser state whose Scene-shaped nodes (Adam ``mu``, ``nu``) mirror ``scene``,
+        or None (e.g. for inference).
+      rgb_sizes, alpha_sizes: (C,) integer new sides (0 = no texture, at most ``max_size``), or
+        None to leave that bank unchanged.
+      min_capacity: a bucket that is created or grows gets at least this capacity (rounded up to a
+        power of two).
+      max_size: largest side accepted.
+    Returns:
+      ``(scene, opt_state, ResizeInfo)``; opt_state is None if it was None.
+    """
+    C = scene.capacity
+    if int(min_capacity) < 1:
+        raise ValueError(f"min_capacity must be >= 1, got {min_capacity}.")
+    plans = {}
+    for name, sizes in zip(_BANKS, (rgb_sizes, alpha_sizes)):
+        if sizes is None:
+            continue
+        bank = getattr(scene, name)
+        if bank is None:
+            raise ValueError(f"the scene has no {name!r} bank; create it with add_textures.")
+        plans[name] = _plan(bank, _check_sizes(sizes, C, f"{name}_sizes", int(max_size)), int(min_capacity))
+
+    if opt_state is not None:
+        for m in jax.tree_util.tree_leaves(opt_state, is_leaf=lambda x: isinstance(x, Scene)):
+            if isinstance(m, Scene):
+                for name in plans:
+                    _check_moment_bank(getattr(m, name), getattr(scene, name), name)
+
+    def apply(s: Scene, is_params: bool) -> Scene:
+        kw = {}
+        for name, plan in plans.items():
+            fresh = (RGB_NEUTRAL if name == "rgb" else ALPHA_NEUTRAL) if is_params else 0.0
+            buckets = _apply_plan(plan, getattr(s, name).buckets, fresh)
+            kw[name] = _bank_from_plan(plan, buckets, with_indices=is_params)
+        return s.replace(**kw)
+
+    new_scene = apply(scene, True)
+    new_state = None if opt_state is None else _map_scene_nodes(opt_state, lambda m: apply(m, False))
+    info = _info(scene, new_scene, plans)
+    return new_scene, new_state, info
+
+
+def _info(old: Scene, new: Scene, plans) -> ResizeInfo:
+    changed, tb, ta, cb, ca = {}, {}, {}, {}, {}
+    shapes_changed = False
+    for name in _BANKS:
+        bo, bn = getattr(old, name), getattr(new, name)
+        cb[name] = () if bo is None else bo.capacities
+        ca[name] = () if bn is None else bn.capacities
+        tb[name] = 0 if bo is None else bo.texel_count()
+        ta[name] = 0 if bn is None else bn.texel_count()
+        plan = plans.get(name)
+        changed[name] = 0 if plan is None else int(np.sum(plan.old_size != plan.new_size))
+        shapes_changed |= (bo is None) != (bn is None) or cb[name] != ca[name]
+    return ResizeInfo(changed, tb, ta, cb, ca, bool(shapes_changed))
+
+
+def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb_init=RGB_NEUTRAL,
+                 alpha_init=ALPHA_NEUTRAL, *, min_capacity: int = 1, max_size: int = MAX_TEXTURE_SIZE):
+    """Creates texture banks a scene does not have yet (e.g. the stage-2 init: 1x1 RGB, 5x5 alpha).
+
+    Args:
+      scene: parameters without the bank(s) being added.
+      opt_state: the optimiser state for ``scene`` (or None).
+      optimizer: the ``optax.GradientTransformation`` that made ``opt_state``; its ``init`` on the
+        new scene provides the new leaves' state (zero moments). May be None, in which case the new
+        moment banks are zeros directly.
+      rgb_sizes, alpha_sizes: (C,) integer sides (0 = none) of the bank to create, or None to leave
+        that bank as it is (absent or present).
+      rgb_init: value of every new RGB texel (scalar or (3,)); default 0 (neutral).
+      alpha_init: value of every new alpha texel (scalar); default 1 (neutral).
+      min_capacity, max_size: as in :func:`resize_textures`.
+    Returns:
+      ``(scene, opt_state, ResizeInfo)``: existing leaves and their moments and the step count are
+      kept unchanged; the new bank's moments are zero.
+    """
+    C = scene.capacity
+    kw, plans = {}, {}
+    for name, sizes, init, ch in (("rgb", rgb_sizes, rgb_init, 3), ("alpha", alpha_sizes, alpha_init, 1)):
+        if sizes is None:
+            continue
+        if getattr(scene, name) is not None:
+            raise ValueError(f"the scene already has a {name!r} bank; use resize_textures to change it.")
+        init = np.asarray(init, np.float64)
+        if init.shape not in ((), (ch,)) or not np.all(np.isfinite(init)):
+            raise ValueError(f"{name}_init must be a finite scalar or shape ({ch},), got {init.shape}.")
+        plan = _plan(_empty_bank(C, ch), _check_sizes(sizes, C, f"{name}_sizes", int(max_size)),
+                     int(min_capacity))
+        buckets = _apply_plan(plan, [], init.astype(np.float32))  # every texture is new: init
+        kw[name] = _bank_from_plan(plan, buckets, with_indices=True)
+        plans[name] = plan
+    new_scene = scene.replace(**kw)
+    info = _info(scene, new_scene, plans)
+    if opt_state is None:
+        return new_scene, None, info
+
+    is_scene = lambda x: isinstance(x, Scene)  # noqa: E731
+    if optimizer is None:
+        def merge(m: Scene) -> Scene:
+            return m.replace(**{k: jax.tree_util.tree_map(jnp.zeros_like, v) for k, v in kw.items()})
+        return new_scene, _map_scene_nodes(opt_state, merge), info
+
+    fresh = optimizer.init(new_scene)
+    old_leaves, old_def = jax.tree_util.tree_flatten(opt_state, is_leaf=is_scene)
+    new_leaves, new_def = jax.tree_util.tree_flatten(fresh, is_leaf=is_scene)
+    if old_def != new_def:
+        raise ValueError("optimizer.init(new scene) is not laid out like opt_state (outside the "
+                         "Scene-shaped moments); is `optimizer` the one that made opt_state?")
+    merged = []
+    for o, n in zip(old_leaves, new_leaves):
+        if is_scene(o):
+            merged.append(o.replace(**{k: getattr(n, k) for k in kw}))
+        else:
+            if np.shape(o) != np.shape(n):
+                raise ValueError("optimiser state leaf shapes differ between the old and new scene.")
+            merged.append(o)
+    return new_scene, jax.tree_util.tree_unflatten(old_def, merged), info
