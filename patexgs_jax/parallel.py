@@ -174,7 +174,7 @@ def process_slice(batch_size: int, mesh: Mesh | None = None) -> slice:
     if batch_size % mesh.size:
         raise ValueError(f"batch_size {batch_size} is not divisible by the {mesh.size} devices of the mesh.")
     index = batch_sharding(mesh).addressable_devices_indices_map((batch_size,))
-    rows = sorted({r for idx in index.values() for r in range(*idx[0].indices(batch_size))})
+    rows = sorted({r for idx in index.values() if idx is not None for r in range(*idx[0].indices(batch_size))})
     if not rows or rows != list(range(rows[0], rows[-1] + 1)):
         raise ValueError(f"process {jax.process_index()} would hold rows {rows} of the batch; its devices must be "
                          "consecutive in the mesh (build it with data_mesh()).")

@@ -647,7 +647,7 @@ def split_indices(n: int, test_every: int | None) -> tuple[np.ndarray, np.ndarra
     return idx[~is_test], idx[is_test]
 
 
-def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: int, test_every, normalize: bool,
+def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: float, test_every, normalize: bool,
                    points, colors, points_source: str, cache: ImageCache, info: dict | None = None,
                    splits: tuple[list[int], list[int]] | None = None, random_points=None) -> Dataset:
     """Builds a :class:`Dataset` from per-view records (internal helper shared by the loaders).
@@ -673,6 +673,8 @@ def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: int, te
         [records[i] for i in train_idx] if train_idx else records)])
     norm = compute_normalization(centers, normalize=normalize)
     if points is None:
+        if random_points is None:
+            raise ValueError("finish_dataset needs points or random_points.")
         points, colors = random_points(norm)
     T = norm.transform
     s = norm.scale
@@ -688,7 +690,7 @@ def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: int, te
             raise DatasetError(f"{path}: invalid camera for view {r['name']!r}: {e}") from None
         near, far = r.get("near"), r.get("far")
         if normalize and near is not None:
-            near, far = near * s, far * s
+            near, far = near * s, None if far is None else far * s
         views[i] = View(cam, r["name"], r["load"], cache=cache, key=(i, 1), image_path=r.get("image_path"),
                         near=near, far=far)
     points = np.asarray(points, np.float64).reshape(-1, 3)

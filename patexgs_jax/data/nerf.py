@@ -359,9 +359,9 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         f = _resolve_file(base, str(fr["file_path"]))
         where = f"{jpath} (file_path {fr['file_path']!r})"
         size, why = probe_image(f)
-        if size is None:
+        if size is None or f is None:
             if f is None:
-                why += " (also tried appending .png, .jpg, .jpeg, ...)"
+                why = f"{why} (also tried appending .png, .jpg, .jpeg, ...)"
             problems.append((f if f is not None else base / str(fr["file_path"]), why))
             continue
         get = lambda k, d=None: fr.get(k, top.get(k, d))  # noqa: E731
@@ -382,18 +382,13 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         if w is not None and h is not None:
             check_size_against_camera(f, size, (w, h), 1, f"w/h in {jpath}")
         w, h = size
-        if num("fl_x") is not None:
-            fx = num("fl_x")
-        elif num("camera_angle_x") is not None:
-            fx = 0.5 * w / math.tan(0.5 * num("camera_angle_x"))
-        else:
+        fx, fy, angle_x, angle_y = num("fl_x"), num("fl_y"), num("camera_angle_x"), num("camera_angle_y")
+        if fx is None and angle_x is not None:
+            fx = 0.5 * w / math.tan(0.5 * angle_x)
+        if fx is None:
             raise DatasetError(f"{where}: no focal length (need fl_x or camera_angle_x).")
-        if num("fl_y") is not None:
-            fy = num("fl_y")
-        elif num("camera_angle_y") is not None:
-            fy = 0.5 * h / math.tan(0.5 * num("camera_angle_y"))
-        else:
-            fy = fx
+        if fy is None:
+            fy = fx if angle_y is None else 0.5 * h / math.tan(0.5 * angle_y)
         cx = num("cx", 0.5 * w)
         cy = num("cy", 0.5 * h)
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -436,8 +431,7 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         records.append(dict(name=m["name"], K=K, w2c=np.linalg.inv(m["c2w"]), width=w, height=h,
                             image_path=m["file"], load=image_loader(m["file"], factor, background)))
     records, ratio = fit_records_to_width(records, max_width, background, verbose)
-    if ratio > 1:
-        factor = ratio
+    applied: float = ratio if ratio > 1 else factor
 
     splits = None
     if "train" in found:
@@ -459,7 +453,7 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         half = 0.5 * norm.original_radius / 1.1
         return random_points_in_box(norm.original_center, half, num_random_points, seed)
 
-    return finish_dataset(records, fmt="nerf", path=p, factor=factor, test_every=test_every, normalize=normalize,
+    return finish_dataset(records, fmt="nerf", path=p, factor=applied, test_every=test_every, normalize=normalize,
                           points=pts, colors=cols, points_source=source, cache=ImageCache(image_cache_size, image_cache_bytes),
                           info=info, splits=splits, random_points=rand)
 
