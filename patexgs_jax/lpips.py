@@ -67,8 +67,8 @@ import importlib.util
 import os
 import pickle
 from collections.abc import Callable, Mapping
-from typing import cast
 from pathlib import Path
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -525,7 +525,8 @@ def lpips(img, ref, params) -> jax.Array:
     img = jnp.asarray(img, jnp.float32)
     ref = jnp.asarray(ref, jnp.float32)
     if img.shape != ref.shape or img.ndim not in (3, 4) or img.shape[-1] != 3:
-        raise ValueError(f"lpips needs two (H, W, 3) or (B, H, W, 3) arrays of one shape, got {img.shape}, {ref.shape}.")
+        raise ValueError(
+            f"lpips needs two (H, W, 3) or (B, H, W, 3) arrays of one shape, got {img.shape}, {ref.shape}.")
     single = img.ndim == 3
     if single:
         img, ref = img[None], ref[None]

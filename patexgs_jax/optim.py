@@ -25,7 +25,8 @@ Groups and learning rates (2DGS / 3DGS defaults):
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp

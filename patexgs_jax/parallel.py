@@ -61,13 +61,14 @@ import socket
 import sys
 import threading
 import zlib
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from .camera import Camera
 
@@ -396,7 +397,7 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         counts = process_allgather_ints([wanted])[:, 0]
         if any(c not in (-1, jax.process_count()) for c in counts):
             raise DistributedError(
-                f"the processes were started with different --num-processes ("
+                "the processes were started with different --num-processes ("
                 + ", ".join(f"process {i}: {'from the environment' if c < 0 else int(c)}" for i, c in enumerate(counts))
                 + f"; {jax.process_count()} joined); start every process with the same count.")
     finally:

@@ -21,8 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-import PIL.Image  # import PIL before pycolmap: the reverse order was seen to corrupt the heap
 import numpy as np
+import PIL.Image  # import PIL before pycolmap: the reverse order was seen to corrupt the heap
+
 from ._pycolmap import pycolmap
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG")

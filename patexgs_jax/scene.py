@@ -22,7 +22,7 @@ whole scene works directly; the mask and texture indices get zero gradient.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -51,7 +51,7 @@ class Scene:
     # ----------------------------------------------------------------------------------------
     @classmethod
     def from_arrays(cls, means, scales, quats, opacities, sh, rgb_textures=None, alpha_textures=None,
-                    capacity: int | None = None) -> "Scene":
+                    capacity: int | None = None) -> Scene:
         """Builds a scene from activated values.
 
         Args:
@@ -154,10 +154,10 @@ class Scene:
             out[name] = 0 if bank is None else bank.texel_count(self.active)
         return out
 
-    def replace(self, **kw) -> "Scene":
+    def replace(self, **kw) -> Scene:
         return dataclasses.replace(self, **kw)
 
-    def astype(self, dtype) -> "Scene":
+    def astype(self, dtype) -> Scene:
         """The same scene with every leaf cast to ``dtype`` (e.g. float64 for reference renders)."""
         return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), self)
 

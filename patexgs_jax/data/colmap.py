@@ -21,11 +21,9 @@ from typing import NoReturn
 
 import numpy as np
 import PIL.Image  # noqa: F401  -- must be loaded before pycolmap (see data/__init__)
-from .._pycolmap import pycolmap
 
+from .._pycolmap import pycolmap
 from .dataset import (
-    fit_records_to_width,
-    image_loader,
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
@@ -35,9 +33,11 @@ from .dataset import (
     ImageCache,
     atomic_build_dir,
     check_size_against_camera,
-    finish_dataset,
     fingerprint,
+    finish_dataset,
+    fit_records_to_width,
     handle_unreadable,
+    image_loader,
     image_size,
     is_complete_dir,
     list_images,
@@ -323,7 +323,7 @@ def _text_declared_counts(folder: Path) -> dict[str, int]:
     return out
 
 
-def read_model(folder: Path) -> "pycolmap.Reconstruction":
+def read_model(folder: Path) -> pycolmap.Reconstruction:
     """Reads a COLMAP model folder (``.bin`` validated first, or ``.txt``) with pycolmap.
 
     Text files whose header declares a count (``# Number of points: N``) are checked against what was
@@ -386,7 +386,8 @@ def model_points(rec, folder: Path):
     cols = np.array([rec.points3D[i].color for i in ids], np.float32).reshape(-1, 3) / 255.0
     bad = ids[~np.all(np.isfinite(xyz), axis=1)]
     if bad.size:
-        raise DatasetError(f"COLMAP file {folder / ('points3D' + (_model_ext(folder) or ''))}: {bad.size} of {ids.size} "
+        points_file = folder / ("points3D" + (_model_ext(folder) or ""))
+        raise DatasetError(f"COLMAP file {points_file}: {bad.size} of {ids.size} "
                            f"points have non-finite coordinates (ids {bad[:5].tolist()}"
                            f"{' ...' if bad.size > 5 else ''}); re-run COLMAP triangulation or delete those points.")
     return ids, xyz, cols
@@ -603,7 +604,8 @@ def _undistort(scene, sparse, rec, kept, files, ratios, folder, cache_dir, disto
         if abs(rx - 1) > 1e-12 or abs(ry - 1) > 1e-12:
             rescale[im.camera_id] = (int(round(cam.width * rx)), int(round(cam.height * ry)))
     # Files whose names differ from the model's (images_N matched by order) need renaming: link them.
-    renamed = {n: files[n] for n in names if files[n].name != Path(n).name or files[n].parent != folder / Path(n).parent}
+    renamed = {n: files[n] for n in names
+               if files[n].name != Path(n).name or files[n].parent != folder / Path(n).parent}
     sparse_files = sorted(p for p in sparse.iterdir() if p.is_file())
     key = fingerprint("undistort-v1", *sparse_files, folder.resolve(), names, sorted(rescale.items()),
                       *[files[n] for n in names])
@@ -642,7 +644,8 @@ def _undistort(scene, sparse, rec, kept, files, ratios, folder, cache_dir, disto
             pycolmap.undistort_images(str(out), str(src_model), str(src_images), image_names=names,
                                       jpeg_quality=100)
         except Exception as e:
-            raise DatasetError(f"pycolmap failed to undistort the images of {scene} ({type(e).__name__}: {e}).") from None
+            raise DatasetError(
+                f"pycolmap failed to undistort the images of {scene} ({type(e).__name__}: {e}).") from None
         finally:
             pycolmap.logging.minloglevel = old
         (out / "images").rename(tmp / "images")

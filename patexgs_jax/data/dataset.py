@@ -25,8 +25,8 @@ import time
 import uuid
 import warnings
 import zlib  # noqa: F401  -- load the system zlib before pycolmap can be imported (see data/__init__.py)
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
 
 import numpy as np
 import PIL.Image  # noqa: F401  -- same reason: PIL (and its zlib) must be loaded before pycolmap
@@ -166,7 +166,7 @@ def area_resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
     return out[..., 0] if squeeze else out
 
 
-def _pil_to_float(im: "PIL.Image.Image", background) -> np.ndarray:
+def _pil_to_float(im: PIL.Image.Image, background) -> np.ndarray:
     bg = np.asarray(background, np.float32).reshape(3)
     mode = im.mode
     if mode == "P":
@@ -261,7 +261,8 @@ def image_loader(path, factor: int, background, size: tuple[int, int] | None = N
     return lambda: box_downsample(read_image(path, background), factor)
 
 
-def fit_records_to_width(records: list[dict], max_width: int | None, background, verbose: bool) -> tuple[list[dict], float]:
+def fit_records_to_width(records: list[dict], max_width: int | None, background,
+                         verbose: bool) -> tuple[list[dict], float]:
     """Applies the default resolution rule to loader records (see :func:`finish_dataset`): the
     images wider than ``max_width`` are resized to ``max_width`` pixels wide (height
     ``H * max_width // W``) with an area filter, their intrinsics scaled per axis, and one line says
@@ -345,7 +346,7 @@ class ImageCache:
             raise ValueError(f"image cache bytes must be >= 0 or None, got {max_bytes}.")
         self.maxsize = maxsize
         self.max_bytes = None if max_bytes is None else int(max_bytes)
-        self._items: "collections.OrderedDict[object, np.ndarray]" = collections.OrderedDict()
+        self._items: collections.OrderedDict[object, np.ndarray] = collections.OrderedDict()
         self._lock = threading.Lock()
         self.nbytes = 0
         self.hits = 0
@@ -438,7 +439,7 @@ class View:
                                "the file changed after loading the dataset: reload it.")
         return img
 
-    def scaled(self, factor: int) -> "View":
+    def scaled(self, factor: int) -> View:
         """The zoom-out view: image box-downsampled by ``factor`` and ``camera.scaled(factor)``.
 
         The image is cropped to a multiple of ``factor`` and averaged over ``factor x factor`` blocks,

@@ -15,8 +15,6 @@ import numpy as np
 
 from .colmap import default_resolution, find_sparse_dir, model_points, read_model
 from .dataset import (
-    fit_records_to_width,
-    image_loader,
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
@@ -25,7 +23,9 @@ from .dataset import (
     ImageCache,
     check_size_against_camera,
     finish_dataset,
+    fit_records_to_width,
     handle_unreadable,
+    image_loader,
     list_images,
     orthonormalize_pose,
     probe_image,

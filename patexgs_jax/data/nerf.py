@@ -21,6 +21,7 @@ Images with alpha are composited on ``background`` (white by default).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
@@ -30,12 +31,10 @@ from pathlib import Path
 
 import numpy as np
 import PIL.Image
-from .._pycolmap import pycolmap
 
+from .._pycolmap import pycolmap
 from .colmap import default_resolution
 from .dataset import (
-    fit_records_to_width,
-    image_loader,
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
@@ -44,9 +43,11 @@ from .dataset import (
     ImageCache,
     atomic_build_dir,
     check_size_against_camera,
-    finish_dataset,
     fingerprint,
+    finish_dataset,
+    fit_records_to_width,
     handle_unreadable,
+    image_loader,
     is_complete_dir,
     orthonormalize_pose,
     probe_image,
@@ -302,6 +303,25 @@ def read_ply_points(path) -> tuple[np.ndarray, np.ndarray | None]:
 # ----------------------------------------------------------------------------------------------------
 
 
+def _frame_value(frame: dict, top: dict, key: str, default=None):
+    """A frame's value of ``key``, else the file's top-level one, else ``default``."""
+    return frame.get(key, top.get(key, default))
+
+
+def _frame_number(frame: dict, top: dict, where: str, key: str, default=None):
+    """A finite number, or ``default`` when absent / null; a clear error for anything else."""
+    v = _frame_value(frame, top, key)
+    if v is None:
+        return default
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: {key} must be a number, got {v!r}.") from None
+    if not math.isfinite(x):  # NaN distortion made NaN sample positions and an IndexError
+        raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}; fix or remove it.")
+    return x
+
+
 def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_missing: bool = False, *,
               normalize: bool = False, cache_dir=None, image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE,
               image_cache_bytes: int | None = DEFAULT_IMAGE_CACHE_BYTES,
@@ -364,19 +384,8 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
                 why = f"{why} (also tried appending .png, .jpg, .jpeg, ...)"
             problems.append((f if f is not None else base / str(fr["file_path"]), why))
             continue
-        get = lambda k, d=None: fr.get(k, top.get(k, d))  # noqa: E731
-
-        def num(k, d=None):  # a finite number, or d when absent / null; a clear error for anything else
-            v = get(k)
-            if v is None:
-                return d
-            try:
-                x = float(v)
-            except (TypeError, ValueError):
-                raise DatasetError(f"{where}: {k} must be a number, got {v!r}.") from None
-            if not math.isfinite(x):  # NaN distortion made NaN sample positions and an IndexError
-                raise DatasetError(f"{where}: {k} must be a finite number, got {v!r}; fix or remove it.")
-            return x
+        get = functools.partial(_frame_value, fr, top)
+        num = functools.partial(_frame_number, fr, top, where)
 
         w, h = num("w"), num("h")
         if w is not None and h is not None:
@@ -454,7 +463,8 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         return random_points_in_box(norm.original_center, half, num_random_points, seed)
 
     return finish_dataset(records, fmt="nerf", path=p, factor=applied, test_every=test_every, normalize=normalize,
-                          points=pts, colors=cols, points_source=source, cache=ImageCache(image_cache_size, image_cache_bytes),
+                          points=pts, colors=cols, points_source=source,
+                          cache=ImageCache(image_cache_size, image_cache_bytes),
                           info=info, splits=splits, random_points=rand)
 
 
