@@ -791,16 +791,16 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", type=int, default=None, help="devices the batch is split over (default: as many "
                     "as divide it); on CPU this many CPU devices are created")
     from patexgs_jax import parallel
+    from patexgs_jax.checkpoint import CheckpointError
 
     parallel.add_cli_arguments(ap)
-    return parallel.run_cli(ap.parse_args(argv), _study_cli)
+    return parallel.run_cli(ap.parse_args(argv), _study_cli, user_errors=(CheckpointError,))
 
 
 def _study_cli(args) -> int:
     import jax
 
     from patexgs_jax import checkpoint as ckpt
-    from patexgs_jax import parallel
 
     if not args.no_compile_cache:
         _enable_compile_cache()
@@ -811,25 +811,11 @@ def _study_cli(args) -> int:
                                     test_views=args.test_views).items() if v is not None}
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
-    try:
-        if jax.process_index() == 0:  # the process that writes; before any scene is loaded
-            ckpt.check_output_dir(args.out)
-        run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
-            renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
-            **config)
-    except parallel.DistributedError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return parallel.EXIT_DISTRIBUTED
-    except (ValueError, FileExistsError, OSError, MemoryError, ckpt.CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except BaseException:
-        if jax.process_count() == 1:
-            raise
-        import traceback
-
-        traceback.print_exc()  # an unexpected error: its traceback, then this process ends (no hang)
-        return 1
+    if jax.process_index() == 0:  # the process that writes; before any scene is loaded
+        ckpt.check_output_dir(args.out)
+    run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
+        renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
+        **config)
     return 0
 
 
