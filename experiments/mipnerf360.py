@@ -79,6 +79,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import platform
@@ -403,8 +404,10 @@ class Study:
             self.save()
             self.bar.update(1)
             full = entry["1"]
-            self.say(f"[{name}] {key}: PSNR {' / '.join(_fmt(entry[str(s)]['psnr'], 2) for s in SCALES)} dB at 1, "
-                     f"1/2, 1/4, 1/8 (alias PSNR {' / '.join(_fmt(entry[str(s)]['alias_psnr'], 2) for s in SCALES[1:])}); SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
+            psnrs = " / ".join(_fmt(entry[str(s)]["psnr"], 2) for s in SCALES)
+            alias = " / ".join(_fmt(entry[str(s)]["alias_psnr"], 2) for s in SCALES[1:])
+            self.say(f"[{name}] {key}: PSNR {psnrs} dB at 1, 1/2, 1/4, 1/8 (alias PSNR {alias}); "
+                     f"SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
                      f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
                      f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
 
@@ -583,7 +586,7 @@ def tables_markdown(data: dict) -> str:
             "| method | PSNR | Gaussians | texels | storage MB | steps | train s | render ms |",
             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for key in labels:
-        m = lambda f: _mean_over_scenes(results, key, f)  # noqa: E731
+        m = functools.partial(_mean_over_scenes, results, key)
         out.append(f"| {key} | {_fmt(metric(key, 1, 'psnr'), 2)} | {_fmt(m(lambda e: e['num_gaussians']), 0)} | "
                    f"{_fmt(m(lambda e: e['texels']), 0)} | {_fmt(m(lambda e: e['storage_mb']), 2)} | "
                    f"{_fmt(m(lambda e: e.get('steps')), 0)} | "
@@ -613,7 +616,7 @@ def write_plots(data: dict, directory) -> list[Path]:
             (axes[0], "psnr", SCALES, "PSNR against the ground truth"),
             (axes[1], "alias_psnr", SCALES[1:], "alias PSNR: against its own supersampled render")):
         for key in labels:
-            ys = [_mean_over_scenes(results, key, lambda e, s=s: e.get(str(s), {}).get(field)) for s in scales]
+            ys = [_mean_over_scenes(results, key, lambda e, s=s, f=field: e.get(str(s), {}).get(f)) for s in scales]
             ax.plot(scales, [np.nan if y is None else y for y in ys], marker="o", label=key)
         ax.set_xscale("log", base=2)
         ax.set_xticks(scales, ["full" if s == 1 else f"1/{s}" for s in scales])

@@ -170,7 +170,8 @@ def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
 
 def test_tables_follow_the_paper_layouts():
     e = lambda p: {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "2": dict(psnr=p + 1, ssim=0.85, lpips=None),  # noqa: E731
-                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0), "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
+                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0),
+                   "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
                    "storage_mb": 1.5, "num_gaussians": 100, "texels": 10, "train_seconds": 3.0, "render_ms": 4.0}
     keys = ["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-rgb-mip", "textured-fixed-8", "patexgs(10%)"]
     data = {"config": {"preset": "tiny"},
