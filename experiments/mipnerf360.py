@@ -54,14 +54,17 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
      "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
                "weights": str} | null,
      "results": {scene: {label: {
-         "1": {"psnr", "ssim", "lpips", "alias_psnr", "views"}, "2": {...}, "4": {...}, "8": {...},
+         "1": {"psnr", "ssim", "lpips", "alias_psnr", "supersampled_psnr", "views"}, "2": {...}, ...,
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
          "max_gaussians", "steps", "eval_seconds", "sides_allocated", "sides_final", "sigma",
          "growth_events"}}}}
 
 Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground truth
 (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same model's
-full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
+full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it), and
+``supersampled_psnr`` that downsampled render with the ground truth: the model's score at 1/s under
+a perfectly anti-aliased renderer, the bound of a render-time filter (null at scale 1; absent from
+older files);
 ``sides_allocated`` / ``sides_final`` are the runs' texture-side histograms (``{side: Gaussians}``)
 after the allocation and at the end, ``sigma`` the Eq. 7 sigma (null for fixed sizes) and
 ``growth_events`` the Eqs. 8-10 events (summary.json's; absent from older files);
