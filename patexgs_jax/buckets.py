@@ -21,7 +21,7 @@ statistics); evaluation uses :data:`EVAL_STEPS_PER_OCTAVE`.
 from __future__ import annotations
 
 import importlib
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp

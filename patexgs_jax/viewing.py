@@ -34,6 +34,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -173,7 +174,7 @@ def mode_config(base: RenderConfig, mode: str) -> RenderConfig:
     if mode not in MODES:
         raise ViewerError(f"unknown coverage mode {mode!r}; choose one of {', '.join(MODES)}.")
     mip = base.mip if base.mip != "none" else "nearest"
-    kw = dict(rgb_mip=base.rgb_mip, alpha_mip=base.alpha_mip, background=base.background)
+    kw: dict[str, Any] = dict(rgb_mip=base.rgb_mip, alpha_mip=base.alpha_mip, background=base.background)
     if mode == "patexgs":
         lam = base.lambda_mip if base.coverage == "prefilter" else None
         return RenderConfig(coverage="prefilter", mip=mip, lambda_mip=lam, **kw)

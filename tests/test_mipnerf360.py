@@ -66,9 +66,10 @@ def test_results_schema_and_values(study):
             assert m["lpips"] is None  # LPIPS switched off
             assert m["views"] == 2
             if s == "1":
-                assert m["alias_psnr"] is None
-            else:  # the render at 1/s against its own supersampled render
+                assert m["alias_psnr"] is None and m["supersampled_psnr"] is None
+            else:  # the render at 1/s against its own supersampled render; that against the truth
                 assert _finite(m["alias_psnr"]) and 10.0 < m["alias_psnr"] < 80.0, (key, s, m)
+                assert _finite(m["supersampled_psnr"]) and 5.0 < m["supersampled_psnr"] < 60.0, (key, s, m)
         assert 0 < e["num_gaussians"] <= 300
         assert e["storage_mb"] > 0 and e["train_seconds"] > 0 and e["render_ms"] > 0
         assert e["method"] == key and e["steps"] == 20  # equal steps: 2dgs continues its stage for 8

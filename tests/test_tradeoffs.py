@@ -72,8 +72,8 @@ def test_plan_shares_stage1_where_only_stage2_differs():
         for (k, _), cfg in by.items():
             if k == knob:
                 assert stage1_key(cfg) == key
-    mips = ("none", "nearest", "trilinear")
-    assert {by[("mip", m)].render_config().mip for m in mips} == set(mips)
+    modes = ("none", "nearest", "trilinear")
+    assert {by[("mip", m)].render_config().mip for m in modes} == set(modes)
     assert by[("texture", "fixed 1x1")].method == "textured-fixed-1"
     assert by[("budget", "10%")].max_gaussians == 390 and by[("budget", "1%")].max_gaussians == 39
     assert by[("budget", "100%")] == base
