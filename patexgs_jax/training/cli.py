@@ -96,41 +96,25 @@ def main(argv=None) -> int:
                          "divide it); on CPU this many CPU devices are created")
     ap.add_argument("--resume", action="store_true")
     parallel.add_cli_arguments(ap)
-    return parallel.run_cli(ap.parse_args(argv), _train_cli)
+    return parallel.run_cli(ap.parse_args(argv), _train_cli, user_errors=(ckpt.CheckpointError,))
 
 
-def _train_cli(args) -> int:
-    from .. import parallel
+def _train_cli(args) -> None:
     from ..data import load
 
-    try:
-        if args.data is None:
-            from ..data.synthetic import ensure_default_scene
+    if args.data is None:
+        from ..data.synthetic import ensure_default_scene
 
-            args.data = str(ensure_default_scene())
-        if jax.process_index() == 0:  # the process that writes; before the data is loaded
-            ckpt.check_output_dir(args.out)
-        cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
-                            iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
-                            texture_budget_mb=args.texture_budget_mb, seed=args.seed,
-                            checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-                            batch_size=args.batch_size, devices=args.devices)
-        ds = load(args.data, factor=args.factor)
-        train(ds, cfg, args.out, resume=args.resume, end_distributed=True)
-    except parallel.DistributedError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return parallel.EXIT_DISTRIBUTED
-    except (ValueError, FileExistsError, OSError, MemoryError, ckpt.CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except BaseException:
-        if jax.process_count() == 1:
-            raise
-        import traceback
-
-        traceback.print_exc()  # an unexpected error: its traceback, then this process ends (no hang)
-        return 1
-    return 0
+        args.data = str(ensure_default_scene())
+    if jax.process_index() == 0:  # the process that writes; before the data is loaded
+        ckpt.check_output_dir(args.out)
+    cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
+                        iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
+                        texture_budget_mb=args.texture_budget_mb, seed=args.seed,
+                        checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+                        batch_size=args.batch_size, devices=args.devices)
+    ds = load(args.data, factor=args.factor)
+    train(ds, cfg, args.out, resume=args.resume, end_distributed=True)
 
 
 if __name__ == "__main__":
