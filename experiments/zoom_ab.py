@@ -8,6 +8,8 @@ comparisons belong in one run). For each scale s it prints
   * ``alias``: PSNR of the render at 1/s against this variant's own full-resolution render
     box-downsampled by s (what a perfectly anti-aliased renderer of the same model shows);
   * ``gt``: PSNR against the test image box-downsampled by s;
+  * ``bound``: the own full-resolution render box-downsampled by s against that test image (what
+    a perfectly anti-aliased renderer of the model would score);
   * ``ms``: the median full-resolution render time.
 
   python -m experiments.zoom_ab --study runs/mipnerf360 [--data ROOT] [--variants a,b] [--views N] [--methods a,b]
@@ -28,8 +30,8 @@ from pathlib import Path
 import jax
 
 from experiments.evaluation import evaluate_scales, render_ms, usable
-from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
 from patexgs_jax.camera import ZOOM_SCALES
+from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
 from patexgs_jax.render import RenderConfig
 
 SCALES = ZOOM_SCALES
@@ -72,10 +74,11 @@ def _runs(study: Path):
 
 
 def probe(scene, views, config: RenderConfig, scales=SCALES) -> dict:
-    """{str(s): {"alias", "gt"}} means over ``views`` for one render setting (alias None at s = 1;
-    the studies' ``alias_psnr`` and ``psnr``)."""
+    """{str(s): {"alias", "gt", "bound"}} means over ``views`` for one render setting (alias and
+    bound None at s = 1; the studies' ``alias_psnr``, ``psnr`` and ``supersampled_psnr``)."""
     ev = evaluate_scales(scene, views, config, scales=scales)
-    return {str(s): dict(alias=ev[str(s)]["alias_psnr"], gt=ev[str(s)]["psnr"]) for s in scales}
+    return {str(s): dict(alias=ev[str(s)]["alias_psnr"], gt=ev[str(s)]["psnr"], bound=ev[str(s)]["supersampled_psnr"])
+            for s in scales}
 
 
 def main(argv=None) -> int:
@@ -131,9 +134,9 @@ def main(argv=None) -> int:
             res = probe(scene, views, rc)
             res["ms"] = render_ms(scene, views, rc, max_views=4)
             figures.setdefault(scene_name, {}).setdefault(label, {})[n] = res
-            cells = " | ".join(f"{res[str(s)]['gt']:.2f}" + ("" if s == 1 else f" / {res[str(s)]['alias']:.2f}")
-                               for s in SCALES)
-            print(f"{scene_name} {label:>10} {n:>20}: gt / alias  {cells} | {res['ms']:.1f} ms "
+            cells = " | ".join(f"{res[str(s)]['gt']:.2f}" + (
+                "" if s == 1 else f" / {res[str(s)]['alias']:.2f} / {res[str(s)]['bound']:.2f}") for s in SCALES)
+            print(f"{scene_name} {label:>10} {n:>20}: gt / alias / bound  {cells} | {res['ms']:.1f} ms "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)
         jax.clear_caches()
     if args.json:
