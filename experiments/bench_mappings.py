@@ -54,7 +54,7 @@ class Meter:
     # -- counting ---------------------------------------------------------------------------------
     def _enter(self, phase: str) -> None:
         T = importlib.import_module("patexgs_jax.train")
-        R = importlib.import_module("patexgs_jax.render")
+        R = importlib.import_module("patexgs_jax.rendering")
         self.phase = phase
         maps = self.maps()
         self.phases.setdefault(phase, dict(peak=maps, start=maps, end=maps, compiles=0, step_traces=0,
@@ -63,7 +63,7 @@ class Meter:
 
     def _leave(self) -> None:
         T = importlib.import_module("patexgs_jax.train")
-        R = importlib.import_module("patexgs_jax.render")
+        R = importlib.import_module("patexgs_jax.rendering")
         p = self.phases[self.phase]
         p["end"] = self.maps()
         p["peak"] = max(p["peak"], p["end"])

@@ -74,7 +74,7 @@ from . import losses, progress
 from . import schedule as sched
 from .metrics import storage_mb
 from .optim import LearningRates, make_optimizer, upgrade_state
-from .render import Capacity, RenderConfig, count_pairs, render_jit
+from .rendering import Capacity, RenderConfig, count_pairs, render_jit
 from .scene import Scene
 
 #: Traces of the jitted training step, per (render config, capacity): tests assert on it.
@@ -130,7 +130,7 @@ class TrainConfig:
       lr: learning rates.
       background: RGB behind the scene.
       lambda_mip: the paper's lambda_mip (Eq. 11); None: the coverage mode's calibrated value
-        (:data:`patexgs_jax.render.LAMBDA_MIP_DEFAULT`).
+        (:data:`patexgs_jax.rendering.LAMBDA_MIP_DEFAULT`).
       seed: seeds data order, initialisation and every random choice.
       checkpoint_every: steps between checkpoints (and one at the end of each stage and the run).
       log_every: steps between progress lines.

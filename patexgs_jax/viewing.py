@@ -42,7 +42,7 @@ import numpy as np
 from . import textures as tex
 from .buckets import ViewRenderer, release_scene_programs
 from .camera import ZOOM_SCALES, Camera
-from .render import RenderConfig
+from .rendering import RenderConfig
 
 #: Render scales (zoom-out factors) the viewer offers.
 SCALES = ZOOM_SCALES
@@ -448,7 +448,7 @@ def _programs() -> tuple:
     """Traces of the renderer and programs of the pair counter and the mip-level function: a frame
     that changes them compiled something."""
     from . import compiled
-    from .render import TRACE_COUNTS, count_pairs
+    from .rendering import TRACE_COUNTS, count_pairs
 
     return (sum(TRACE_COUNTS.values()), compiled.program_count(count_pairs),
             compiled.program_count(dominant_mip_level))

@@ -13,14 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from render_reference import reference_render, scene_to_reference, sh_color
 
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render, render_jit
-import importlib
-
-render_mod = importlib.import_module("patexgs_jax.render")
-
-from render_reference import reference_render, scene_to_reference, sh_color
+from patexgs_jax import rendering as render_mod
 
 C = 48
 W, H = 44, 36

@@ -79,10 +79,10 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from . import textures as tex
-from .camera import Camera
-from .math import quat_to_rotmat, safe_div, safe_log2, safe_normalize, safe_sqrt, sh_basis
-from .scene import Scene
+from .. import textures as tex
+from ..camera import Camera
+from ..math import quat_to_rotmat, safe_div, safe_log2, safe_normalize, safe_sqrt, sh_basis
+from ..scene import Scene
 
 MIP_MODES = ("none", "nearest", "trilinear")
 COVERAGE_MODES = ("lowpass", "prefilter")
