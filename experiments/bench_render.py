@@ -15,7 +15,7 @@ time; recompiles during the timed calls (must be 0); XLA's temporary-buffer size
 (its peak working memory beyond inputs/outputs); and the share of the machine's arithmetic peak
 the forward reaches, ``pairs/s x FLOPs per pair / peak``.
 
-FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.render`` (adds, multiplies,
+FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.rendering`` (adds, multiplies,
 divisions, comparisons feeding arithmetic, exp/log/sqrt each 1; selects and integer address
 arithmetic not counted): the homogeneous intersection (3 plane equations 12, the division and its
 parallel-ray test 6), rho3d 3, the low-pass rho2d 6 (the prefilter's quadratic form replaces both: 7),
@@ -44,7 +44,7 @@ import numpy as np
 
 from experiments.provenance import write_benchmark_json
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, rendering
-from patexgs_jax.rendering import count_pairs, render_jit
+from patexgs_jax.rendering import binning, count_pairs, projection, render_jit
 
 #: The layout of the --json file (experiments.provenance's header plus peak_gflops, timing, results).
 SCHEMA = 1
@@ -114,14 +114,14 @@ def prepare(name, n, width, height):
 
     fwd = jax.jit(lambda s, c: render_jit(s, c, config=cfg, capacity=cap).rgb)
 
-    def binning(s, c):  # the renderer's projection, tile ranges, one sort and per-tile starts
-        proj = rendering._project(s, c, cfg, None, None, rendering._alpha_peak(s))
+    def bin_view(s, c):  # the renderer's projection, tile ranges, one sort and per-tile starts
+        proj = projection.project(s, c, cfg, None, None, projection.alpha_peak(s))
         ts = cfg.tile_size
         tx, ty = -(-c.width // ts), -(-c.height // ts)
-        tx0, tx1, ty0, ty1, ok = rendering._tile_ranges(proj["bounds"], proj["visible"], ts, tx, ty)
-        return rendering._bin(proj["depth"], tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs)
+        tx0, tx1, ty0, ty1, ok = binning.tile_ranges(proj.bounds, proj.visible, ts, tx, ty)
+        return binning.bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs)
 
-    bin_c = jax.jit(binning).lower(scene, cam).compile()
+    bin_c = jax.jit(bin_view).lower(scene, cam).compile()
     jax.block_until_ready(bin_c(scene, cam))
 
     def loss(s, c):
