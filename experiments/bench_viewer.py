@@ -160,8 +160,8 @@ def main(argv=None) -> int:
         ap.error("--models takes tiny and/or synthetic; --repeats and --preview must be >= 1")
     load = os.getloadavg()
     print(f"load average {load[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'model':9s} {'N':>7s} {'size':>9s} {'frame ms':>9s} {'CPU ms':>8s} {'jpeg ms':>7s} {'fps':>6s} {'preview':>9s} "
-          f"{'prev. ms':>9s} {'fps':>6s} {'first s':>8s} {'recomp':>6s}")
+    print(f"{'model':9s} {'N':>7s} {'size':>9s} {'frame ms':>9s} {'CPU ms':>8s} {'jpeg ms':>7s} {'fps':>6s} "
+          f"{'preview':>9s} {'prev. ms':>9s} {'fps':>6s} {'first s':>8s} {'recomp':>6s}")
     rows = []
     if "tiny" in models:
         tiny = bench(*tiny_model(args.run), args.sizes, args.repeats, args.preview)
@@ -171,7 +171,8 @@ def main(argv=None) -> int:
     if "synthetic" in models and args.gaussians > 0:
         rows += bench(*synthetic_model(args.gaussians), args.sizes, args.repeats, args.preview)
     if args.json:
-        write_benchmark_json(args.json, rows, SCHEMA, load_average_before=list(load), load_average_after=list(os.getloadavg()))
+        write_benchmark_json(args.json, rows, SCHEMA, load_average_before=list(load),
+                             load_average_after=list(os.getloadavg()))
         print(f"written to {args.json}")
     return 0
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import chex
 import jax
@@ -204,7 +204,9 @@ def render_ms(scene, views: Sequence, config: RenderConfig, *, max_views: int = 
     with _renderer(scene, config, active_sh_degree, renderer) as renderer:
         renderer.prepare([v.camera for v in views])
         for v in views:
-            run = lambda: renderer.padded(v.camera).rgb  # noqa: E731
+            def run(camera=v.camera):
+                return renderer.padded(camera).rgb
+
             jax.block_until_ready(run())
             t = time.perf_counter()
             jax.block_until_ready(run())

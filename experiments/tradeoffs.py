@@ -78,8 +78,8 @@ import hashlib
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -178,7 +178,8 @@ def plan(base, knobs: Sequence[str], *, base_gaussians: int | None = None, fixed
                 if f == 1.0:
                     out.append(Entry(knob, "100%", f, base))
                 elif base_gaussians is not None:
-                    out.append(Entry(knob, f"{100 * f:g}%", f, rep(base, max_gaussians=max(1, int(round(f * base_gaussians))))))
+                    n = max(1, int(round(f * base_gaussians)))
+                    out.append(Entry(knob, f"{100 * f:g}%", f, rep(base, max_gaussians=n)))
         elif knob == "iters":
             out += [Entry(knob, f"{100 * f:g}%", f, scaled_iterations(base, f)) for f in iter_fractions]
         elif knob == "sh":
@@ -200,7 +201,7 @@ def pareto_front(costs: Sequence[float], qualities: Sequence[float]) -> list[int
            if c is not None and q is not None and np.isfinite(c) and np.isfinite(q)]
     pts.sort(key=lambda p: (p[0], -p[1], p[2]))
     front, best = [], -np.inf
-    for c, q, i in pts:
+    for _, q, i in pts:
         if q > best:
             front.append(i)
             best = q
@@ -231,7 +232,8 @@ def markdown(study: dict) -> str:
     runs, pareto = study["runs"], study.get("pareto") or pareto_sets(study["runs"], study["scales"])
     lines = [f"# Accuracy vs time ({Path(str(study['data'])).name}, preset {study['preset']})", "",
              f"Machine: {study.get('machine', '?')}, jax {study.get('jax', '?')}, code at "
-             f"{study.get('git') or '?'} ({study.get('date', '?')}). Test views at zoom-out scales {', '.join(scales)}; "
+             f"{study.get('git') or '?'} ({study.get('date', '?')}). "
+             f"Test views at zoom-out scales {', '.join(scales)}; "
              "train s = both stages' training steps (a shared 2DGS stage counted in full; 2DGS continues its "
              "stage for the texture steps: equal steps); render ms = "
              "per frame (per view the fastest of 3 renders, median over views; no compilation); PSNR against "
@@ -439,7 +441,8 @@ class Study:
         self.say(f"--- evaluating {rid} at scales {self.scales}")
         m = measure(scene, self.ds.test_views, cfg.render_config(), self.scales, max_views=self.render_views)
         rec = dict(run=rid, method=cfg.method, config=config_json(cfg), stage1_run=s1_id,
-                   steps=int(summary["steps"]), train_seconds=float(summary["train_seconds"]), stage1_seconds=s1_seconds,
+                   steps=int(summary["steps"]), train_seconds=float(summary["train_seconds"]),
+                   stage1_seconds=s1_seconds,
                    num_gaussians=int(summary["num_gaussians"]), texels=int(summary["texels"]),
                    storage_mb=float(summary["storage_mb"]), wall_seconds=time.perf_counter() - t0, **m)
         self.state["runs"][rid] = rec

@@ -28,8 +28,8 @@ from pathlib import Path
 import jax
 
 from experiments.evaluation import evaluate_scales, render_ms, usable
-from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
 from patexgs_jax.camera import ZOOM_SCALES
+from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
 from patexgs_jax.rendering import RenderConfig
 
 SCALES = ZOOM_SCALES
@@ -117,7 +117,8 @@ def main(argv=None) -> int:
     for scene_name, label, run in _runs(study):
         if only is not None and label not in only:
             continue
-        path = root if (root / "sparse").exists() or scene_name not in {p.name for p in root.iterdir()} else root / scene_name
+        nested = not (root / "sparse").exists() and scene_name in {p.name for p in root.iterdir()}
+        path = root / scene_name if nested else root
         ds = load(path, factor=cfg.get("factor"))
         views = [v for v in ds.test_views if usable(v)][: args.views]
         tree, meta = load_checkpoint(latest_checkpoint(run / "checkpoints"))

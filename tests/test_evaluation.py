@@ -25,8 +25,9 @@ def _small_splats(n=400, scale=0.01, seed=0):
     """Many splats a few pixels wide at full size, so they are sub-pixel at 1/8."""
     r = np.random.default_rng(seed)
     q = r.normal(size=(n, 4))
-    return Scene.from_arrays(r.uniform(-0.8, 0.8, (n, 3)), np.full((n, 2), scale), q / np.linalg.norm(q, axis=1, keepdims=True),
-                             np.full(n, 0.7), r.uniform(-0.5, 0.5, (n, 1, 3)), capacity=n)
+    return Scene.from_arrays(r.uniform(-0.8, 0.8, (n, 3)), np.full((n, 2), scale),
+                             q / np.linalg.norm(q, axis=1, keepdims=True), np.full(n, 0.7),
+                             r.uniform(-0.5, 0.5, (n, 1, 3)), capacity=n)
 
 
 def test_alias_psnr_is_the_render_against_its_own_downsampled_render(views):

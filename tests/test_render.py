@@ -251,7 +251,7 @@ def test_pyramid_levels_and_their_transpose_match_numpy():
             X = np.zeros((sizes.size, P, P, 2))
             for k, n in enumerate(sizes):
                 X[k, :n, :n] = rng.normal(size=(n, n, 2))
-            levels, vjp = jax.vjp(lambda x: tx._pyramid(x, jnp.asarray(sizes), b), jnp.asarray(X))
+            levels, vjp = jax.vjp(lambda x, sizes=sizes, b=b: tx._pyramid(x, jnp.asarray(sizes), b), jnp.asarray(X))
             G = [rng.normal(size=lev.shape) for lev in levels]
             want_levels, want_grad = [X], G[-1]
             Ds = []
@@ -572,7 +572,10 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
     P, c = 12, 16
     st_ = chunks.Static(config=RenderConfig(), tiles_x=1, num_tiles=1, rgb=rgb, alpha=alpha)
     pk, G, z, offs, a_tex, valid, done, log_t, gid, ctx = _chunk_inputs(rng, P, c)
-    block = lambda a: a.T[:, None]                         # (P, c) -> (c, 1, P)
+
+    def block(a):  # (P, c) -> (c, 1, P)
+        return a.T[:, None]
+
     G, z, a_tex, offs = block(G), block(z), block(a_tex), [block(o) for o in offs]
     pk, valid, gid, done, log_t = pk[None], valid[None], gid[None], done[None], log_t[None]
     with jax.enable_x64(True):

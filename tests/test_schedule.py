@@ -547,8 +547,8 @@ def test_new_texels_have_their_own_bias_correction():
     updates, st3 = opt.update(grads, st2, s2)
     lr = LearningRates()
     for i in (0, 1, 3):
-        np.testing.assert_allclose(tex_of(updates.rgb, s2.rgb, i), -lr.texture_rgb * np.sign(tex_of(grads.rgb, s2.rgb, i)),
-                                   rtol=1e-5)
+        np.testing.assert_allclose(tex_of(updates.rgb, s2.rgb, i),
+                                   -lr.texture_rgb * np.sign(tex_of(grads.rgb, s2.rgb, i)), rtol=1e-5)
         np.testing.assert_allclose(tex_of(updates.alpha, s2.alpha, i),
                                    -lr.texture_alpha * np.sign(tex_of(grads.alpha, s2.alpha, i)), rtol=1e-5)
     age = st3[0].age

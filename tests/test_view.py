@@ -288,7 +288,7 @@ def stop_viewer(proc, timeout=15.0) -> float:
         proc.wait(timeout)
     except subprocess.TimeoutExpired:
         proc.kill()
-        raise AssertionError("the viewer did not stop within 15 s of SIGINT")
+        raise AssertionError("the viewer did not stop within 15 s of SIGINT") from None
     return time.monotonic() - t
 
 
