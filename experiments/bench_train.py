@@ -227,7 +227,8 @@ def main_memory(args, names):
                     print(f"{name:18s} N={n:6d} {w}x{h}: failed ({r['error']})", flush=True)
                     continue
                 print(f"{name:18s} N={n:6d} {w}x{h} ({r['megapixels']:.1f} MP): peak RSS {r['peak_rss_mib']:7.0f} MiB "
-                      f"(first step {r['first_step_peak_mib']:6.0f}, later steps {r['step_peak_mib'] or 0:6.0f}, before "
+                      f"(first step {r['first_step_peak_mib']:6.0f}, "
+                      f"later steps {r['step_peak_mib'] or 0:6.0f}, before "
                       f"the steps {r['rss_before_steps_mib']:6.0f}, one image {r['image_mib']:5.0f}), "
                       f"{r['ms_per_step']:8.0f} ms/step", flush=True)
     print()

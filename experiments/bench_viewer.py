@@ -161,7 +161,8 @@ def main(argv=None) -> int:
     load = os.getloadavg()
     print(f"load average {load[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'model':9s} {'N':>7s} {'size':>9s} {'frame ms':>9s} {'CPU ms':>8s} {'jpeg ms':>7s} {'fps':>6s} "
-          f"{'preview':>9s} {'prev. ms':>9s} {'fps':>6s} {'first s':>8s} {'recomp':>6s}")
+          f"{'preview':>9s} "
+          f"{'prev. ms':>9s} {'fps':>6s} {'first s':>8s} {'recomp':>6s}")
     rows = []
     if "tiny" in models:
         tiny = bench(*tiny_model(args.run), args.sizes, args.repeats, args.preview)

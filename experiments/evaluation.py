@@ -113,12 +113,15 @@ def _renderer(scene, config, active_sh_degree, renderer: ViewRenderer | None):
 def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Sequence[int] = SCALES,
                     lpips: LPIPS | None = None, active_sh_degree=None, keep_images: int = 0,
                     renderer: ViewRenderer | None = None) -> dict:
-    """Mean PSNR / SSIM / LPIPS over ``views`` at each zoom-out scale, and the alias PSNR.
+    """Mean PSNR / SSIM / LPIPS over ``views`` at each zoom-out scale, the alias PSNR and the
+    supersampled PSNR.
 
     The alias PSNR at scale s compares the render at 1/s with the same model's full-resolution
     render box-downsampled by s (what a perfectly anti-aliased renderer of this model would show,
     the ground truth's own downsampling): it measures the renderer's zoom-out coherence apart from
-    how well the model fits the images. It is None at s = 1.
+    how well the model fits the images. The supersampled PSNR compares that downsampled render with
+    the ground truth: what the model would score at 1/s under a perfectly anti-aliased renderer,
+    the bound a render-time filter works towards. Both are None at s = 1.
 
     Args:
       scene: trained scene.
@@ -132,8 +135,8 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
         e.g. for :func:`render_ms` after this); None: one of its own, released at the end.
 
     Returns:
-      ``{str(s): {"psnr", "ssim", "lpips", "alias_psnr", "views"}}`` (means; lpips None where
-      unavailable, alias_psnr None at s = 1), plus
+      ``{str(s): {"psnr", "ssim", "lpips", "alias_psnr", "supersampled_psnr", "views"}}`` (means;
+      lpips None where unavailable, alias_psnr and supersampled_psnr None at s = 1), plus
       ``"images": {str(s): [(render, gt), ...]}`` when ``keep_images`` > 0.
     """
     from patexgs_jax import lpips as lp
@@ -141,7 +144,7 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
 
     compiled.release_compiled_code()  # (only past half the memory-map cap, as train() does)
     scales = [int(s) for s in scales]
-    acc = {s: dict(psnr=[], ssim=[], lpips=[], alias_psnr=[], kept=[]) for s in scales}
+    acc = {s: dict(psnr=[], ssim=[], lpips=[], alias_psnr=[], supersampled_psnr=[], kept=[]) for s in scales}
     views = [v for v in views if usable(v)]
     with _renderer(scene, config, active_sh_degree, renderer) as renderer:
         # Every bucket's capacity fitted up front: one program per bucket.
@@ -157,7 +160,8 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
         lp_values = [x for x in a["lpips"] if x is not None]
         result[str(s)] = dict(psnr=_mean(a["psnr"]), ssim=_mean(a["ssim"]),
                               lpips=_mean(lp_values) if lp_values and len(lp_values) == len(a["lpips"]) else None,
-                              alias_psnr=_mean(a["alias_psnr"]), views=len(a["psnr"]))
+                              alias_psnr=_mean(a["alias_psnr"]), supersampled_psnr=_mean(a["supersampled_psnr"]),
+                              views=len(a["psnr"]))
         if keep_images:
             images[str(s)] = a["kept"]
     if keep_images:
@@ -184,7 +188,9 @@ def _evaluate_view(renderer: ViewRenderer, i: int, v, scales, acc: dict, lpips, 
         a["psnr"].append(float(psnr(img, gt)))
         a["ssim"].append(float(ssim(jnp.asarray(img), jnp.asarray(gt))))
         if s != 1:
-            a["alias_psnr"].append(float(psnr(img, box_downsample(full, s))))
+            ideal = box_downsample(full, s)
+            a["alias_psnr"].append(float(psnr(img, ideal)))
+            a["supersampled_psnr"].append(float(psnr(ideal, gt)))
         if lpips is not None:
             a["lpips"].append(lpips(img, gt))
         if i < keep_images:
@@ -204,12 +210,9 @@ def render_ms(scene, views: Sequence, config: RenderConfig, *, max_views: int = 
     with _renderer(scene, config, active_sh_degree, renderer) as renderer:
         renderer.prepare([v.camera for v in views])
         for v in views:
-            def run(camera=v.camera):
-                return renderer.padded(camera).rgb
-
-            jax.block_until_ready(run())
+            jax.block_until_ready(renderer.padded(v.camera).rgb)  # compiles (once per size)
             t = time.perf_counter()
-            jax.block_until_ready(run())
+            jax.block_until_ready(renderer.padded(v.camera).rgb)
             ts.append(time.perf_counter() - t)
     return 1e3 * float(np.median(ts)) if ts else None
 

@@ -54,14 +54,17 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
      "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
                "weights": str} | null,
      "results": {scene: {label: {
-         "1": {"psnr", "ssim", "lpips", "alias_psnr", "views"}, "2": {...}, "4": {...}, "8": {...},
+         "1": {"psnr", "ssim", "lpips", "alias_psnr", "supersampled_psnr", "views"}, "2": {...}, ...,
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
          "max_gaussians", "steps", "eval_seconds", "sides_allocated", "sides_final", "sigma",
          "growth_events"}}}}
 
 Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground truth
 (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same model's
-full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it);
+full-resolution render box-downsampled by s (null at scale 1; schema 1 files lack it), and
+``supersampled_psnr`` that downsampled render with the ground truth: the model's score at 1/s under
+a perfectly anti-aliased renderer, the bound of a render-time filter (null at scale 1; absent from
+older files);
 ``sides_allocated`` / ``sides_final`` are the runs' texture-side histograms (``{side: Gaussians}``)
 after the allocation and at the end, ``sigma`` the Eq. 7 sigma (null for fixed sizes) and
 ``growth_events`` the Eqs. 8-10 events (summary.json's; absent from older files);
@@ -79,6 +82,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import platform
@@ -403,8 +407,10 @@ class Study:
             self.save()
             self.bar.update(1)
             full = entry["1"]
-            self.say(f"[{name}] {key}: PSNR {' / '.join(_fmt(entry[str(s)]['psnr'], 2) for s in SCALES)} dB at 1, "
-                     f"1/2, 1/4, 1/8 (alias PSNR {' / '.join(_fmt(entry[str(s)]['alias_psnr'], 2) for s in SCALES[1:])}); SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
+            psnrs = " / ".join(_fmt(entry[str(s)]["psnr"], 2) for s in SCALES)
+            alias = " / ".join(_fmt(entry[str(s)]["alias_psnr"], 2) for s in SCALES[1:])
+            self.say(f"[{name}] {key}: PSNR {psnrs} dB at 1, 1/2, 1/4, 1/8 (alias PSNR {alias}); "
+                     f"SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
                      f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
                      f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
 
@@ -583,7 +589,7 @@ def tables_markdown(data: dict) -> str:
             "| method | PSNR | Gaussians | texels | storage MB | steps | train s | render ms |",
             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for key in labels:
-        m = lambda f: _mean_over_scenes(results, key, f)  # noqa: E731
+        m = functools.partial(_mean_over_scenes, results, key)
         out.append(f"| {key} | {_fmt(metric(key, 1, 'psnr'), 2)} | {_fmt(m(lambda e: e['num_gaussians']), 0)} | "
                    f"{_fmt(m(lambda e: e['texels']), 0)} | {_fmt(m(lambda e: e['storage_mb']), 2)} | "
                    f"{_fmt(m(lambda e: e.get('steps')), 0)} | "
@@ -613,7 +619,7 @@ def write_plots(data: dict, directory) -> list[Path]:
             (axes[0], "psnr", SCALES, "PSNR against the ground truth"),
             (axes[1], "alias_psnr", SCALES[1:], "alias PSNR: against its own supersampled render")):
         for key in labels:
-            ys = [_mean_over_scenes(results, key, lambda e, s=s: e.get(str(s), {}).get(field)) for s in scales]
+            ys = [_mean_over_scenes(results, key, lambda e, s=s, f=field: e.get(str(s), {}).get(f)) for s in scales]
             ax.plot(scales, [np.nan if y is None else y for y in ys], marker="o", label=key)
         ax.set_xscale("log", base=2)
         ax.set_xticks(scales, ["full" if s == 1 else f"1/{s}" for s in scales])
@@ -791,16 +797,16 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", type=int, default=None, help="devices the batch is split over (default: as many "
                     "as divide it); on CPU this many CPU devices are created")
     from patexgs_jax import parallel
+    from patexgs_jax.checkpoint import CheckpointError
 
     parallel.add_cli_arguments(ap)
-    return parallel.run_cli(ap.parse_args(argv), _study_cli)
+    return parallel.run_cli(ap.parse_args(argv), _study_cli, user_errors=(CheckpointError,))
 
 
 def _study_cli(args) -> int:
     import jax
 
     from patexgs_jax import checkpoint as ckpt
-    from patexgs_jax import parallel
 
     if not args.no_compile_cache:
         _enable_compile_cache()
@@ -811,25 +817,11 @@ def _study_cli(args) -> int:
                                     test_views=args.test_views).items() if v is not None}
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
-    try:
-        if jax.process_index() == 0:  # the process that writes; before any scene is loaded
-            ckpt.check_output_dir(args.out)
-        run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
-            renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
-            **config)
-    except parallel.DistributedError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return parallel.EXIT_DISTRIBUTED
-    except (ValueError, FileExistsError, OSError, MemoryError, ckpt.CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except BaseException:
-        if jax.process_count() == 1:
-            raise
-        import traceback
-
-        traceback.print_exc()  # an unexpected error: its traceback, then this process ends (no hang)
-        return 1
+    if jax.process_index() == 0:  # the process that writes; before any scene is loaded
+        ckpt.check_output_dir(args.out)
+    run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
+        renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
+        **config)
     return 0
 
 

@@ -59,7 +59,7 @@ def header(schema: int) -> dict:
     """The provenance fields of a benchmark file (see the module docstring)."""
     import jax
 
-    now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0)
+    now = datetime.datetime.now(datetime.UTC).replace(microsecond=0)
     return dict(schema=schema, git=git_commit(), date=now.strftime("%Y-%m-%dT%H:%M:%SZ"),
                 machine=platform.platform(), cpu=_cpu_name(), cpus=os.cpu_count(), jax=jax.__version__,
                 backend=jax.default_backend(), devices=len(jax.devices()))

@@ -178,8 +178,8 @@ def plan(base, knobs: Sequence[str], *, base_gaussians: int | None = None, fixed
                 if f == 1.0:
                     out.append(Entry(knob, "100%", f, base))
                 elif base_gaussians is not None:
-                    n = max(1, int(round(f * base_gaussians)))
-                    out.append(Entry(knob, f"{100 * f:g}%", f, rep(base, max_gaussians=n)))
+                    out.append(Entry(knob, f"{100 * f:g}%", f,
+                                     rep(base, max_gaussians=max(1, int(round(f * base_gaussians))))))
         elif knob == "iters":
             out += [Entry(knob, f"{100 * f:g}%", f, scaled_iterations(base, f)) for f in iter_fractions]
         elif knob == "sh":
@@ -519,7 +519,8 @@ def load_trained(run_dir):
     spec = method_spec(cfg.get("method", "patexgs"))
     lam = cfg.get("lambda_mip")
     rc = RenderConfig(mip=spec["mip"], rgb_mip=spec["rgb_mip"], alpha_mip=spec["alpha_mip"], coverage=spec["coverage"],
-                      lambda_mip=None if lam is None else float(lam), background=tuple(cfg.get("background", (0, 0, 0))))
+                      lambda_mip=None if lam is None else float(lam),
+                      background=tuple(cfg.get("background", (0, 0, 0))))
     return scene, rc, summary
 
 

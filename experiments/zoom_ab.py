@@ -117,8 +117,8 @@ def main(argv=None) -> int:
     for scene_name, label, run in _runs(study):
         if only is not None and label not in only:
             continue
-        nested = not (root / "sparse").exists() and scene_name in {p.name for p in root.iterdir()}
-        path = root / scene_name if nested else root
+        one_scene = (root / "sparse").exists() or scene_name not in {p.name for p in root.iterdir()}
+        path = root if one_scene else root / scene_name
         ds = load(path, factor=cfg.get("factor"))
         views = [v for v in ds.test_views if usable(v)][: args.views]
         tree, meta = load_checkpoint(latest_checkpoint(run / "checkpoints"))

@@ -42,7 +42,7 @@ class Camera:
     height: int = dataclasses.field(metadata=dict(static=True))
 
     @classmethod
-    def from_intrinsics(cls, K, world_to_camera, width: int, height: int) -> "Camera":
+    def from_intrinsics(cls, K, world_to_camera, width: int, height: int) -> Camera:
         """Builds a camera, checking shapes and values.
 
         Args:
@@ -81,7 +81,7 @@ class Camera:
                    world_to_camera=jax.numpy.asarray(w2c, jax.numpy.float32),
                    width=width, height=height)
 
-    def scaled(self, factor: int) -> "Camera":
+    def scaled(self, factor: int) -> Camera:
         """The camera of the image box-downsampled by an integer ``factor`` (zoom-out view).
 
         A block of ``factor x factor`` pixels becomes one pixel, so continuous coordinates are divided

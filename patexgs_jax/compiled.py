@@ -63,7 +63,8 @@ def release_compiled_code(threshold: float = 0.5) -> bool:
 def program_count(fn) -> int:
     """Compiled programs a ``jax.jit`` function holds (0 where JAX does not say)."""
     size = getattr(fn, "_cache_size", None)
-    return int(size()) if callable(size) else 0
+    n = size() if callable(size) else 0
+    return int(n) if isinstance(n, int) else 0
 
 
 def release_programs(*fns) -> None:

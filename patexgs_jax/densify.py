@@ -157,7 +157,7 @@ class DensifyStats:
     max_radius: Any
 
     @classmethod
-    def zeros(cls, capacity: int) -> "DensifyStats":
+    def zeros(cls, capacity: int) -> DensifyStats:
         # Three distinct buffers: the training step donates the statistics.
         z = [jax.device_put(np.zeros((int(capacity),), np.float32)) for _ in range(3)]
         return cls(grad_sum=z[0], count=z[1], max_radius=z[2])

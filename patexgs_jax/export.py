@@ -251,7 +251,7 @@ def load_ply(path, capacity: int | None = None) -> Scene:
     if C < n:
         raise ValueError(f"capacity {C} is smaller than the {n} Gaussians in {path}.")
 
-    def pad(a, fill=0.0):
+    def pad(a, fill: float | np.ndarray = 0.0):
         out = np.empty((C,) + a.shape[1:], np.float32)
         out[:] = fill
         out[:n] = a

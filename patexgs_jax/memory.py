@@ -220,5 +220,5 @@ def check_training_memory(dataset, gaussians: int, textured: bool, available: in
     raise NotEnoughMemory(
         f"Not enough memory to train at {plan.width}x{plan.height}{full}: the training step needs about "
         f"{_gb(plan.step)} (estimate, within about {RELATIVE_ERROR:.0%}){cached}, {_gb(plan.needed)} more than "
-        f"this process holds, and {_gb(plan.available)} is available (MemAvailable, or the cgroup's limit). "
+        f"this process holds, and {_gb(plan.available or 0)} is available (MemAvailable, or the cgroup's limit). "
         f"To fit, {hint}; or set {_ENV_SKIP}=1 to train anyway.")

@@ -143,10 +143,9 @@ def _filter_1d(x: jax.Array, g: np.ndarray, axis: int, pad: int) -> jax.Array:
         widths[axis] = (pad, pad)
         x = jnp.pad(x, widths)
     n = x.shape[axis] - len(g) + 1
-    out = None
-    for k, gk in enumerate(g):
-        term = lax.slice_in_dim(x, k, k + n, axis=axis) * jnp.asarray(gk, x.dtype)
-        out = term if out is None else out + term
+    out = lax.slice_in_dim(x, 0, n, axis=axis) * jnp.asarray(g[0], x.dtype)
+    for k in range(1, len(g)):
+        out = out + lax.slice_in_dim(x, k, k + n, axis=axis) * jnp.asarray(g[k], x.dtype)
     return out
 
 

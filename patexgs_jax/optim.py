@@ -25,7 +25,8 @@ Groups and learning rates (2DGS / 3DGS defaults):
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -56,7 +57,7 @@ class GroupLRState(NamedTuple):
 
 
 def _group(path) -> str:
-    names = [getattr(k, "name", None) for k in path]
+    names = [str(getattr(k, "name", "")) for k in path]
     if names[0] in ("rgb", "alpha"):
         return f"texture_{names[0]}" if "buckets" in names else "frozen"
     return {"means": "means", "log_scales": "scales", "quats": "rotation",
@@ -93,9 +94,10 @@ def scale_by_group_lr(lr: LearningRates, scene_radius: float, step_offset: int =
             return -getattr(lr, g) * u
 
         return (jax.tree_util.tree_map_with_path(scale, updates),
-                GroupLRState(count=optax.safe_int32_increment(state.count)))
+                GroupLRState(count=jnp.asarray(optax.safe_int32_increment(state.count))))
 
-    return optax.GradientTransformation(init_fn, update_fn)
+    # optax's stub types states as ArrayTree, which a NamedTuple of arrays is at run time.
+    return optax.GradientTransformation(init_fn, update_fn)  # pyright: ignore[reportArgumentType]
 
 
 class AdamState(NamedTuple):
@@ -132,7 +134,7 @@ def scale_by_adam_with_texel_age(b1: float = 0.9, b2: float = 0.999, eps: float 
         del params
         mu = jax.tree_util.tree_map(lambda g, m: b1 * m + (1 - b1) * g, updates, state.mu)
         nu = jax.tree_util.tree_map(lambda g, v: b2 * v + (1 - b2) * jnp.square(g), updates, state.nu)
-        count = optax.safe_int32_increment(state.count)
+        count = jnp.asarray(optax.safe_int32_increment(state.count))
         t = count.astype(jnp.float32)
         age = jax.tree_util.tree_map_with_path(lambda path, a: a + 1.0 if _is_texel_path(path) else a, state.age)
 
@@ -145,7 +147,7 @@ def scale_by_adam_with_texel_age(b1: float = 0.9, b2: float = 0.999, eps: float 
         out = jax.tree_util.tree_map_with_path(normalised, mu, nu, age)
         return out, AdamState(count=count, mu=mu, nu=nu, age=age)
 
-    return optax.GradientTransformation(init_fn, update_fn)
+    return optax.GradientTransformation(init_fn, update_fn)  # pyright: ignore[reportArgumentType]  (as above)
 
 
 def make_optimizer(scene_radius: float, lr: LearningRates = LearningRates(),

@@ -61,13 +61,14 @@ import socket
 import sys
 import threading
 import zlib
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from .camera import Camera
 
@@ -174,7 +175,7 @@ def process_slice(batch_size: int, mesh: Mesh | None = None) -> slice:
     if batch_size % mesh.size:
         raise ValueError(f"batch_size {batch_size} is not divisible by the {mesh.size} devices of the mesh.")
     index = batch_sharding(mesh).addressable_devices_indices_map((batch_size,))
-    rows = sorted({r for idx in index.values() for r in range(*idx[0].indices(batch_size))})
+    rows = sorted({r for idx in index.values() if idx is not None for r in range(*idx[0].indices(batch_size))})
     if not rows or rows != list(range(rows[0], rows[-1] + 1)):
         raise ValueError(f"process {jax.process_index()} would hold rows {rows} of the batch; its devices must be "
                          "consecutive in the mesh (build it with data_mesh()).")
@@ -396,7 +397,7 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
         counts = process_allgather_ints([wanted])[:, 0]
         if any(c not in (-1, jax.process_count()) for c in counts):
             raise DistributedError(
-                f"the processes were started with different --num-processes ("
+                "the processes were started with different --num-processes ("
                 + ", ".join(f"process {i}: {'from the environment' if c < 0 else int(c)}" for i, c in enumerate(counts))
                 + f"; {jax.process_count()} joined); start every process with the same count.")
     finally:
@@ -466,11 +467,20 @@ def initialize_from_args(args) -> bool:
     return initialize(args.coordinator, args.num_processes, args.process_id, timeout=args.distributed_timeout)
 
 
-def run_cli(args, body) -> int:
+#: What a command line reports as one ``error:`` line and exit status 2 instead of a traceback: bad
+#: arguments or data, an output that cannot be written, not enough memory.
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileExistsError, OSError, MemoryError)
+
+
+def run_cli(args, body: Callable[..., int | None], user_errors: tuple[type[BaseException], ...] = ()) -> int:
     """A command line's run with :func:`add_cli_arguments`' flags parsed into ``args``: joins the
-    processes (a failure is one ``error:`` line and :data:`EXIT_DISTRIBUTED`), creates
-    ``args.devices`` CPU devices in a single process, runs ``body(args)`` and returns its exit code;
-    a process of several that fails ends at once (:func:`end_process`)."""
+    processes, creates ``args.devices`` CPU devices in a single process, runs ``body(args)`` and
+    returns its exit code (None counts as 0).
+
+    Errors become exit codes: a :class:`DistributedError` one ``error:`` line and
+    :data:`EXIT_DISTRIBUTED`; :data:`USER_ERRORS` and ``user_errors`` one ``error:`` line and 2;
+    anything else is raised in a single process, and in a process of several printed with its
+    traceback and 1. A process of several that fails ends at once (:func:`end_process`)."""
     try:
         several = initialize_from_args(args)
     except DistributedError as e:
@@ -478,7 +488,21 @@ def run_cli(args, body) -> int:
         return EXIT_DISTRIBUTED
     if args.devices is not None and not several:
         request_cpu_devices(args.devices)
-    code = body(args)
+    try:
+        code = body(args) or 0
+    except DistributedError as e:
+        print(f"error: {e}", file=sys.stderr)
+        code = EXIT_DISTRIBUTED
+    except USER_ERRORS + tuple(user_errors) as e:
+        print(f"error: {e}", file=sys.stderr)
+        code = 2
+    except BaseException:
+        if not several:
+            raise
+        import traceback
+
+        traceback.print_exc()  # an unexpected error: its traceback, then this process ends (no hang)
+        code = 1
     if several and code != 0:
         end_process(code)  # the message is out; skip the shutdown barrier (see end_process)
     return code

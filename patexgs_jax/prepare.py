@@ -21,8 +21,9 @@ import sys
 import time
 from pathlib import Path
 
-import PIL.Image  # import PIL before pycolmap: the reverse order was seen to corrupt the heap
 import numpy as np
+import PIL.Image  # import PIL before pycolmap: the reverse order was seen to corrupt the heap
+
 from ._pycolmap import pycolmap
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG")
@@ -163,7 +164,7 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
         pycolmap.extract_features(database, images_dir, image_names=names,
                                   camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
-        db = pycolmap.Database.open(database) if hasattr(pycolmap.Database, "open") else pycolmap.Database(str(database))
+        db = pycolmap.Database.open(database)
         try:
             num_db_images = db.num_images()
             num_keypoints = db.num_keypoints()
@@ -184,7 +185,7 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
             pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
         else:
             pycolmap.match_sequential(database, matching_options=matching, device=pycolmap.Device.cpu)
-        db = pycolmap.Database.open(database) if hasattr(pycolmap.Database, "open") else pycolmap.Database(str(database))
+        db = pycolmap.Database.open(database)
         try:
             _, inliers = db.read_two_view_geometry_num_inliers()
         finally:

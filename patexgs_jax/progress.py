@@ -41,7 +41,7 @@ def bar(total: int, desc: str, *, unit: str = "step", initial: int = 0, leave: b
 
 def say(msg: str) -> None:
     """``print(msg, flush=True)`` to stdout, written above the bars that are drawn (not through them)."""
-    if tqdm._instances:  # noqa: SLF001 - tqdm's registry of open bars; empty when none is drawn
+    if getattr(tqdm, "_instances", None):  # tqdm's registry of open bars; empty when none is drawn
         tqdm.write(msg, file=sys.stdout)
         sys.stdout.flush()
     else:

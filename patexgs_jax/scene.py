@@ -22,7 +22,7 @@ whole scene works directly; the mask and texture indices get zero gradient.
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -51,7 +51,7 @@ class Scene:
     # ----------------------------------------------------------------------------------------
     @classmethod
     def from_arrays(cls, means, scales, quats, opacities, sh, rgb_textures=None, alpha_textures=None,
-                    capacity: int | None = None) -> "Scene":
+                    capacity: int | None = None) -> Scene:
         """Builds a scene from activated values.
 
         Args:
@@ -92,21 +92,21 @@ class Scene:
             raise ValueError("opacities must lie in [0, 1] (activated values, not logits).")
         if np.any(np.linalg.norm(quats, axis=1) == 0):
             raise ValueError("quaternions must be non-zero (w, x, y, z).")
-        capacity = n if capacity is None else int(capacity)
-        if capacity < n:
-            raise ValueError(f"capacity {capacity} is smaller than the number of Gaussians {n}.")
+        cap = n if capacity is None else int(capacity)
+        if cap < n:
+            raise ValueError(f"capacity {cap} is smaller than the number of Gaussians {n}.")
 
         def pad(a, fill=0.0):
-            out = np.full((capacity,) + a.shape[1:], fill, np.float32)
+            out = np.full((cap,) + a.shape[1:], fill, np.float32)
             out[:n] = a
             return jnp.asarray(out)
 
         op = np.clip(opacities, _OPACITY_EPS, 1 - _OPACITY_EPS).astype(np.float64)
         logits = np.log(op) - np.log1p(-op)
-        quats_p = np.zeros((capacity, 4), np.float32)
+        quats_p = np.zeros((cap, 4), np.float32)
         quats_p[:, 0] = 1.0
         quats_p[:n] = quats
-        active = np.zeros(capacity, np.float32)
+        active = np.zeros(cap, np.float32)
         active[:n] = 1.0
 
         def bank(textures, channels, default):
@@ -116,7 +116,7 @@ class Scene:
             if len(textures) != n:
                 raise ValueError(f"got {len(textures)} textures for {n} Gaussians; pass one entry "
                                  "(an array or None) per Gaussian.")
-            return TextureBank.from_list(textures, capacity, channels, default)
+            return TextureBank.from_list(textures, cap, channels, default)
 
         return cls(means=pad(means), log_scales=pad(np.log(scales)), quats=jnp.asarray(quats_p),
                    opacity_logits=pad(logits.astype(np.float32), -20.0), sh=pad(sh),
@@ -154,10 +154,10 @@ class Scene:
             out[name] = 0 if bank is None else bank.texel_count(self.active)
         return out
 
-    def replace(self, **kw) -> "Scene":
+    def replace(self, **kw) -> Scene:
         return dataclasses.replace(self, **kw)
 
-    def astype(self, dtype) -> "Scene":
+    def astype(self, dtype) -> Scene:
         """The same scene with every leaf cast to ``dtype`` (e.g. float64 for reference renders)."""
         return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), self)
 
@@ -178,7 +178,7 @@ def random_scene(seed: int, n: int, sh_degree: int = 0, extent: float = 1.0, sca
     lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
     scales = np.exp(rng.uniform(lo, hi, (n, 2)))
     quats = rng.normal(size=(n, 4))
-    opac = rng.uniform(*opacity_range, n)
+    opac = rng.uniform(opacity_range[0], opacity_range[1], n)
     K = (sh_degree + 1) ** 2
     sh = np.zeros((n, K, 3))
     sh[:, 0] = (rng.uniform(0.1, 0.9, (n, 3)) - 0.5) / 0.28209479177387814

@@ -14,8 +14,8 @@ nearest neighbour), coverage mode, view (see :mod:`patexgs_jax.viewing`), run.
 
 Safety: it binds to 127.0.0.1 unless ``--host`` says otherwise (with a warning: the viewer has no
 authentication). The browser only picks from lists made at start-up (runs, modes, views, scales,
-training views): nothing it sends names a file. viser's public share link is switched off. A closed tab or several tabs never stop the server;
-Ctrl-C (SIGINT) or SIGTERM ends it.
+training views): nothing it sends names a file. viser's public share link is switched off. A closed tab
+or several tabs never stop the server; Ctrl-C (SIGINT) or SIGTERM ends it.
 
 Needs the ``viewer`` extra: ``pip install -e ".[viewer]"`` (viser).
 """
@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 import warnings
+from typing import Any
 
 import numpy as np
 
@@ -69,18 +70,20 @@ def check_port(host: str, port: int) -> None:
                                      f"--port {port + 1 if port < 65535 else 8080}, or stop the program "
                                      "that holds it.") from None
             if e.errno == errno.EACCES:
-                raise vw.ViewerError(f"port {port} needs privileges: pass a port above 1023, e.g. --port 8080.") from None
+                raise vw.ViewerError(
+                    f"port {port} needs privileges: pass a port above 1023, e.g. --port 8080.") from None
             if e.errno == errno.EADDRNOTAVAIL:
                 raise vw.ViewerError(f"--host {host} is not an address of this machine: pass e.g. --host "
                                      "127.0.0.1, or 0.0.0.0 for every interface.") from None
-            raise vw.ViewerError(f"cannot listen on {host}:{port} ({e.strerror}): pass another --port or --host.") from None
+            raise vw.ViewerError(
+                f"cannot listen on {host}:{port} ({e.strerror}): pass another --port or --host.") from None
 
 
 @dataclasses.dataclass
 class _Client:
     """What the render loop knows of one browser tab."""
 
-    handle: object
+    handle: Any                      # viser's ClientHandle (viser is imported when the viewer starts)
     camera: tuple | None = None      # (wxyz, position, fov, width, height) of the newest message
     version: int = 0                 # counts camera messages
     moved: float = 0.0               # time.monotonic() of the newest message
@@ -105,6 +108,9 @@ class Viewer:
       log: where status lines go.
     """
 
+    run: vw.LoadedRun            # the run on screen and its renderer: set by load(), which __init__ calls
+    frames: vw.FrameRenderer
+
     def __init__(self, runs, dataset=None, *, max_side: int = 1280, preview: int = 4, settle: float = 0.2,
                  max_cameras: int = 300, verbose: bool = False, log=None):
         self.runs = list(runs)
@@ -117,12 +123,10 @@ class Viewer:
         self.wake = threading.Condition()
         self.stopping = threading.Event()
         self.clients: dict[int, _Client] = {}
-        self.settings = dict(run=0, mode="patexgs", view="rgb", scale=1)
+        self.settings: dict[str, Any] = dict(run=0, mode="patexgs", view="rgb", scale=1)
         self.settings_version = 0
         self.last_ms: dict = {}  # "final" / "preview" -> ms of the newest frame that compiled nothing
         self.server = None
-        self.run = None
-        self.frames = None
         self._thread = None
         self._status_time = 0.0
         # A study opens on a PATexGS run when it has one.
@@ -135,7 +139,7 @@ class Viewer:
         entry = self.runs[index]
         run = vw.load_run(entry)
         with self.lock:
-            if self.frames is not None:
+            if getattr(self, "frames", None) is not None:
                 self.frames.release()
             self.run, self.frames = run, vw.FrameRenderer(run.scene, run.config)
             self.stats = vw.scene_stats(run.scene)
@@ -357,6 +361,8 @@ class Viewer:
             state.handle.scene.set_background_image(state.image, format="jpeg", jpeg_quality=90)
             state.handle.flush()
             return
+        if state.camera is None:
+            return
         wxyz, pos, fov, w, h = state.camera
         key = (state.version, self.settings_version)
         w, h = vw.fit_canvas(w, h, self.max_side)
@@ -416,7 +422,7 @@ def _thumbnail(image, width: int) -> np.ndarray:
     h, w = img.shape[:2]
     if w <= width:
         return img
-    return np.asarray(Image.fromarray(img).resize((width, max(1, round(h * width / w))), Image.BOX))
+    return np.asarray(Image.fromarray(img).resize((width, max(1, round(h * width / w))), Image.Resampling.BOX))
 
 
 def main(argv=None) -> int:

@@ -178,7 +178,7 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
         pc = Rc @ mean + tc
         mu = (K @ pc)[:2] / pc[2]
 
-        def hit(d, mean=mean, s=s, tu=tu, tv=tv, n=n):
+        def hit(d, mean=mean, n=n, tu=tu, tv=tv, s=s):
             den = d @ n
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = ((mean - origin) @ n) / den

@@ -74,7 +74,8 @@ def test_template(tmp_path, state):
     bigger = random_scene(0, 5, sh_degree=1, rgb_sizes=[2, 0, 3, 1, 0], alpha_sizes=[0, 4, 0, 0, 2],
                           capacity=16)
     tmpl = {"scene": bigger, "opt": make_optimizer(1.0).init(bigger), "step": 0}
-    with pytest.raises(CheckpointError, match=r"leaf \['opt'\]\[0\]\.mu\.means is an array of shape \(8, 3\).*\(16, 3\)"):
+    with pytest.raises(CheckpointError,
+                       match=r"leaf \['opt'\]\[0\]\.mu\.means is an array of shape \(8, 3\).*\(16, 3\)"):
         load_checkpoint(p, template=tmpl)
     with pytest.raises(CheckpointError, match="structure"):
         load_checkpoint(p, template={"scene": state["scene"]})

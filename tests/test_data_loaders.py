@@ -125,7 +125,7 @@ def test_colmap_distorted_models_are_undistorted_and_cached(tmp_path, capfd, mod
 
 def test_distorted_model_with_images_n_folder(tmp_path):
     sc = make_colmap_scene(tmp_path, models=("OPENCV",), n_images=3, W=48, H=36)
-    for k, n in enumerate(sc["names"]):
+    for k, _ in enumerate(sc["names"]):
         save_png(tmp_path / "images_2" / f"x{k}.png", random_image(24, 18, k))  # other names: by order
     full = data.load(tmp_path, factor=1, test_every=0, cache_dir=tmp_path / "c", verbose=False)
     half = data.load(tmp_path, factor=2, test_every=0, cache_dir=tmp_path / "c", verbose=False)
@@ -191,7 +191,7 @@ def test_images_n_folder_is_used_with_actual_size_ratio(tmp_path):
 
 def test_images_n_with_other_names_matched_by_order(tmp_path):
     sc = make_colmap_scene(tmp_path, n_images=3, W=40, H=30)
-    for k, n in enumerate(sc["names"]):
+    for k, _ in enumerate(sc["names"]):
         save_png(tmp_path / "images_2" / f"frame{k:05d}.jpg.png", random_image(20, 15, seed=k))
     ds = data.load(tmp_path, factor=2, test_every=0)
     assert [v.image_path.name for v in ds.views] == [f"frame{k:05d}.jpg.png" for k in range(3)]
@@ -313,17 +313,17 @@ def test_lazy_loading_respects_the_cache_bound(tmp_path):
     cache = ds.image_cache
     assert len(cache) == 0 and cache.misses == 0  # nothing is read at load time
     for v in ds.views:
-        v.image
+        _ = v.image
         assert len(cache) <= 3
     assert cache.misses == 9
-    ds.views[-1].image
+    _ = ds.views[-1].image
     assert cache.hits == 1
-    ds.views[0].image  # evicted -> reloaded
+    _ = ds.views[0].image  # evicted -> reloaded
     assert cache.misses == 10
     with pytest.raises(ValueError):
         ds.views[0].image[0, 0, 0] = 1.0  # cached arrays are read-only
     uncached = data.load(tmp_path, test_every=0, image_cache_size=0)
-    uncached.views[0].image
+    _ = uncached.views[0].image
     assert len(uncached.image_cache) == 0
 
 
@@ -363,7 +363,7 @@ def test_dataset_image_cache_bound_in_bytes(tmp_path):
     one = 40 * 30 * 3 * 4
     ds = data.load(tmp_path, test_every=0, image_cache_bytes=2 * one)
     for v in ds.views:
-        v.image
+        _ = v.image
         assert len(ds.image_cache) <= 2 and ds.image_cache.nbytes <= 2 * one
     assert ds.image_cache.misses == 6 and len(ds.image_cache) == 2
 
@@ -499,7 +499,8 @@ def test_transforms_ngp_shared_and_per_frame_intrinsics(tmp_path):
 
 
 @settings(max_examples=30, deadline=None)
-@given(x=st.floats(-0.6, 0.6), y=st.floats(-0.6, 0.6), which=st.sampled_from(["OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"]))
+@given(x=st.floats(-0.6, 0.6), y=st.floats(-0.6, 0.6),
+       which=st.sampled_from(["OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"]))
 def test_distortion_equations_match_pycolmap(x, y, which):
     p = {"OPENCV": dict(k1=0.05, k2=-0.02, p1=0.003, p2=-0.002),
          "FULL_OPENCV": dict(k1=0.05, k2=-0.02, p1=0.003, p2=-0.002, k3=0.01),
@@ -570,7 +571,8 @@ def test_transforms_ply_point_cloud(tmp_path):
     (tmp_path / "bad.ply").write_bytes((tmp_path / "sparse_pc.ply").read_bytes()[:-5])
     with pytest.raises(DatasetError, match="bad.ply"):
         read_ply_points(tmp_path / "bad.ply")
-    ascii_ply = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    ascii_ply = ("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+                 "end_header\n")
     (tmp_path / "nan.ply").write_text(ascii_ply + "0 0 0\n1 nan 2\n")
     with pytest.raises(DatasetError, match="nan.ply: 1 of 2 vertices have non-finite coordinates"):
         read_ply_points(tmp_path / "nan.ply")
@@ -666,7 +668,7 @@ def test_truncated_image_data_fails_on_access_naming_the_file(tmp_path):
     f.write_bytes(f.read_bytes()[:200])  # header intact, pixel data cut
     ds = data.load(tmp_path, test_every=0)
     with pytest.raises(DatasetError, match=sc["names"][0]):
-        ds.views[0].image
+        _ = ds.views[0].image
 
 
 def test_image_size_disagreeing_with_camera(tmp_path):
@@ -759,7 +761,8 @@ def test_bad_transforms_and_poses_bounds(tmp_path):
     (tmp_path / "a" / "transforms.json").write_text("{not json")
     with pytest.raises(DatasetError, match="transforms.json"):
         data.load(tmp_path / "a")
-    write_json(tmp_path / "b" / "transforms.json", {"frames": [{"file_path": "x", "transform_matrix": np.eye(4).tolist()}]})
+    write_json(tmp_path / "b" / "transforms.json",
+               {"frames": [{"file_path": "x", "transform_matrix": np.eye(4).tolist()}]})
     with pytest.raises(DatasetError, match="x"):
         data.load(tmp_path / "b")
     save_png(tmp_path / "b" / "x.png", random_image(8, 6, 0))

@@ -33,14 +33,16 @@ def _small_splats(n=400, scale=0.01, seed=0):
 def test_alias_psnr_is_the_render_against_its_own_downsampled_render(views):
     scene, cfg = _small_splats(), RenderConfig(coverage="prefilter")
     ev = evaluate_scales(scene, views, cfg, scales=(1, 2, 8), keep_images=1)
-    assert ev["1"]["alias_psnr"] is None
+    assert ev["1"]["alias_psnr"] is None and ev["1"]["supersampled_psnr"] is None
     for s in (2, 8):
-        want = []
+        want, bound = [], []
         for v in views:
             full = render_image(scene, v.camera, cfg)
             small = render_image(scene, v.camera.scaled(s), cfg)
             want.append(float(psnr(small, box_downsample(full, s))))
+            bound.append(float(psnr(box_downsample(full, s), np.asarray(v.scaled(s).image))))
         assert ev[str(s)]["alias_psnr"] == pytest.approx(np.mean(want), abs=1e-4)
+        assert ev[str(s)]["supersampled_psnr"] == pytest.approx(np.mean(bound), abs=1e-4)
         assert ev[str(s)]["views"] == len(views)
         img, gt = ev["images"][str(s)][0]
         assert img.shape == gt.shape == (48 // s, 64 // s, 3)

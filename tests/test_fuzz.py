@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from hypothesis import example, given, settings, strategies as st
 
-from data_builders import make_colmap_scene, opengl_c2w, random_image, ring_poses, save_png, write_json
+from data_builders import make_colmap_scene, opengl_c2w, random_image, ring_poses, save_png
 import patexgs_jax.data as data
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import random_scene
@@ -122,8 +122,8 @@ def _nerf_scene(root: Path):
 
 
 JUNK = st.one_of(st.none(), st.booleans(), st.integers(-10, 10), st.floats(allow_nan=True, allow_infinity=True),
-                 st.text(max_size=4), st.lists(st.integers(0, 3), max_size=3), st.dictionaries(st.text(max_size=2),
-                                                                                               st.integers(), max_size=2))
+                 st.text(max_size=4), st.lists(st.integers(0, 3), max_size=3),
+                 st.dictionaries(st.text(max_size=2), st.integers(), max_size=2))
 KEYS = ["fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "k1", "p1", "camera_model", "frames",
         "frame.file_path", "frame.transform_matrix", "frame.fl_x", "frame.transform_matrix.row"]
 

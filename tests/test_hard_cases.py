@@ -39,7 +39,7 @@ from hypothesis import given, settings, strategies as st
 
 import hard_scenes as hs
 from patexgs_jax import Capacity, RenderConfig, render_jit
-from render_reference import reference_render, scene_to_reference, sh_color
+from render_reference import reference_render, sh_color
 
 CFG = RenderConfig(mip="nearest", background=(0.2, 0.5, 0.8), near=hs.NEAR)
 #: The coverage modes under test: the 2DGS low-pass and the prefilter (the patexgs methods').
@@ -75,10 +75,11 @@ def params(scene, n):
     logits = np.asarray(scene.opacity_logits[:n], np.float64)
 
     def textures(bank, ch):
-        return [None if (t := bank.texture(i)) is None else np.asarray(t, np.float64).reshape(t.shape[0], t.shape[1], ch)
-                for i in range(n)]
+        return [None if (t := bank.texture(i)) is None
+                else np.asarray(t, np.float64).reshape(t.shape[0], t.shape[1], ch) for i in range(n)]
 
-    return dict(means=np.asarray(scene.means[:n], np.float64), scales=np.exp(np.asarray(scene.log_scales[:n], np.float64)),
+    return dict(means=np.asarray(scene.means[:n], np.float64),
+                scales=np.exp(np.asarray(scene.log_scales[:n], np.float64)),
                 quats=np.asarray(scene.quats[:n], np.float64), opacities=np.where(act, 1 / (1 + np.exp(-logits)), 0.0),
                 sh=np.asarray(scene.sh[:n], np.float64), rgb=textures(scene.rgb, 3), alpha=textures(scene.alpha, 1))
 

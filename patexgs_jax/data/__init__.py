@@ -43,6 +43,7 @@ def _pycolmap_loaded_before_libz() -> bool:
 
 
 import zlib  # noqa: E402,F401  -- before pycolmap, see the module docstring
+
 import PIL.Image  # noqa: E402,F401  -- before pycolmap, see the module docstring
 
 if _pycolmap_loaded_before_libz():
@@ -53,6 +54,15 @@ if _pycolmap_loaded_before_libz():
 
 from pathlib import Path  # noqa: E402
 
+from .colmap import (  # noqa: E402
+    DEFAULT_MAX_WIDTH,
+    MIPNERF360_FACTORS,
+    default_factor,
+    default_resolution,
+    find_sparse_dir,
+    load_colmap,
+    read_model,
+)
 from .dataset import (  # noqa: E402
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
@@ -70,7 +80,6 @@ from .dataset import (  # noqa: E402
     split_indices,
     zoom_out_views,
 )
-from .colmap import DEFAULT_MAX_WIDTH, MIPNERF360_FACTORS, default_factor, default_resolution, find_sparse_dir, load_colmap, read_model  # noqa: E402
 from .llff import load_llff  # noqa: E402
 from .nerf import find_transforms, load_nerf  # noqa: E402
 
@@ -173,7 +182,8 @@ def load(path, factor: int | None = None, test_every: int | None = 8, skip_missi
       factor: integer image downsampling factor. None -> 4 for the Mip-NeRF 360 outdoor scenes
         (bicycle, flowers, garden, stump, treehill), 2 for the indoor ones (room, counter, kitchen,
         bonsai), else full size, with images wider than 1600 px resized to 1600 px wide (an area
-        filter; the 3DGS rule, announced on stderr); 1 keeps the full size. Uses ``images_<factor>/`` when present (K scaled by the actual size ratio),
+        filter; the 3DGS rule, announced on stderr); 1 keeps the full size. Uses ``images_<factor>/``
+        when present (K scaled by the actual size ratio),
         else box-downsamples to ``W // f x H // f`` with K / f.
       test_every: every ``test_every``-th image (sorted by name, starting with the first) is a test
         view, the 3DGS protocol; 0 or None: no test split. (NeRF split files take precedence.)

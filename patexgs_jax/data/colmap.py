@@ -17,14 +17,13 @@ import sys
 import time
 import zlib  # noqa: F401  -- must be loaded before pycolmap (heap corruption otherwise, see data/__init__)
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 import PIL.Image  # noqa: F401  -- must be loaded before pycolmap (see data/__init__)
-from .._pycolmap import pycolmap
 
+from .._pycolmap import pycolmap
 from .dataset import (
-    fit_records_to_width,
-    image_loader,
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
@@ -34,9 +33,11 @@ from .dataset import (
     ImageCache,
     atomic_build_dir,
     check_size_against_camera,
-    finish_dataset,
     fingerprint,
+    finish_dataset,
+    fit_records_to_width,
     handle_unreadable,
+    image_loader,
     image_size,
     is_complete_dir,
     list_images,
@@ -136,7 +137,7 @@ class _Reader:
             raise DatasetError(f"Cannot read COLMAP file {path}: {e}.") from None
         self.off = 0
 
-    def fail(self, what: str):
+    def fail(self, what: str) -> NoReturn:
         raise DatasetError(
             f"COLMAP file {self.path} is corrupt or truncated ({what}, at byte {self.off} of "
             f"{len(self.buf)}). Re-export the model (colmap model_converter) or re-copy the file.")
@@ -253,7 +254,7 @@ def validate_text_model(folder: Path) -> None:
     folder = Path(folder)
     names = {name: mid for mid, (name, _) in _MODEL_TABLE.items()}
 
-    def fail(fname, lineno, what):
+    def fail(fname, lineno, what) -> NoReturn:
         raise DatasetError(f"COLMAP file {folder / fname} is corrupt or truncated at line {lineno} ({what}). "
                            "Re-export the model (colmap model_converter) or re-copy the file.")
 
@@ -322,7 +323,7 @@ def _text_declared_counts(folder: Path) -> dict[str, int]:
     return out
 
 
-def read_model(folder: Path) -> "pycolmap.Reconstruction":
+def read_model(folder: Path) -> pycolmap.Reconstruction:
     """Reads a COLMAP model folder (``.bin`` validated first, or ``.txt``) with pycolmap.
 
     Text files whose header declares a count (``# Number of points: N``) are checked against what was
@@ -385,7 +386,8 @@ def model_points(rec, folder: Path):
     cols = np.array([rec.points3D[i].color for i in ids], np.float32).reshape(-1, 3) / 255.0
     bad = ids[~np.all(np.isfinite(xyz), axis=1)]
     if bad.size:
-        raise DatasetError(f"COLMAP file {folder / ('points3D' + _model_ext(folder))}: {bad.size} of {ids.size} "
+        points_file = folder / ("points3D" + (_model_ext(folder) or ""))
+        raise DatasetError(f"COLMAP file {points_file}: {bad.size} of {ids.size} "
                            f"points have non-finite coordinates (ids {bad[:5].tolist()}"
                            f"{' ...' if bad.size > 5 else ''}); re-run COLMAP triangulation or delete those points.")
     return ids, xyz, cols
@@ -507,7 +509,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
     for im in reg:
         f = files[im.name]
         size, why = probe_image(f)
-        if size is None:
+        if size is None or f is None:
             problems.append((f if f is not None else folder / im.name, why))
             continue
         cam = rec.cameras[im.camera_id]
@@ -571,8 +573,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         records.append(dict(name=im.name, K=K, w2c=w2c, width=w, height=h, image_path=files[im.name],
                             load=image_loader(files[im.name], post, background)))
     records, ratio = fit_records_to_width(records, max_width, background, verbose)
-    if ratio > 1:
-        factor = ratio
+    applied: float = ratio if ratio > 1 else factor
 
     if point_ids.size:
         source = "sfm"
@@ -586,7 +587,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         half = 0.5 * norm.original_radius / 1.1
         return random_points_in_box(norm.original_center, half, num_random_points, seed)
 
-    return finish_dataset(records, fmt="colmap", path=scene, factor=factor, test_every=test_every,
+    return finish_dataset(records, fmt="colmap", path=scene, factor=applied, test_every=test_every,
                           normalize=normalize, points=pts, colors=cols, points_source=source,
                           cache=ImageCache(image_cache_size, image_cache_bytes), info=info, random_points=rand)
 
@@ -603,7 +604,8 @@ def _undistort(scene, sparse, rec, kept, files, ratios, folder, cache_dir, disto
         if abs(rx - 1) > 1e-12 or abs(ry - 1) > 1e-12:
             rescale[im.camera_id] = (int(round(cam.width * rx)), int(round(cam.height * ry)))
     # Files whose names differ from the model's (images_N matched by order) need renaming: link them.
-    renamed = {n: files[n] for n in names if files[n].name != Path(n).name or files[n].parent != folder / Path(n).parent}
+    renamed = {n: files[n] for n in names
+               if files[n].name != Path(n).name or files[n].parent != folder / Path(n).parent}
     sparse_files = sorted(p for p in sparse.iterdir() if p.is_file())
     key = fingerprint("undistort-v1", *sparse_files, folder.resolve(), names, sorted(rescale.items()),
                       *[files[n] for n in names])
@@ -642,7 +644,8 @@ def _undistort(scene, sparse, rec, kept, files, ratios, folder, cache_dir, disto
             pycolmap.undistort_images(str(out), str(src_model), str(src_images), image_names=names,
                                       jpeg_quality=100)
         except Exception as e:
-            raise DatasetError(f"pycolmap failed to undistort the images of {scene} ({type(e).__name__}: {e}).") from None
+            raise DatasetError(
+                f"pycolmap failed to undistort the images of {scene} ({type(e).__name__}: {e}).") from None
         finally:
             pycolmap.logging.minloglevel = old
         (out / "images").rename(tmp / "images")

@@ -25,8 +25,8 @@ import time
 import uuid
 import warnings
 import zlib  # noqa: F401  -- load the system zlib before pycolmap can be imported (see data/__init__.py)
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
 
 import numpy as np
 import PIL.Image  # noqa: F401  -- same reason: PIL (and its zlib) must be loaded before pycolmap
@@ -166,7 +166,7 @@ def area_resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
     return out[..., 0] if squeeze else out
 
 
-def _pil_to_float(im: "PIL.Image.Image", background) -> np.ndarray:
+def _pil_to_float(im: PIL.Image.Image, background) -> np.ndarray:
     bg = np.asarray(background, np.float32).reshape(3)
     mode = im.mode
     if mode == "P":
@@ -261,7 +261,8 @@ def image_loader(path, factor: int, background, size: tuple[int, int] | None = N
     return lambda: box_downsample(read_image(path, background), factor)
 
 
-def fit_records_to_width(records: list[dict], max_width: int | None, background, verbose: bool) -> tuple[list[dict], float]:
+def fit_records_to_width(records: list[dict], max_width: int | None, background,
+                         verbose: bool) -> tuple[list[dict], float]:
     """Applies the default resolution rule to loader records (see :func:`finish_dataset`): the
     images wider than ``max_width`` are resized to ``max_width`` pixels wide (height
     ``H * max_width // W``) with an area filter, their intrinsics scaled per axis, and one line says
@@ -345,7 +346,7 @@ class ImageCache:
             raise ValueError(f"image cache bytes must be >= 0 or None, got {max_bytes}.")
         self.maxsize = maxsize
         self.max_bytes = None if max_bytes is None else int(max_bytes)
-        self._items: "collections.OrderedDict[object, np.ndarray]" = collections.OrderedDict()
+        self._items: collections.OrderedDict[object, np.ndarray] = collections.OrderedDict()
         self._lock = threading.Lock()
         self.nbytes = 0
         self.hits = 0
@@ -438,7 +439,7 @@ class View:
                                "the file changed after loading the dataset: reload it.")
         return img
 
-    def scaled(self, factor: int) -> "View":
+    def scaled(self, factor: int) -> View:
         """The zoom-out view: image box-downsampled by ``factor`` and ``camera.scaled(factor)``.
 
         The image is cropped to a multiple of ``factor`` and averaged over ``factor x factor`` blocks,
@@ -647,7 +648,7 @@ def split_indices(n: int, test_every: int | None) -> tuple[np.ndarray, np.ndarra
     return idx[~is_test], idx[is_test]
 
 
-def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: int, test_every, normalize: bool,
+def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: float, test_every, normalize: bool,
                    points, colors, points_source: str, cache: ImageCache, info: dict | None = None,
                    splits: tuple[list[int], list[int]] | None = None, random_points=None) -> Dataset:
     """Builds a :class:`Dataset` from per-view records (internal helper shared by the loaders).
@@ -673,6 +674,8 @@ def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: int, te
         [records[i] for i in train_idx] if train_idx else records)])
     norm = compute_normalization(centers, normalize=normalize)
     if points is None:
+        if random_points is None:
+            raise ValueError("finish_dataset needs points or random_points.")
         points, colors = random_points(norm)
     T = norm.transform
     s = norm.scale
@@ -688,7 +691,7 @@ def finish_dataset(records: list[dict], *, fmt: str, path: Path, factor: int, te
             raise DatasetError(f"{path}: invalid camera for view {r['name']!r}: {e}") from None
         near, far = r.get("near"), r.get("far")
         if normalize and near is not None:
-            near, far = near * s, far * s
+            near, far = near * s, None if far is None else far * s
         views[i] = View(cam, r["name"], r["load"], cache=cache, key=(i, 1), image_path=r.get("image_path"),
                         near=near, far=far)
     points = np.asarray(points, np.float64).reshape(-1, 3)

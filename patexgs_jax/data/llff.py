@@ -15,8 +15,6 @@ import numpy as np
 
 from .colmap import default_resolution, find_sparse_dir, model_points, read_model
 from .dataset import (
-    fit_records_to_width,
-    image_loader,
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
@@ -25,7 +23,9 @@ from .dataset import (
     ImageCache,
     check_size_against_camera,
     finish_dataset,
+    fit_records_to_width,
     handle_unreadable,
+    image_loader,
     list_images,
     orthonormalize_pose,
     probe_image,
@@ -150,8 +150,7 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
                             load=image_loader(files[i], post, background)))
     skipped = handle_unreadable(problems, n, f"{pb_path} (images in {folder})", skip_missing)
     records, ratio = fit_records_to_width(records, max_width, background, verbose)
-    if ratio > 1:
-        factor = ratio
+    applied: float = ratio if ratio > 1 else factor
     if not records:
         raise DatasetError(f"No readable image in {folder}.")
 
@@ -172,7 +171,7 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
         cams = [(r["K"], r["w2c"], r["width"], r["height"], r["near"], r["far"]) for r in records]
         return random_points_in_frustums(cams, num_random_points, seed)
 
-    return finish_dataset(records, fmt="llff", path=scene, factor=factor, test_every=test_every,
+    return finish_dataset(records, fmt="llff", path=scene, factor=applied, test_every=test_every,
                           normalize=normalize, points=pts, colors=cols, points_source=source,
                           cache=ImageCache(image_cache_size, image_cache_bytes), info=info, random_points=rand)
 

@@ -21,6 +21,7 @@ Images with alpha are composited on ``background`` (white by default).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
@@ -30,12 +31,10 @@ from pathlib import Path
 
 import numpy as np
 import PIL.Image
-from .._pycolmap import pycolmap
 
+from .._pycolmap import pycolmap
 from .colmap import default_resolution
 from .dataset import (
-    fit_records_to_width,
-    image_loader,
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
     DEFAULT_NUM_RANDOM_POINTS,
@@ -44,9 +43,11 @@ from .dataset import (
     ImageCache,
     atomic_build_dir,
     check_size_against_camera,
-    finish_dataset,
     fingerprint,
+    finish_dataset,
+    fit_records_to_width,
     handle_unreadable,
+    image_loader,
     is_complete_dir,
     orthonormalize_pose,
     probe_image,
@@ -302,6 +303,25 @@ def read_ply_points(path) -> tuple[np.ndarray, np.ndarray | None]:
 # ----------------------------------------------------------------------------------------------------
 
 
+def _frame_value(frame: dict, top: dict, key: str, default=None):
+    """A frame's value of ``key``, else the file's top-level one, else ``default``."""
+    return frame.get(key, top.get(key, default))
+
+
+def _frame_number(frame: dict, top: dict, where: str, key: str, default=None):
+    """A finite number, or ``default`` when absent / null; a clear error for anything else."""
+    v = _frame_value(frame, top, key)
+    if v is None:
+        return default
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: {key} must be a number, got {v!r}.") from None
+    if not math.isfinite(x):  # NaN distortion made NaN sample positions and an IndexError
+        raise DatasetError(f"{where}: {key} must be a finite number, got {v!r}; fix or remove it.")
+    return x
+
+
 def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_missing: bool = False, *,
               normalize: bool = False, cache_dir=None, image_cache_size: int = DEFAULT_IMAGE_CACHE_SIZE,
               image_cache_bytes: int | None = DEFAULT_IMAGE_CACHE_BYTES,
@@ -359,41 +379,25 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         f = _resolve_file(base, str(fr["file_path"]))
         where = f"{jpath} (file_path {fr['file_path']!r})"
         size, why = probe_image(f)
-        if size is None:
+        if size is None or f is None:
             if f is None:
-                why += " (also tried appending .png, .jpg, .jpeg, ...)"
+                why = f"{why} (also tried appending .png, .jpg, .jpeg, ...)"
             problems.append((f if f is not None else base / str(fr["file_path"]), why))
             continue
-        get = lambda k, d=None: fr.get(k, top.get(k, d))  # noqa: E731
-
-        def num(k, d=None):  # a finite number, or d when absent / null; a clear error for anything else
-            v = get(k)
-            if v is None:
-                return d
-            try:
-                x = float(v)
-            except (TypeError, ValueError):
-                raise DatasetError(f"{where}: {k} must be a number, got {v!r}.") from None
-            if not math.isfinite(x):  # NaN distortion made NaN sample positions and an IndexError
-                raise DatasetError(f"{where}: {k} must be a finite number, got {v!r}; fix or remove it.")
-            return x
+        get = functools.partial(_frame_value, fr, top)
+        num = functools.partial(_frame_number, fr, top, where)
 
         w, h = num("w"), num("h")
         if w is not None and h is not None:
             check_size_against_camera(f, size, (w, h), 1, f"w/h in {jpath}")
         w, h = size
-        if num("fl_x") is not None:
-            fx = num("fl_x")
-        elif num("camera_angle_x") is not None:
-            fx = 0.5 * w / math.tan(0.5 * num("camera_angle_x"))
-        else:
+        fx, fy, angle_x, angle_y = num("fl_x"), num("fl_y"), num("camera_angle_x"), num("camera_angle_y")
+        if fx is None and angle_x is not None:
+            fx = 0.5 * w / math.tan(0.5 * angle_x)
+        if fx is None:
             raise DatasetError(f"{where}: no focal length (need fl_x or camera_angle_x).")
-        if num("fl_y") is not None:
-            fy = num("fl_y")
-        elif num("camera_angle_y") is not None:
-            fy = 0.5 * h / math.tan(0.5 * num("camera_angle_y"))
-        else:
-            fy = fx
+        if fy is None:
+            fy = fx if angle_y is None else 0.5 * h / math.tan(0.5 * angle_y)
         cx = num("cx", 0.5 * w)
         cy = num("cy", 0.5 * h)
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -436,8 +440,7 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         records.append(dict(name=m["name"], K=K, w2c=np.linalg.inv(m["c2w"]), width=w, height=h,
                             image_path=m["file"], load=image_loader(m["file"], factor, background)))
     records, ratio = fit_records_to_width(records, max_width, background, verbose)
-    if ratio > 1:
-        factor = ratio
+    applied: float = ratio if ratio > 1 else factor
 
     splits = None
     if "train" in found:
@@ -459,8 +462,9 @@ def load_nerf(path, factor: int | None = None, test_every: int | None = 8, skip_
         half = 0.5 * norm.original_radius / 1.1
         return random_points_in_box(norm.original_center, half, num_random_points, seed)
 
-    return finish_dataset(records, fmt="nerf", path=p, factor=factor, test_every=test_every, normalize=normalize,
-                          points=pts, colors=cols, points_source=source, cache=ImageCache(image_cache_size, image_cache_bytes),
+    return finish_dataset(records, fmt="nerf", path=p, factor=applied, test_every=test_every, normalize=normalize,
+                          points=pts, colors=cols, points_source=source,
+                          cache=ImageCache(image_cache_size, image_cache_bytes),
                           info=info, splits=splits, random_points=rand)
 
 

@@ -35,12 +35,13 @@ import time
 import uuid
 from pathlib import Path
 
-import PIL.Image  # noqa: F401  (import PIL before pycolmap: the reverse order was seen to corrupt the heap)
 import numpy as np
-from .._pycolmap import pycolmap
+import PIL.Image  # noqa: F401  (import PIL before pycolmap: the reverse order was seen to corrupt the heap)
 
 from patexgs_jax.camera import Camera, look_at
 from patexgs_jax.prepare import box_downsample, save_image
+
+from .._pycolmap import pycolmap
 
 FORMAT_VERSION = 1
 """Bumped whenever the generated content changes; part of ``synthetic.json`` and the cache name."""
@@ -112,7 +113,7 @@ class TileTexture:
     color_b: np.ndarray
     palette: np.ndarray
     salt: int
-    text: "GlyphTexture"
+    text: GlyphTexture
     mat_half: tuple[float, float]
     fade_start: float = 3.0
 
@@ -319,7 +320,8 @@ class Quad:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = _dot(self.center - o, n) / _dot(d, n)
         p = o + t[:, None] * d - self.center
-        ok = (t > _EPS) & (np.abs(_dot(p, self.axis_u)) <= self.half[0]) & (np.abs(_dot(p, self.axis_v)) <= self.half[1])
+        ok = ((t > _EPS) & (np.abs(_dot(p, self.axis_u)) <= self.half[0])
+              & (np.abs(_dot(p, self.axis_v)) <= self.half[1]))
         return np.where(ok, t, np.inf)
 
     def surface(self, p):
@@ -513,14 +515,16 @@ def make_scene(seed: int = 0) -> Scene:
     text = GlyphTexture(font, bit=0.012, paper=paper, ink=ink, salt=int(rng.integers(1 << 30)))
     mat_text = GlyphTexture(font, bit=0.02, paper=paper[::-1], ink=ink[::-1], salt=int(rng.integers(1 << 30)))
     ground = Ground(half=8.0, texture=TileTexture(cell=0.5, color_a=color(0.5, 0.9), color_b=color(0.1, 0.5),
-                                                  palette=rng.uniform(0.05, 1.0, (8, 3)), salt=int(rng.integers(1 << 30)),
+                                                  palette=rng.uniform(0.05, 1.0, (8, 3)),
+                                                  salt=int(rng.integers(1 << 30)),
                                                   text=mat_text, mat_half=(0.6, 0.25)))
     jitter = lambda s: rng.uniform(-s, s, 2)  # noqa: E731
     cube = Box(center=np.r_[np.array([-0.75, 0.45]) + jitter(0.1), 0.35], half=np.array([0.35, 0.35, 0.35]),
                yaw=float(rng.uniform(0, np.pi / 2)), texture=text)
     tall = Box(center=np.r_[np.array([0.75, -0.45]) + jitter(0.1), 0.55], half=np.array([0.25, 0.25, 0.55]),
                yaw=float(rng.uniform(0, np.pi / 2)),
-               texture=StripeTexture(colors=np.stack([color(0.6, 0.95), color(0.0, 0.3), color(0.5, 0.9), color(0.0, 0.35)])))
+               texture=StripeTexture(colors=np.stack([color(0.6, 0.95), color(0.0, 0.3), color(0.5, 0.9),
+                                                      color(0.0, 0.35)])))
     # A slanted panel leaning back by 25-35 degrees, facing the scene centre.
     yaw = float(rng.uniform(-0.4, 0.4)) + np.pi / 4
     lean = float(rng.uniform(np.radians(25), np.radians(35)))
@@ -648,7 +652,7 @@ def _build_reconstruction(cams, names, xyz, colors_u8, tracks) -> pycolmap.Recon
     rec.add_camera_with_trivial_rig(camera)
     keypoints = [[] for _ in cams]
     elements = []
-    for p, tr in enumerate(tracks):
+    for tr in tracks:
         el = []
         for v, x, y in tr:
             el.append((v + 1, len(keypoints[v])))
