@@ -53,9 +53,8 @@ class Meter:
 
     # -- counting ---------------------------------------------------------------------------------
     def _enter(self, phase: str) -> None:
+        from patexgs_jax import rendering as R
         from patexgs_jax.training.step import STEP_TRACES
-
-        R = importlib.import_module("patexgs_jax.render")
         self.phase = phase
         maps = self.maps()
         self.phases.setdefault(phase, dict(peak=maps, start=maps, end=maps, compiles=0, step_traces=0,
@@ -63,9 +62,8 @@ class Meter:
         self._marks = (sum(STEP_TRACES.values()), sum(R.TRACE_COUNTS.values()), time.perf_counter())
 
     def _leave(self) -> None:
+        from patexgs_jax import rendering as R
         from patexgs_jax.training.step import STEP_TRACES
-
-        R = importlib.import_module("patexgs_jax.render")
         p = self.phases[self.phase]
         p["end"] = self.maps()
         p["peak"] = max(p["peak"], p["end"])

@@ -15,7 +15,7 @@ time; recompiles during the timed calls (must be 0); XLA's temporary-buffer size
 (its peak working memory beyond inputs/outputs); and the share of the machine's arithmetic peak
 the forward reaches, ``pairs/s x FLOPs per pair / peak``.
 
-FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.render`` (adds, multiplies,
+FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.rendering`` (adds, multiplies,
 divisions, comparisons feeding arithmetic, exp/log/sqrt each 1; selects and integer address
 arithmetic not counted): the homogeneous intersection (3 plane equations 12, the division and its
 parallel-ray test 6), rho3d 3, the low-pass rho2d 6 (the prefilter's quadratic form replaces both: 7),
@@ -35,7 +35,6 @@ throughput of a large ``jnp.dot`` on all cores, the best this machine's XLA does
 from __future__ import annotations
 
 import argparse
-import importlib
 import platform
 import time
 
@@ -43,15 +42,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
-from patexgs_jax.render import count_pairs, render_jit
-
 from experiments.provenance import write_benchmark_json
+from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, rendering
+from patexgs_jax.rendering import binning, count_pairs, projection, render_jit
 
 #: The layout of the --json file (experiments.provenance's header plus peak_gflops, timing, results).
 SCHEMA = 1
 
-R = importlib.import_module("patexgs_jax.render")  # the module (``patexgs_jax.render`` is the function)
 
 #: name -> (texture side or None, banks textured, render configuration). ``tex8-rgb`` and
 #: ``tex8-alpha`` texture one bank only, so each effect's cost is reported on its own;
@@ -117,14 +114,14 @@ def prepare(name, n, width, height):
 
     fwd = jax.jit(lambda s, c: render_jit(s, c, config=cfg, capacity=cap).rgb)
 
-    def binning(s, c):  # the renderer's projection, tile ranges, one sort and per-tile starts
-        proj = R._project(s, c, cfg, None, None, R._alpha_peak(s))
+    def bin_view(s, c):  # the renderer's projection, tile ranges, one sort and per-tile starts
+        proj = projection.project(s, c, cfg, None, None, projection.alpha_peak(s))
         ts = cfg.tile_size
         tx, ty = -(-c.width // ts), -(-c.height // ts)
-        tx0, tx1, ty0, ty1, ok = R._tile_ranges(proj["bounds"], proj["visible"], ts, tx, ty)
-        return R._bin(proj["depth"], tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs)
+        tx0, tx1, ty0, ty1, ok = binning.tile_ranges(proj.bounds, proj.visible, ts, tx, ty)
+        return binning.bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs)
 
-    bin_c = jax.jit(binning).lower(scene, cam).compile()
+    bin_c = jax.jit(bin_view).lower(scene, cam).compile()
     jax.block_until_ready(bin_c(scene, cam))
 
     def loss(s, c):
@@ -146,10 +143,10 @@ def prepare(name, n, width, height):
     jax.block_until_ready(bwd_c(scene, cam))
     # The public entry point in steady state: same shapes, no new trace.
     jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
-    before = sum(R.TRACE_COUNTS.values())
+    before = sum(rendering.TRACE_COUNTS.values())
     for _ in range(2):
         jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
-    recompiles = sum(R.TRACE_COUNTS.values()) - before
+    recompiles = sum(rendering.TRACE_COUNTS.values()) - before
     row = dict(config=name, gaussians=n, width=width, height=height, recompiles=recompiles,
                flops_per_pair=FLOPS_PER_PAIR[name], binned_pairs=float(needed), max_tile=int(max_tile),
                compile_forward_s=compile_fwd, compile_backward_s=compile_bwd,

@@ -78,7 +78,7 @@ def synthetic_model(n: int):
     from experiments.bench_render import make_scene
     from patexgs_jax import viewing as vw
     from patexgs_jax.camera import Camera, look_at
-    from patexgs_jax.render import RenderConfig
+    from patexgs_jax.rendering import RenderConfig
 
     scene = make_scene(n, 8)
     cam = Camera.from_intrinsics([0.9 * 640, 0.9 * 640, 320, 240], look_at((0.0, 0.0, -5.0), (0.0, 0.0, 0.0)), 640, 480)

@@ -23,7 +23,7 @@ import numpy as np
 from patexgs_jax import compiled, progress
 from patexgs_jax.buckets import ViewRenderer
 from patexgs_jax.camera import ZOOM_SCALES
-from patexgs_jax.render import RenderConfig
+from patexgs_jax.rendering import RenderConfig
 
 #: The zoom-out factors of the paper's Table 2 (1 = full resolution).
 SCALES = ZOOM_SCALES

@@ -78,8 +78,8 @@ import hashlib
 import json
 import sys
 import time
-from pathlib import Path
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -555,7 +555,7 @@ def without(scene, rc, effects: Sequence[str]):
 
 def render_flops(scene, camera, rc) -> float | None:
     """XLA's flop estimate of one render (compiled separately; None where XLA gives none)."""
-    from patexgs_jax.render import Capacity, count_pairs, render_jit
+    from patexgs_jax.rendering import Capacity, count_pairs, render_jit
 
     needed, _ = count_pairs(scene, camera, rc)
     compiled = render_jit.lower(scene, camera, config=rc, capacity=Capacity.fit(float(needed))).compile()
@@ -602,7 +602,7 @@ def export_reduced(scene, rc, effects, path) -> Path:
 
 def load_render_config(ply_path):
     """The RenderConfig stored next to a reduced export (``<stem>.render.json``)."""
-    from patexgs_jax.render import RenderConfig
+    from patexgs_jax.rendering import RenderConfig
 
     d = json.loads(Path(ply_path).with_suffix(".render.json").read_text())
     d.pop("dropped_effects", None)

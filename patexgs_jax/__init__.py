@@ -1,6 +1,6 @@
 """patexgs_jax: PATexGS (textured 2D Gaussian splatting with adaptive textures and RGBA mipmaps) in JAX.
 
-Conventions (cameras, kernel, textures, mip levels) are fixed in :mod:`patexgs_jax.render`.
+Conventions (cameras, kernel, textures, mip levels) are fixed in :mod:`patexgs_jax.rendering`.
 """
 
 # pycolmap's extension bundles and exports its own zlib; if it is loaded before the system zlib,
@@ -9,7 +9,7 @@ import zlib  # noqa: F401  (see patexgs_jax/data/__init__.py)
 from typing import TYPE_CHECKING
 
 from .camera import Camera, look_at
-from .render import Capacity, RenderConfig, RenderOutput, render, render_jit
+from .rendering import Capacity, RenderConfig, RenderOutput, render, render_jit
 from .scene import Scene, random_scene
 from .textures import TextureBank
 

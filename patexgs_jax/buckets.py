@@ -20,7 +20,6 @@ statistics); evaluation uses :data:`EVAL_STEPS_PER_OCTAVE`.
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Sequence
 
 import jax
@@ -29,6 +28,7 @@ import numpy as np
 
 from . import compiled
 from .camera import Camera
+from .rendering import Capacity, count_pairs, render_jit
 
 #: Bucket sizes per octave of tiles used by evaluation: the exact tile grid up to 16 x 16 = 256
 #: pixels a side, at most an eighth of extra tiles above (beer's test views at 1/4 and their
@@ -88,7 +88,7 @@ def valid_mask(shape: tuple[int, int], valid_hw) -> jax.Array:
 
 
 def crop_output(out, height: int, width: int):
-    """A :class:`patexgs_jax.render.RenderOutput` of a padded render with its images cropped to
+    """A :class:`patexgs_jax.RenderOutput` of a padded render with its images cropped to
     ``height x width`` (host numpy arrays: cropping on the device would compile a slice per size)
     and ``max_contrib_count`` counted over the kept pixels only, as the unpadded render counts them.
     Per-splat outputs (``visible``, ``radius_px``, ``pairs_needed``) are the padded render's: equal
@@ -104,10 +104,6 @@ def crop_output(out, height: int, width: int):
     return dataclasses.replace(out, rgb=crop(out.rgb), alpha=crop(out.alpha), depth=crop(out.depth),
                                normal=crop(out.normal), distortion=crop(out.distortion), dominant=dominant,
                                max_contrib_count=counts)
-
-
-def _render_module():
-    return importlib.import_module("patexgs_jax.render")
 
 
 class ViewRenderer:
@@ -143,33 +139,30 @@ class ViewRenderer:
         return padded_camera(camera, self.config.tile_size, self.steps)
 
     def _needed(self, cam: Camera) -> float:
-        R = _render_module()
-        needed, _ = R.count_pairs(self.scene, cam, self.config)
+        needed, _ = count_pairs(self.scene, cam, self.config)
         return float(needed)
 
     def prepare(self, cameras: Sequence[Camera]) -> None:
         """Fits every bucket's capacity to the views ``cameras`` (counted, not rendered)."""
-        R = _render_module()
         for c in cameras:
             cam = self.camera(c)
             key = (cam.height, cam.width)
-            self.capacities[key] = R.Capacity.fit(self._needed(cam), minimum=self.capacities.get(key))
+            self.capacities[key] = Capacity.fit(self._needed(cam), minimum=self.capacities.get(key))
 
     def padded(self, camera: Camera):
         """The :class:`RenderOutput` of ``camera`` rendered at its bucket size, uncropped (on the
         device; what render timing measures)."""
-        R = _render_module()
         cam = self.camera(camera)
         key = (cam.height, cam.width)
         cap = self.capacities.get(key)
         if cap is None:
-            cap = self.capacities[key] = R.Capacity.fit(self.headroom * self._needed(cam))
-        out = R.render_jit(self.scene, cam, config=self.config, capacity=cap,
-                           active_sh_degree=self.active_sh_degree)
+            cap = self.capacities[key] = Capacity.fit(self.headroom * self._needed(cam))
+        out = render_jit(self.scene, cam, config=self.config, capacity=cap,
+                         active_sh_degree=self.active_sh_degree)
         if bool(out.overflow):  # a view not prepared for, needing more than its bucket holds
-            cap = self.capacities[key] = R.Capacity.fit(float(out.pairs_needed), minimum=cap)
-            out = R.render_jit(self.scene, cam, config=self.config, capacity=cap,
-                               active_sh_degree=self.active_sh_degree)
+            cap = self.capacities[key] = Capacity.fit(float(out.pairs_needed), minimum=cap)
+            out = render_jit(self.scene, cam, config=self.config, capacity=cap,
+                             active_sh_degree=self.active_sh_degree)
         return out
 
     def __call__(self, camera: Camera):
@@ -199,5 +192,4 @@ def release_scene_programs() -> None:
     size and capacity), and the image metrics' (one per image size)."""
     from . import metrics
 
-    R = _render_module()
-    compiled.release_programs(R.render_jit, R.count_pairs, metrics.ssim)
+    compiled.release_programs(render_jit, count_pairs, metrics.ssim)

@@ -44,6 +44,7 @@ import tempfile
 import warnings
 import zipfile
 from pathlib import Path
+from typing import Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -116,8 +117,9 @@ class _Encoder:
         if isinstance(x, (bool, int, float, str)) and not isinstance(x, np.generic):
             return {"t": "py", "v": x}
         if _is_key_array(x):
-            impl = str(jax.random.key_impl(x))
-            return {"t": "key", "i": self._add(np.asarray(jax.random.key_data(x))), "impl": impl}
+            key = cast(jax.Array, x)
+            impl = str(jax.random.key_impl(key))
+            return {"t": "key", "i": self._add(np.asarray(jax.random.key_data(key))), "impl": impl}
         if isinstance(x, (jax.Array, np.ndarray, np.generic)):
             kind = "jax" if isinstance(x, jax.Array) else ("scalar" if isinstance(x, np.generic) else "numpy")
             arr = np.asarray(x)
@@ -150,7 +152,7 @@ class _Encoder:
                         "use arrays, Python scalars, lists/tuples/dicts, NamedTuples or dataclasses.")
 
 
-def _resolve_class(name: str):
+def _resolve_class(name: str) -> Any:
     module, _, qual = name.partition(":")
     if not any(module == p or module.startswith(p + ".") for p in ALLOWED_MODULE_PREFIXES):
         raise CheckpointError(f"class {name} is not from an allowed module "

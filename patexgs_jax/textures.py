@@ -31,12 +31,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
-from jax import lax
 import numpy as np
+from jax import lax
 
 
 def bucket_of(n: int) -> int:
@@ -53,7 +53,7 @@ def mip_level_sizes(n: int) -> list[int]:
     return [int(n)] + [2 ** (L - k) for k in range(1, L + 1)]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def downsample_matrix(size_in: int, size_out: int) -> np.ndarray:
     """(size_out, size_in) float64 tent-filter resampling matrix between align-corners grids.
 
@@ -70,7 +70,7 @@ def downsample_matrix(size_in: int, size_out: int) -> np.ndarray:
     return w / w.sum(axis=1, keepdims=True)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _first_level_table(P: int) -> np.ndarray:
     """(P//2, P//2, P) float32: for n = P//2 + 1 + i, the level-0 (n) to level-1 (P//2) matrix.
 
@@ -117,7 +117,7 @@ class TextureBank:
 
     @classmethod
     def from_list(cls, textures: Sequence, capacity: int, channels: int, default: float,
-                  min_buckets: int = 0) -> "TextureBank":
+                  min_buckets: int = 0) -> TextureBank:
         """Packs per-Gaussian textures into buckets.
 
         Args:
@@ -146,13 +146,13 @@ class TextureBank:
                 raise ValueError(f"texture of Gaussian {i} has non-finite texels.")
             sizes[i] = t.shape[0]
             arrays.append(t)
-        nb = max([bucket_of(s) + 1 for s in sizes if s > 0] + [min_buckets])
+        nb = max([bucket_of(int(s)) + 1 for s in sizes if s > 0] + [min_buckets])
         counts = [0] * nb
         bucket = -np.ones(capacity, np.int64)
         slot = np.zeros(capacity, np.int64)
         for i, s in enumerate(sizes):
             if s > 0:
-                b = bucket_of(s)
+                b = bucket_of(int(s))
                 bucket[i], slot[i] = b, counts[b]
                 counts[b] += 1
         caps = [0 if c == 0 else 1 << (c - 1).bit_length() for c in counts]

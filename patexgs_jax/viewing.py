@@ -43,7 +43,10 @@ import numpy as np
 from . import textures as tex
 from .buckets import ViewRenderer, release_scene_programs
 from .camera import ZOOM_SCALES, Camera
-from .render import RenderConfig
+from .rendering import RenderConfig
+from .rendering.kernel import UV_LIMIT
+from .rendering.kernel import uv as ray_plane_uv
+from .rendering.projection import image_map, ray_planes
 
 #: Render scales (zoom-out factors) the viewer offers.
 SCALES = ZOOM_SCALES
@@ -266,29 +269,9 @@ def fit_canvas(width: int, height: int, max_side: int) -> tuple[int, int]:
 # ------------------------------------------------------------------------------------------------
 # Per-pixel mip level of the dominant splat
 # ------------------------------------------------------------------------------------------------
-_UV_LIMIT = 1e4  # as the renderer: |u|, |v| beyond this is no intersection (the coarsest level)
-
-
-def _splat_planes(scene, camera: Camera):
-    """(A, B, C), each (C, 3): the homogeneous ray-plane map of every splat, (u, v, 1) ~ x A + y B + C
-    for pixel coordinates (x, y) (the renderer's projection)."""
-    from .math import quat_to_rotmat
-
-    dt = scene.means.dtype
-    K = camera.K.astype(dt)
-    w2c = camera.world_to_camera.astype(dt)
-    Rc, tc = w2c[:3, :3], w2c[:3, 3]
-    R = quat_to_rotmat(scene.quats)
-    s = jnp.exp(scene.log_scales)
-    p = scene.means @ Rc.T + tc
-    tu = (R[:, :, 0] * s[:, :1]) @ Rc.T
-    tv = (R[:, :, 1] * s[:, 1:]) @ Rc.T
-    M = jnp.einsum("ij,cjk->cik", K, jnp.stack([tu, tv, p], axis=-1))
-    return jnp.cross(M[:, 1], M[:, 2]), jnp.cross(M[:, 2], M[:, 0]), jnp.cross(M[:, 0], M[:, 1])
-
-
 def _dominant_mip_level(scene, camera: Camera, dominant, *, bank: str, lambda_mip: float, use_mip: bool):
-    A, B, Cc = _splat_planes(scene, camera)
+    M = image_map(scene, camera)[0]
+    A, B, Cc = ray_planes(M[:, 0], M[:, 1], M[:, 2])  # the renderer's ray-plane map of every splat
     b = scene.rgb if bank == "rgb" else scene.alpha
     g = jnp.maximum(dominant, 0)
     a, bb, c = A[g], B[g], Cc[g]  # (H, W, 3)
@@ -296,16 +279,14 @@ def _dominant_mip_level(scene, camera: Camera, dominant, *, bank: str, lambda_mi
     y, x = jnp.meshgrid(jnp.arange(H, dtype=a.dtype) + 0.5, jnp.arange(W, dtype=a.dtype) + 0.5, indexing="ij")
     s = x[..., None] * a + y[..., None] * bb + c
 
-    def uv(t):
-        ok = jnp.abs(t[..., 2]) * _UV_LIMIT > jnp.maximum(jnp.abs(t[..., 0]), jnp.abs(t[..., 1]))
-        inv = 1.0 / jnp.where(ok, t[..., 2], 1.0)
-        return t[..., 0] * inv, t[..., 1] * inv, ok
+    def uv(t):  # the renderer's intersection; a ray that misses the plane gives the coarsest level
+        return ray_plane_uv(t[..., 0], t[..., 1], t[..., 2])[:3]
 
     u0, v0, ok0 = uv(s)
     ux, vx, okx = uv(s + a)
     uy, vy, oky = uv(s + bb)
     d = jnp.sqrt(jnp.maximum((ux - u0) ** 2 + (vx - v0) ** 2, (uy - u0) ** 2 + (vy - v0) ** 2))
-    d = jnp.where(ok0 & okx & oky, d, _UV_LIMIT)
+    d = jnp.where(ok0 & okx & oky, d, UV_LIMIT)
     n = b.size[g]
     top = jnp.maximum(b.bucket[g], 0.0).astype(jnp.int32)  # ceil(log2 n), the coarsest level
     level = tex.mip_level(d, n, top, lambda_mip, trilinear=False) if use_mip else jnp.zeros_like(top)
@@ -447,7 +428,7 @@ def _programs() -> tuple:
     """Traces of the renderer and programs of the pair counter and the mip-level function: a frame
     that changes them compiled something."""
     from . import compiled
-    from .render import TRACE_COUNTS, count_pairs
+    from .rendering import TRACE_COUNTS, count_pairs
 
     return (sum(TRACE_COUNTS.values()), compiled.program_count(count_pairs),
             compiled.program_count(dominant_mip_level))

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import PIL.Image
-from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 
+from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 from patexgs_jax.camera import look_at
 
 # Parameters per model: (fx or f, [fy], cx, cy, distortion...) for a W x H camera, built in camera_params.

@@ -1,6 +1,6 @@
 """A brute-force float64 reference renderer, written independently of the tile renderer.
 
-It follows the conventions of ``patexgs_jax.render`` literally, with different maths where it can:
+It follows the conventions of ``patexgs_jax.rendering`` literally, with different maths where it can:
 explicit ray-plane intersection (instead of the homogeneous adjugate form), a per-splat sequential
 loop over all splats in depth order (no tiles, no capacities), and its own mip pyramid and bilinear
 sampling code. Small scenes and images only.

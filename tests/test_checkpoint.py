@@ -12,9 +12,17 @@ import pytest
 
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import random_scene
-from patexgs_jax.checkpoint import (CheckpointError, CorruptCheckpointError, check_writable, checkpoint_path,
-                                    latest_checkpoint, list_checkpoints, load_checkpoint, read_metadata,
-                                    save_checkpoint)
+from patexgs_jax.checkpoint import (
+    CheckpointError,
+    CorruptCheckpointError,
+    check_writable,
+    checkpoint_path,
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    read_metadata,
+    save_checkpoint,
+)
 from patexgs_jax.densify import DensifyStats
 from patexgs_jax.optim import AdamState, make_optimizer
 

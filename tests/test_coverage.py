@@ -12,13 +12,13 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from render_reference import tent_down
 
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render_jit
 from patexgs_jax.data.dataset import box_downsample
 from patexgs_jax.training import TrainConfig
-
-from render_reference import tent_down
 
 C = 48
 CAP = Capacity(pairs=8192)
@@ -121,7 +121,7 @@ def test_near_edge_on_splat_stays_on_its_screen_footprint(tilt):
     camera (on screen it is unbounded: such a splat was listed in all 256 tiles of this image). The
     kernel is cut to twice its affine screen footprint: a few tiles around the splat's line, and
     nothing beyond a few pixels of it."""
-    from patexgs_jax.render import count_pairs
+    from patexgs_jax.rendering import count_pairs
 
     side = 256
     cam = Camera.from_intrinsics([F, F, side / 2, side / 2], look_at((0.0, 0.0, -Z), (0.0, 0.0, 0.0)), side, side)
@@ -223,7 +223,8 @@ def test_literal_mode_reproduces_the_low_pass_renderer():
     """``patexgs-literal`` (and ``2dgs``) render the images of the renderer before the prefilter
     existed (commit b7ee7fa, stored in tests/data): the 44 x 36 textured scene of test_render.py
     with nearest and trilinear mipmaps, and untextured."""
-    from test_render import CAP as RCAP, camera, scene
+    from test_render import CAP as RCAP
+    from test_render import camera, scene
 
     gold = np.load(Path(__file__).parent / "data" / "literal_mode_b7ee7fa.npz")
     cases = {"nearest": (LITERAL, True),

@@ -18,13 +18,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import patexgs_jax.data as data
-from patexgs_jax.camera import Camera
-from patexgs_jax.data import DatasetError, DatasetWarning
-from patexgs_jax.data.colmap import validate_binary_model
-from patexgs_jax.data.nerf import distort_normalized, read_ply_points
-
-from patexgs_jax._pycolmap import pycolmap  # noqa: E402  (keeps the fatal-signal handlers, see there)
-
 from data_builders import (  # noqa: E402
     camera_params,
     make_colmap_scene,
@@ -35,6 +28,11 @@ from data_builders import (  # noqa: E402
     write_json,
     write_llff,
 )
+from patexgs_jax._pycolmap import pycolmap  # noqa: E402  (keeps the fatal-signal handlers, see there)
+from patexgs_jax.camera import Camera
+from patexgs_jax.data import DatasetError, DatasetWarning
+from patexgs_jax.data.colmap import validate_binary_model
+from patexgs_jax.data.nerf import distort_normalized, read_ply_points
 
 REPO = Path(__file__).resolve().parents[1]
 BEER = Path(__file__).resolve().parents[2] / "shared/data/beer"

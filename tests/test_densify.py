@@ -11,11 +11,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from patexgs_jax import Scene, random_scene
-from patexgs_jax.densify import (DensifyConfig, DensifyStats, accumulate, densify_and_prune,
-                                 prune_gaussians, reset_opacity, resize_capacity, resize_opt_state)
+from patexgs_jax.densify import (
+    DensifyConfig,
+    DensifyStats,
+    accumulate,
+    densify_and_prune,
+    prune_gaussians,
+    reset_opacity,
+    resize_capacity,
+    resize_opt_state,
+)
 from patexgs_jax.math import quat_to_rotmat
 from patexgs_jax.optim import AdamState, GroupLRState, adam_moments, make_optimizer
 

@@ -17,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings, strategies as st
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
-from data_builders import make_colmap_scene, opengl_c2w, random_image, ring_poses, save_png
 import patexgs_jax.data as data
+from data_builders import make_colmap_scene, opengl_c2w, random_image, ring_poses, save_png
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import random_scene
 from patexgs_jax.data import DatasetError

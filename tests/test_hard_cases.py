@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import hard_scenes as hs
 from patexgs_jax import Capacity, RenderConfig, render_jit

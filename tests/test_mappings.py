@@ -5,14 +5,13 @@ released, and a run near the cap checkpoints and stops with a clear message inst
 from __future__ import annotations
 
 import functools
-import importlib
 import types
 
 import jax
 import numpy as np
 import pytest
 
-from patexgs_jax import Camera, RenderConfig, buckets, compiled, look_at, random_scene
+from patexgs_jax import Camera, RenderConfig, buckets, compiled, look_at, random_scene, rendering
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax.data import load
 from patexgs_jax.data.synthetic import generate
@@ -22,8 +21,6 @@ from patexgs_jax.training.config import TrainConfig
 from patexgs_jax.training.run import train
 from patexgs_jax.training.step import STEP_TRACES, view_loss_and_grads
 from patexgs_jax.training.trainer import Trainer
-
-R = importlib.import_module("patexgs_jax.render")
 
 needs_proc = pytest.mark.skipif(compiled.memory_maps() is None, reason="needs /proc (Linux)")
 
@@ -63,8 +60,8 @@ def _camera(w, h):
 
 
 def _unpadded(scene, cam):
-    needed, _ = R.count_pairs(scene, cam, CFG)
-    return R.render_jit(scene, cam, config=CFG, capacity=R.Capacity.fit(float(needed)))
+    needed, _ = rendering.count_pairs(scene, cam, CFG)
+    return rendering.render_jit(scene, cam, config=CFG, capacity=rendering.Capacity.fit(float(needed)))
 
 
 FIELDS = ("rgb", "alpha", "depth", "normal", "distortion", "dominant", "max_contrib_count")
@@ -106,7 +103,7 @@ def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded():
         if side > 1:
             n = scene.capacity
             scene, _, info = resize_textures(scene, None, np.full(n, side), np.full(n, 3))
-        traces = sum(R.TRACE_COUNTS.values())
+        traces = sum(rendering.TRACE_COUNTS.values())
         with buckets.ViewRenderer(scene, CFG) as renderer:
             cams = [_camera(w, h) for w, h in SIZES]
             renderer.prepare(cams)
@@ -115,7 +112,7 @@ def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded():
                 assert img.shape == (cam.height, cam.width, 3) and np.isfinite(img).all()
             assert len(renderer.capacities) == 1
             peaks.append(compiled.memory_maps()[0] - base)
-        assert sum(R.TRACE_COUNTS.values()) - traces == 1  # 8 sizes, 1 bucket: 1 program
+        assert sum(rendering.TRACE_COUNTS.values()) - traces == 1  # 8 sizes, 1 bucket: 1 program
     after = compiled.memory_maps()[0] - base
     # One layout's programs (renderer, counter, SSIM-free) at a time: no growth from layout to layout.
     assert max(peaks) < 2500, peaks
@@ -192,7 +189,7 @@ def test_padded_step_matches_the_cropped_loss(mixed_sizes):
     v = mixed_sizes.train_views[1]  # 45 x 30 in a 48 x 32 bucket
     cam = buckets.padded_camera(v.camera)
     grads = jax.jit(functools.partial(view_loss_and_grads, render_config=cfg.render_config(1),
-                                      capacity=R.Capacity.fit(4096), lambda_dssim=0.2, lambda_dist=0.1))
+                                      capacity=rendering.Capacity.fit(4096), lambda_dssim=0.2, lambda_dist=0.1))
     args = (jnp.int32(1), jnp.float32(0.05))
     (want, (_, l1_want, mse_want)), (g_want, off_want) = grads(run.scene, v.camera, jnp.asarray(v.image), *args)
     (loss, (_, l1, mse)), (g, off) = grads(

@@ -7,9 +7,9 @@ import types
 
 import numpy as np
 import pytest
-from data_builders import make_colmap_scene  # noqa: E402
 
 import patexgs_jax.data as data
+from data_builders import make_colmap_scene  # noqa: E402
 from patexgs_jax import memory
 from patexgs_jax.camera import Camera
 from patexgs_jax.training.cli import main

@@ -1,12 +1,12 @@
 """Tests of ``patexgs_jax.prepare`` (pycolmap SfM to the Mip-NeRF 360 layout)."""
 
 
-import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
 import numpy as np
-from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
+import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
 import pytest
 
 from patexgs_jax import prepare as prep
+from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 from patexgs_jax.data import synthetic
 
 # 16 views over a half ring, 12 degrees apart: enough overlap for SIFT on the textured scene.

@@ -13,14 +13,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
-
-from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render, render_jit
-import importlib
-
-render_mod = importlib.import_module("patexgs_jax.render")
-
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from render_reference import reference_render, scene_to_reference, sh_color
+
+from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render, render_jit, rendering
+from patexgs_jax.rendering import chunks, composite, kernel, texture_lookup
+from patexgs_jax.rendering.projection import COLS
 
 C = 48
 W, H = 44, 36
@@ -149,10 +148,10 @@ def test_scaled_camera_is_pixel_consistent():
 # ---------------------------------------------------------------------------------------------
 def test_one_compile_per_configuration():
     cfg = RenderConfig(mip="nearest", lambda_mip=0.7)  # a config no other test uses
-    before = render_mod.TRACE_COUNTS[(cfg, CAP)]
+    before = rendering.TRACE_COUNTS[(cfg, CAP)]
     for seed, eye in [(11, (0.3, -0.4, -3.2)), (12, (-0.5, 0.2, -3.0)), (13, (0.0, 0.1, -2.5))]:
         render_jit(scene(seed), camera(eye=eye), config=cfg, capacity=CAP).rgb.block_until_ready()
-    assert render_mod.TRACE_COUNTS[(cfg, CAP)] - before == 1
+    assert rendering.TRACE_COUNTS[(cfg, CAP)] - before == 1
 
 
 def test_overflow_is_counted_and_render_grows():
@@ -252,7 +251,7 @@ def test_pyramid_levels_and_their_transpose_match_numpy():
             X = np.zeros((sizes.size, P, P, 2))
             for k, n in enumerate(sizes):
                 X[k, :n, :n] = rng.normal(size=(n, n, 2))
-            levels, vjp = jax.vjp(lambda x: tx._pyramid(x, jnp.asarray(sizes), b), jnp.asarray(X))
+            levels, vjp = jax.vjp(lambda x, sizes=sizes, b=b: tx._pyramid(x, jnp.asarray(sizes), b), jnp.asarray(X))
             G = [rng.normal(size=lev.shape) for lev in levels]
             want_levels, want_grad = [X], G[-1]
             Ds = []
@@ -406,13 +405,13 @@ def test_random_views_match_reference(seed, eye_x, eye_y):
 def test_tile_batches_do_not_repeat_tiles_needlessly(num_tiles, tile_batch, batch):
     """Every lane of a tile batch is computed, padding included: the batch is the smallest size that
     keeps the fewest batches, so a one-tile image (a zoom-out by 8) is not rendered 8 times over."""
-    st_ = render_mod._Static(config=RenderConfig(tile_batch=tile_batch), tiles_x=1, num_tiles=num_tiles,
+    st_ = chunks.Static(config=RenderConfig(tile_batch=tile_batch), tiles_x=1, num_tiles=num_tiles,
                              rgb=False, alpha=False)
     assert st_.batch == batch
     num_batches = -(-num_tiles // tile_batch)
     assert num_batches * st_.batch - num_tiles < num_batches  # less than one padding lane per batch
     ctx = dict(binned=jnp.arange(num_tiles, dtype=jnp.int32))
-    tiles = np.asarray(render_mod._tile_batches(st_, ctx))
+    tiles = np.asarray(chunks.tile_batches(st_, ctx))
     assert tiles.shape == (num_batches, batch)
     assert set(tiles.reshape(-1).tolist()) == set(range(num_tiles))
 
@@ -432,13 +431,13 @@ def test_pass_pairs_list_the_marked_pairs_in_order(c):
     take[2] = False    # a tile with no marks
     N = take.size
     K = 13
-    passes = render_mod._mark_passes(jnp.asarray(take), K)
+    passes = texture_lookup._mark_passes(jnp.asarray(take), K)
     want = np.flatnonzero(take.reshape(-1))
     assert int(passes.count) == want.size
     got = []
     j = 0
-    while bool(render_mod._more_passes(passes, j)):
-        got.append(np.asarray(render_mod._pass_pairs(passes, j)))
+    while bool(texture_lookup._more_passes(passes, j)):
+        got.append(np.asarray(texture_lookup._pass_pairs(passes, j)))
         j += 1
     assert j == -(-want.size // K)
     got = np.concatenate(got)
@@ -453,7 +452,7 @@ def test_pass_running_counts_are_exact(shape, share):
     integer cumsum from 2**24 slots on."""
     rng = np.random.default_rng(shape[-1])
     take = rng.random(shape) < share
-    passes = render_mod._mark_passes(jnp.asarray(take), 64)
+    passes = texture_lookup._mark_passes(jnp.asarray(take), 64)
     nw = -(-shape[-1] // 32)
     padded = np.zeros(shape[:-1] + (nw * 32,), bool)
     padded[..., :shape[-1]] = take
@@ -471,7 +470,7 @@ def test_rows_of_ranks_match_searchsorted(K):
     counts = rng.integers(0, 4, 300) * (rng.random(300) < 0.6)
     ends = np.cumsum(counts).astype(np.int32)
     for start in [0, 1, int(ends[40]), int(ends[-1]) - K // 2, int(ends[-1]) + 3]:
-        got = np.asarray(render_mod._rows_of_ranks(jnp.asarray(ends), jnp.int32(start), K))
+        got = np.asarray(texture_lookup._rows_of_ranks(jnp.asarray(ends), jnp.int32(start), K))
         want = np.searchsorted(ends, start + np.arange(K), side="right")
         np.testing.assert_array_equal(got, want, err_msg=f"start {start}")
 
@@ -488,7 +487,7 @@ def test_texture_passes_do_not_change_the_result(name):
     cfgs = [dataclasses.replace(cfg, texture_pairs=t) for t in (1.0, 1 / 512)]
 
     def loss(s, c):  # the image and the gradient from one compiled function per configuration
-        out = render_mod._render(s, cam, c, CAP)
+        out = rendering._render(s, cam, c, CAP)
         return jnp.mean(jnp.abs(out.rgb - 0.3)) + 0.1 * jnp.mean(out.alpha * out.depth), out
 
     with jax.enable_x64(True):
@@ -513,9 +512,9 @@ def test_inputs_off_the_layout_fail_at_trace_time_naming_the_field():
     """A Scene or Camera edited by hand against the layout fails before any rendering work, with the
     field, the expected shape or dtype and how to build one; float64 scenes (the references) pass."""
     sc, cam = scene(3), camera()
-    render_mod.check_inputs(sc, cam)
+    rendering.check_inputs(sc, cam)
     with jax.enable_x64(True):
-        render_mod.check_inputs(sc.astype(jnp.float64), cam)
+        rendering.check_inputs(sc.astype(jnp.float64), cam)
     cases = [
         (sc.replace(means=sc.means[:, :2]), cam, r"Scene\.means must be \(\d+, 3\)"),
         (sc.replace(quats=sc.quats[:-1]), cam, r"Scene\.quats must be \(\d+, 4\)"),
@@ -542,8 +541,8 @@ def _chunk_inputs(rng, P, c):
     """A tile chunk's inputs with every branch of the compositing taken: saturated alpha (capped at
     0.99), pairs below 1/255, behind the near plane or in padding slots, pixels already stopped and
     pixels whose transmittance crosses 1e-4 inside the chunk, splats with and without textures."""
-    OP = render_mod._OP                                    # the opacity column
-    pk = rng.normal(size=(c, render_mod._DEP + 1))
+    OP = COLS.opacity                                    # the opacity column
+    pk = rng.normal(size=(c, COLS.width))
     pk[:, OP] = rng.uniform(0.0, 1.0, c)
     pk[:3, OP] = 0.9999                                    # saturating splats at the front
     G = rng.uniform(0.0, 1.0, (P, c))
@@ -571,9 +570,12 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
     tile of P pixels, its (P, c) pairs in the chunk's (c, 1, P) layout."""
     rng = np.random.default_rng(11 + 2 * rgb + alpha)
     P, c = 12, 16
-    st_ = render_mod._Static(config=RenderConfig(), tiles_x=1, num_tiles=1, rgb=rgb, alpha=alpha)
+    st_ = chunks.Static(config=RenderConfig(), tiles_x=1, num_tiles=1, rgb=rgb, alpha=alpha)
     pk, G, z, offs, a_tex, valid, done, log_t, gid, ctx = _chunk_inputs(rng, P, c)
-    block = lambda a: a.T[:, None]                         # (P, c) -> (c, 1, P)
+
+    def block(a):  # (P, c) -> (c, 1, P)
+        return a.T[:, None]
+
     G, z, a_tex, offs = block(G), block(z), block(a_tex), [block(o) for o in offs]
     pk, valid, gid, done, log_t = pk[None], valid[None], gid[None], done[None], log_t[None]
     with jax.enable_x64(True):
@@ -586,21 +588,21 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
         base = jnp.asarray(rng.normal(size=(1, P)))
 
         def f(pk_, G_, z_, offs_, a_tex_):
-            return render_mod._chunk_contrib(st_, ctx, pk_, G_, z_, offs_, a_tex_, gid, valid, log_t, done)
+            return composite._chunk_contrib(st_, ctx, pk_, G_, z_, offs_, a_tex_, gid, valid, log_t, done)
 
         (dacc, log_t_out), vjp, (done_out, w) = jax.vjp(f, pk, G, z, offs, a_tex, has_aux=True)
         dot_out = dot_in + jnp.sum(ct * dacc, axis=-1)
         want = vjp((ct, base - dot_out))
-        (lt, dn, dot), (g_pk, g_G, g_z, (g_offs, g_atex)) = render_mod._chunk_contrib_bwd(
+        (lt, dn, dot), (g_pk, g_G, g_z, (g_offs, g_atex)) = composite._chunk_contrib_bwd(
             st_, ctx, pk, G, z, offs, a_tex, gid, valid, log_t, done, ct, dot_in, base)
-        terms = render_mod._contrib_terms(st_, ctx, pk, G, z, a_tex, gid, valid, log_t, done)
+        terms = composite._contrib_terms(st_, ctx, pk, G, z, a_tex, gid, valid, log_t, done)
         got = jax.tree.map(np.asarray, ((lt, dn, dot), (g_pk, g_G, g_z, g_offs, g_atex)))
         want = jax.tree.map(np.asarray, ((log_t_out, done_out, dot_out), want))
         terms, w, done = jax.tree.map(np.asarray, (terms, w, done))
     # The cases the inputs are meant to reach.
     assert done_out[0, 2] and not done[0, 2], "pixel 2 stops inside the chunk"
     assert np.all(w[:, 0, 1] == 0), "pixel 1 had stopped before the chunk"
-    assert np.any(terms.keep & (terms.a_raw > render_mod.ALPHA_MAX)), "saturated pairs"
+    assert np.any(terms.keep & (terms.a_raw > rendering.ALPHA_MAX)), "saturated pairs"
     assert np.any(terms.include & ~terms.keep), "skipped pairs"
     (lt, dn, dot), got = got
     (lt_w, dn_w, dot_w), want = want
@@ -616,27 +618,28 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
 
 @pytest.mark.parametrize("prefilter", [False, True])
 def test_geometry_backward_matches_autodiff(prefilter):
-    """:func:`_chunk_geometry_bwd` gives autodiff's cotangent of the packed splats through
-    :func:`_chunk_geometry`: for rays that meet the splat planes (the 3D term or the screen-space
+    """:func:`kernel.chunk_geometry_bwd` gives autodiff's cotangent of the packed splats through
+    :func:`kernel.chunk_geometry`: for rays that meet the splat planes (the 3D term or the screen-space
     low-pass winning; or the prefiltered kernel, inside and outside its screen support) and rays
     (nearly) parallel to them, in tiles at different image positions (the pixels share their
     offsets within the tile, as the renderer's do)."""
     rng = np.random.default_rng(5)
     B, P, c = 3, 20, 6
-    F = render_mod._SUP.stop if prefilter else render_mod._DEP + 1
+    F = COLS.width_prefilter if prefilter else COLS.width
     with jax.enable_x64(True):
         pk = rng.normal(size=(B, c, F))
         if prefilter:  # a positive definite quadratic form (p, r, t)
-            pk[:, :, render_mod._PF] = np.stack([rng.uniform(0.2, 1.0, (B, c)), rng.uniform(-0.1, 0.1, (B, c)),
+            pk[:, :, COLS.conic] = np.stack([rng.uniform(0.2, 1.0, (B, c)), rng.uniform(-0.1, 0.1, (B, c)),
                                                  rng.uniform(0.2, 1.0, (B, c))], axis=-1)
             # The screen support (radius 2 to 5 px about the centre): some pixels fall outside.
             a = rng.uniform(0.04, 0.25, (B, c))
-            pk[:, :, render_mod._SUP] = np.stack([a, 0.1 * a, a], axis=-1)
-        pk[:, :, 0:9] *= 0.05                               # planes: (u, v) of order one
-        pk[:, :, 6:8] += rng.normal(size=(B, c, 2))
-        pk[:, :, 8] = rng.uniform(0.5, 1.0, (B, c))
-        pk[:, 0, [2, 5, 8]] = 0.0                           # s2 = 0: no ray meets this plane
-        pk[:, :, 12:14] = rng.uniform(0.0, 5.0, (B, c, 2))
+            pk[:, :, COLS.support] = np.stack([a, 0.1 * a, a], axis=-1)
+        c0 = COLS.c.start
+        pk[:, :, :COLS.plane] *= 0.05                       # planes: (u, v) of order one
+        pk[:, :, c0:c0 + 2] += rng.normal(size=(B, c, 2))
+        pk[:, :, c0 + 2] = rng.uniform(0.5, 1.0, (B, c))
+        pk[:, 0, [COLS.a.stop - 1, COLS.b.stop - 1, c0 + 2]] = 0.0  # s2 = 0: no ray meets this plane
+        pk[:, :, COLS.mu] = rng.uniform(0.0, 5.0, (B, c, 2))
         corner = np.array([[0.0, 0.0], [2.0, 0.0], [1.0, 3.0]])    # the tiles' positions
         offset = rng.uniform(0.0, 2.0, (2, P))                      # the pixels' within a tile
         x = jnp.asarray(corner[:, :1] + offset[0])
@@ -644,16 +647,16 @@ def test_geometry_backward_matches_autodiff(prefilter):
         pk = jnp.asarray(pk)
         g_G = jnp.asarray(rng.normal(size=(c, B, P)))
         g_z = jnp.asarray(rng.normal(size=(c, B, P)))
-        (G, z), vjp = jax.vjp(lambda p: render_mod._chunk_geometry(p, x, y, prefilter), pk)
+        (G, z), vjp = jax.vjp(lambda p: kernel.chunk_geometry(p, x, y, prefilter), pk)
         want = vjp((g_G, g_z))[0]
-        geo = render_mod._geometry_terms(pk, x, y, prefilter)
-        got = render_mod._chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, prefilter)
+        geo = kernel.geometry_terms(pk, x, y, prefilter)
+        got = kernel.chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, prefilter)
         got, want, ok, use3, G = jax.tree.map(np.asarray, (got, want, geo.ok, geo.use3, geo.G))
     assert not ok[0].any() and ok[1:].all()
     if prefilter:
         assert np.all(G[0] == 0) and G[1:].max() > 0.1, "no coverage where the ray misses the plane"
         assert 0 < use3[1:].mean() < 1 and np.all(G[~use3] == 0), "cut outside the screen support"
-        assert np.abs(got[..., render_mod._PF]).max() > 0
+        assert np.abs(got[..., COLS.conic]).max() > 0
     else:
         assert 0 < use3.mean() < 1, "both terms of the kernel should win somewhere"
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10)

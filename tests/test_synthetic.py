@@ -3,11 +3,11 @@
 import json
 from pathlib import Path
 
-import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
 import numpy as np
-from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
+import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
 import pytest
 
+from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 from patexgs_jax.camera import Camera
 from patexgs_jax.data import synthetic
 from patexgs_jax.prepare import box_downsample

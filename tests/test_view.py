@@ -28,10 +28,7 @@ import numpy as np
 import pytest
 
 from patexgs_jax import checkpoint as ckpt
-from patexgs_jax import compiled
-import importlib
-
-R = importlib.import_module("patexgs_jax.render")  # the module (patexgs_jax.render the attribute is the function)
+from patexgs_jax import compiled, rendering
 from patexgs_jax import viewing as vw
 from patexgs_jax.camera import Camera, look_at
 from patexgs_jax.scene import Scene, random_scene
@@ -77,7 +74,7 @@ def scene():
 @pytest.fixture(scope="module")
 def frames(scene):
     """The viewer's renderer of ``scene`` in PATexGS's own mode."""
-    return vw.FrameRenderer(scene, R.RenderConfig(coverage="prefilter"))
+    return vw.FrameRenderer(scene, rendering.RenderConfig(coverage="prefilter"))
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +113,7 @@ def test_training_view_through_the_viewer_renders_as_render(scene, frames):
     # render() of the run's own mode with its default compositor schedule: the viewer's
     # FRAME_SCHEDULE changes the order of the work, not the image
     assert r.config != vw.mode_config(frames.base, "patexgs")
-    ref = np.clip(np.asarray(R.render(scene, cam, vw.mode_config(frames.base, "patexgs")).rgb), 0, 1)
+    ref = np.clip(np.asarray(rendering.render(scene, cam, vw.mode_config(frames.base, "patexgs")).rgb), 0, 1)
     assert frame.image.shape == (H, W, 3)
     assert ref.std() > 0.05  # the view sees the scene
     np.testing.assert_allclose(frame.image / 255.0, ref, atol=1.0 / 255 + 1e-6)
@@ -125,18 +122,18 @@ def test_training_view_through_the_viewer_renders_as_render(scene, frames):
 def test_camera_moves_never_compile(frames):
     """After the first frame at a canvas size (full and preview size), frames of other poses at that
     size compile nothing: neither the renderer nor the mip-level function."""
-    fns = (R.render_jit, R.count_pairs, vw.dominant_mip_level)
+    fns = (rendering.render_jit, rendering.count_pairs, vw.dominant_mip_level)
     for view in ("rgb", "mip level"):
         frames.render(orbit_camera(0.0), view=view)
         frames.render(orbit_camera(0.0), view=view, scale=4, enlarge=False)
-    traces = sum(R.TRACE_COUNTS.values())
+    traces = sum(rendering.TRACE_COUNTS.values())
     programs = [compiled.program_count(f) for f in fns]
     for k, angle in enumerate(np.linspace(0.2, 2.5, 6)):
         cam = orbit_camera(angle, radius=3.2 + 0.15 * k)
         for view in ("rgb", "mip level"):
             for f in (frames.render(cam, view=view), frames.render(cam, view=view, scale=4, enlarge=False)):
                 assert not f.grew and not f.compiled
-    assert sum(R.TRACE_COUNTS.values()) == traces
+    assert sum(rendering.TRACE_COUNTS.values()) == traces
     assert [compiled.program_count(f) for f in fns] == programs
 
 
@@ -167,10 +164,10 @@ def test_mip_level_follows_eq11():
     cam = Camera.from_intrinsics((f, f, 32.0, 32.0), look_at((0, 0, -z), (0, 0, 0)), 64, 64)
     bare = scene.replace(rgb=None)  # the same dominant splat, cheaper to compile
     for coverage, lam in (("prefilter", 1 / 6),):
-        cfg = R.RenderConfig(coverage=coverage)
+        cfg = rendering.RenderConfig(coverage=coverage)
         for factor in (1, 2):
             c = cam if factor == 1 else cam.scaled(factor)
-            out = R.render(bare, c, cfg)
+            out = rendering.render(bare, c, cfg)
             lev = np.asarray(vw.dominant_mip_level(scene, c, out.dominant, bank="rgb", lambda_mip=lam, use_mip=True))
             want = int(np.clip(np.floor(np.log2(lam * 32 * D * factor)), 0, 5))
             centre = lev[c.height // 2, c.width // 2]
@@ -181,7 +178,7 @@ def test_mip_level_follows_eq11():
 
 
 def test_modes():
-    base = R.RenderConfig(coverage="prefilter")
+    base = rendering.RenderConfig(coverage="prefilter")
     assert vw.own_mode(base) == "patexgs"
     lit = vw.mode_config(base, "literal")
     assert (lit.coverage, lit.lambda_mip, lit.mip) == ("lowpass", 0.4, "nearest")
@@ -502,7 +499,7 @@ def test_training_views_snap_and_compare(run_dir, scene):
     from patexgs_jax.view import Viewer
 
     cams = [orbit_camera(a) for a in (0.2, 1.0, 2.0)]
-    gt = vw.FrameRenderer(scene, R.RenderConfig(coverage="prefilter"))
+    gt = vw.FrameRenderer(scene, rendering.RenderConfig(coverage="prefilter"))
     views = [types.SimpleNamespace(camera=c, name=f"view{i}", image=gt.render(c).image / np.float32(255))
              for i, c in enumerate(cams)]
     lines = []

@@ -34,22 +34,10 @@ is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter"
 2DGS for every method.
 
 Robustness
-  The data order is a per-epoch permutation seeded by (seed, epoch), and every random choice is
-  seeded by (seed, step), so ``--resume`` from a checkpoint reaches the same result as an
-  uninterrupted run. A non-finite loss or gradient, or a render whose tile capacity overflowed,
-  skips the update (never applied, never poisoning the state); overflow grows the capacity and the
-  step is retried; ``max_bad_steps`` consecutive non-finite steps stop the run, keeping the last
-  good checkpoint.
-
-Compiled programs (see :mod:`patexgs_jax.compiled`)
-  A training view is padded to the renderer's tile grid (:mod:`patexgs_jax.buckets`; the loss is
-  the view's own, the per-splat statistics the unpadded render's), so the step compiles once per
-  distinct tile grid of the training images, not once per image size, and again only when the
-  tile capacity or the scene's shapes change (densification, texture growth); the programs of
-  earlier shapes are then released (and at most a few capacities kept per shapes). Near the
-  kernel's memory-map cap the run releases all compiled code and, if that is not enough,
-  checkpoints and stops with :class:`patexgs_jax.compiled.MapLimitReached` (resume with
-  ``--resume``).
+  The data order and every random choice are seeded, so ``--resume`` from a checkpoint reaches the
+  same result as an uninterrupted run; a step with a non-finite loss or gradient, or an overflowed
+  tile capacity, is skipped, never applied; near the kernel's memory-map cap the run checkpoints
+  and stops (resume with ``--resume``). The details: :mod:`patexgs_jax.training.trainer`.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import buckets, compiled
-from ..render import RenderConfig
+from ..rendering import RenderConfig
 from ..scene import Scene
 
 __all__ = ["camera_problem", "evaluate", "image_problem", "view_problem"]

@@ -17,7 +17,7 @@ import optax
 
 from .. import buckets, losses
 from .. import densify as dens
-from ..render import render_jit
+from ..rendering import render_jit
 
 __all__ = ["STEP_TRACES", "batch_step", "single_view_step", "view_loss_and_grads"]
 

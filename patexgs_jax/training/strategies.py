@@ -20,7 +20,7 @@ from .. import adaptive, buckets
 from .. import densify as dens
 from ..metrics import mb_to_texels
 from ..rebucket import add_textures, resize_textures
-from ..render import RenderConfig
+from ..rendering import RenderConfig
 from ..scene import Scene
 from .config import TrainConfig
 

@@ -44,7 +44,7 @@ from .. import checkpoint as ckpt
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
 from ..optim import make_optimizer, upgrade_state
-from ..render import Capacity, RenderConfig, count_pairs
+from ..rendering import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from .config import TrainConfig, config_dict
 from .evaluation import camera_problem, image_problem
