@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from render_reference import tent_down
 
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render_jit
 from patexgs_jax.data.dataset import box_downsample
 from patexgs_jax.training import TrainConfig
+from render_reference import tent_down
 
 C = 48
 CAP = Capacity(pairs=8192)

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from render_reference import reference_render, scene_to_reference, sh_color
 
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render, render_jit, rendering
 from patexgs_jax.rendering import chunks, composite, kernel, texture_lookup
 from patexgs_jax.rendering.projection import COLS
+from render_reference import reference_render, scene_to_reference, sh_color
 
 C = 48
 W, H = 44, 36
