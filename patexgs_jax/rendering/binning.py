@@ -80,8 +80,6 @@ def tile_touches(fp, tx, ty, tile_size: int, lowpass: bool):
 
     def corner(x, y):  # s at a corner, scaled to unit norm under r2 s2^2 + s01^T P s01 (a positive scale)
         s = [x * A[i] + y * B[i] + C[i] for i in range(3)]
-        m = jnp.maximum(jnp.maximum(jnp.abs(s[0]), jnp.abs(s[1])), jnp.abs(s[2]))
-        s = [si / jnp.maximum(m, 1e-30) for si in s]
         n = r2 * s[2] * s[2] + (p * s[0] + 2.0 * r * s[1]) * s[0] + t * s[1] * s[1]
         k = lax.rsqrt(n + 1e-20)
         return [si * k for si in s]
@@ -145,7 +143,8 @@ def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity, 
     tile = (ty0[g] + k // w) * tiles_x + tx0[g] + k % w
     valid = (p < total) & (k >= 0)
     if footprint is not None:
-        fp = [footprint[:, i][g] for i in range(FOOTPRINT.width)]
+        rows = footprint[g]
+        fp = [rows[:, i] for i in range(FOOTPRINT.width)]
         valid = valid & tile_touches(fp, tx0[g] + k % w, ty0[g] + k // w, tile_size, lowpass)
     tile = jnp.where(valid, tile, num_tiles)
     tile_sorted, ids_sorted = lax.sort((tile, g), num_keys=1, is_stable=True)

@@ -307,6 +307,12 @@ def _footprint(packed, peak, prefilter: bool):
     else:
         conic = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 1.0], packed.dtype), A.shape)
     r2 = 2.0 * jnp.log(jnp.maximum(peak, ALPHA_MIN) * (255.0 / (1.0 - 1e-3)))
+    # The test is homogeneous in (A, B, C): scaled so that s = x A + y B + C stays far from float32's
+    # range at any pixel (x, y up to about 1e4).
+    m = jnp.maximum(jnp.max(jnp.abs(jnp.concatenate([A, B], axis=-1)), axis=-1) * 1e4,
+                    jnp.max(jnp.abs(Cc), axis=-1))
+    k = 1.0 / jnp.maximum(m, 1e-30)[:, None]
+    A, B, Cc = A * k, B * k, Cc * k
     return jnp.concatenate([A, B, Cc, conic, r2[:, None], side[:, None], packed[:, COLS.mu]], axis=-1)
 
 
