@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from locations import BEER
 from patexgs_jax import adaptive, losses
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import densify as dens
@@ -40,7 +41,6 @@ from patexgs_jax.training.step import STEP_TRACES
 from patexgs_jax.training.strategies import TextureStage, growth_schedule, growth_steps
 from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
 
-BEER = Path(__file__).resolve().parents[2] / "shared" / "data" / "beer"
 PER_GAUSSIAN = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
 NO_DENSIFY = DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000)
 

@@ -27,6 +27,7 @@ import jax
 import numpy as np
 import pytest
 
+from locations import REPO
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import compiled, rendering
 from patexgs_jax import viewing as vw
@@ -36,7 +37,6 @@ from patexgs_jax.textures import TextureBank
 
 viser = pytest.importorskip("viser", reason='the viewer needs viser: pip install -e ".[viewer]"')
 
-ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
@@ -223,7 +223,7 @@ def free_port() -> int:
 def subprocess_env(**extra) -> dict:
     """The environment of a viewer subprocess: this checkout first, and the session's XLA cache (the
     server's programs, shared by the tests that start one)."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT), **extra)
+    env = dict(os.environ, PYTHONPATH=str(REPO), **extra)
     cache = jax.config.jax_compilation_cache_dir
     if cache:
         env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1")
@@ -233,7 +233,7 @@ def subprocess_env(**extra) -> dict:
 def run_cli(*args, timeout=120):
     env = subprocess_env()
     return subprocess.run([sys.executable, "-m", "patexgs_jax.view", *map(str, args)], capture_output=True,
-                          text=True, timeout=timeout, env=env, cwd=ROOT)
+                          text=True, timeout=timeout, env=env, cwd=REPO)
 
 
 def test_cli_bad_input(run_dir, tmp_path, capsys):
@@ -267,7 +267,7 @@ def start_viewer(path, port, *extra):
     env = subprocess_env(PYTHONUNBUFFERED="1")
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
     proc = subprocess.Popen([sys.executable, "-m", "patexgs_jax.view", str(path), "--port", str(port), *extra],
-                            stdout=log, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT)
+                            stdout=log, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         text = Path(log.name).read_text()
