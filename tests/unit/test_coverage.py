@@ -220,10 +220,10 @@ def test_mip_level_follows_texels_per_pixel(texels_per_pixel, level):
 # ---------------------------------------------------------------------------------------------
 def test_literal_mode_reproduces_the_low_pass_renderer():
     """``patexgs-literal`` (and ``2dgs``) render the images of the renderer before the prefilter
-    existed (commit b7ee7fa, stored in tests/data): the 44 x 36 textured scene of test_render.py
+    existed (commit b7ee7fa, stored in tests/data): the 44 x 36 textured scene of tests/render_cases.py
     with nearest and trilinear mipmaps, and untextured."""
-    from test_render import CAP as RCAP
-    from test_render import camera, scene
+    from render_cases import CAP as RCAP
+    from render_cases import camera, scene
 
     gold = np.load(TEST_DATA / "literal_mode_b7ee7fa.npz")
     cases = {"nearest": (LITERAL, True),

@@ -326,7 +326,9 @@ def test_lazy_loading_respects_the_cache_bound(tmp_path):
 def test_image_cache_never_holds_more_than_its_limits():
     import threading
 
-    img = lambda k: (lambda: np.full((10, 10, 3), k, np.float32))  # noqa: E731  (1200 bytes each)
+    def img(k):  # a loader of a 1200-byte image
+        return lambda: np.full((10, 10, 3), k, np.float32)
+
     by_count = data.ImageCache(maxsize=3, max_bytes=None)
     by_bytes = data.ImageCache(maxsize=100, max_bytes=2 * 1200 + 100)
     rng = np.random.default_rng(0)

@@ -241,7 +241,9 @@ def test_dssim_gradient_float64_matches_finite_differences():
     with jax.enable_x64(True):
         x = jnp.asarray(a, jnp.float64)
         y = jnp.asarray(b, jnp.float64)
-        loss = lambda z: dssim_loss(z, y)  # noqa: E731
+        def loss(z):
+            return dssim_loss(z, y)
+
         grad = jax.grad(loss)(x)
         assert grad.dtype == jnp.float64
         assert bool(jnp.all(jnp.isfinite(grad)))
