@@ -64,13 +64,10 @@ def tile_touches(fp, tx, ty, tile_size: int, lowpass: bool):
     prefilter's screen support is not tested (the box of :func:`projection.project` has it).
     """
     F = FOOTPRINT
-    col = lambda i: fp[i]  # noqa: E731
-    A = [col(F.a.start + i) for i in range(3)]
-    B = [col(F.b.start + i) for i in range(3)]
-    C = [col(F.c.start + i) for i in range(3)]
-    p, r, t = (col(i) for i in range(F.conic.start, F.conic.stop))
-    r2, side = col(F.r2), col(F.side)
-    mx, my = col(F.mu.start), col(F.mu.start + 1)
+    A, B, C = fp[F.a], fp[F.b], fp[F.c]
+    p, r, t = fp[F.conic]
+    r2, side = fp[F.r2], fp[F.side]
+    mx, my = fp[F.mu]
     dt = r2.dtype
     x0 = (tx * tile_size).astype(dt) + (0.5 - TOUCH_GROW)
     y0 = (ty * tile_size).astype(dt) + (0.5 - TOUCH_GROW)
