@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render_jit
-from patexgs_jax.data.dataset import box_downsample
+from patexgs_jax.data.images import box_downsample
 from patexgs_jax.training import TrainConfig
 from render_reference import tent_down
 

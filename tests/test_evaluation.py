@@ -8,7 +8,7 @@ import pytest
 
 from experiments.evaluation import evaluate_scales, render_image
 from patexgs_jax.data import load
-from patexgs_jax.data.dataset import box_downsample
+from patexgs_jax.data.images import box_downsample
 from patexgs_jax.data.synthetic import generate
 from patexgs_jax.metrics import psnr
 from patexgs_jax.rendering import RenderConfig

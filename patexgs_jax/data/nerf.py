@@ -26,33 +26,25 @@ import json
 import math
 import sys
 import time
-import zlib  # noqa: F401  -- must be loaded before pycolmap (see data/__init__)
 from pathlib import Path
 
 import numpy as np
 import PIL.Image
 
 from .._pycolmap import pycolmap
+from .cache import atomic_build_dir, fingerprint, is_complete_dir, resolve_cache_dir
 from .colmap import default_resolution
-from .dataset import (
-    DEFAULT_IMAGE_CACHE_BYTES,
-    DEFAULT_IMAGE_CACHE_SIZE,
+from .dataset import Dataset
+from .errors import DatasetError
+from .images import DEFAULT_IMAGE_CACHE_BYTES, DEFAULT_IMAGE_CACHE_SIZE, ImageCache, image_loader, probe_image
+from .records import (
     DEFAULT_NUM_RANDOM_POINTS,
-    Dataset,
-    DatasetError,
-    ImageCache,
-    atomic_build_dir,
     check_size_against_camera,
-    fingerprint,
     finish_dataset,
     fit_records_to_width,
     handle_unreadable,
-    image_loader,
-    is_complete_dir,
     orthonormalize_pose,
-    probe_image,
     random_points_in_box,
-    resolve_cache_dir,
 )
 
 __all__ = ["load_nerf", "find_transforms", "distort_normalized", "undistort_image", "read_ply_points",
