@@ -325,7 +325,7 @@ class Study:
             self.data["version"] = _version()
         else:
             self.data = dict(version=_version(), config=record, results={})
-        from experiments.evaluation import LPIPS
+        from patexgs_jax.evaluation import LPIPS
 
         self.lpips = LPIPS(enabled=use_lpips, net=lpips_net)
         if use_lpips and not self.lpips.available:
@@ -427,8 +427,8 @@ class Study:
         return dataclasses.replace(self.cfg.train_config(method, max_gaussians), devices=self.devices)
 
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
-        from experiments.evaluation import evaluate_scales, render_ms, side_by_side
         from patexgs_jax.buckets import ViewRenderer
+        from patexgs_jax.evaluation import evaluate_scales, render_ms, side_by_side
 
         views = list(ds.test_views)
         if not views:
@@ -810,7 +810,10 @@ def _study_cli(args) -> int:
 
     if not args.no_compile_cache:
         _enable_compile_cache()
-    split = lambda s: None if s is None else [x.strip() for x in s.split(",") if x.strip()]  # noqa: E731
+
+    def split(s):
+        return None if s is None else [x.strip() for x in s.split(",") if x.strip()]
+
     config = {k: v for k, v in dict(preset=args.preset, factor=args.factor, budget=args.budget,
                                     iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
                                     max_gaussians=args.max_gaussians, seed=args.seed,
