@@ -474,26 +474,17 @@ class Study:
 # ------------------------------------------------------------------------------------------------
 def load_trained(run_dir):
     """(scene, render config, summary or None) of a training run directory: the newest checkpoint's
-    scene (or ``scene.ply`` + sidecar without checkpoints) and its method's render configuration."""
-    from patexgs_jax import checkpoint as ckpt
-    from patexgs_jax.export import load_ply
-    from patexgs_jax.training import Method
+    scene (or ``scene.ply`` + sidecar without checkpoints) and its method's render configuration
+    (:func:`patexgs_jax.viewing.load_run`)."""
+    from patexgs_jax.viewing import RunEntry, load_run
 
     run_dir = Path(run_dir)
-    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else None
-    latest = ckpt.latest_checkpoint(run_dir / "checkpoints") if (run_dir / "checkpoints").is_dir() else None
-    if latest is not None:
-        tree, meta = ckpt.load_checkpoint(latest)
-        scene, cfg = tree["scene"], meta.get("config") or {}
-    elif (run_dir / "scene.ply").exists():
-        scene, cfg = load_ply(run_dir / "scene.ply"), (summary or {}).get("config") or {}
-    else:
+    if not ((run_dir / "checkpoints").is_dir() or (run_dir / "scene.ply").exists()):
         raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply: pass --run a folder "
                                 "that python -m patexgs_jax.train --out wrote.")
-    lam = cfg.get("lambda_mip")
-    rc = Method.from_name(cfg.get("method", "patexgs")).render_config(
-        lambda_mip=None if lam is None else float(lam), background=cfg.get("background", (0, 0, 0)))
-    return scene, rc, summary
+    run = load_run(RunEntry(run_dir.name, run_dir))
+    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else None
+    return run.scene, run.config, summary
 
 
 def present_effects(scene, rc) -> list[str]:
