@@ -57,7 +57,7 @@ top-level package only searches the import path and executes nothing.
 With those weights this module reproduces what the LPIPS authors' torch code is reported to give
 on their example images, to the three decimals reported (ex_ref/ex_p0, ex_ref/ex_p1: 0.7219,
 0.1376 with ``alex``, reported 0.722, 0.138; 0.5686, 0.4217 with ``vgg``, reported 0.569, 0.422),
-and the lin layers equal the authors' v0.1 files exactly (sources: ``tests/test_metrics.py``).
+and the lin layers equal the authors' v0.1 files exactly (sources: ``tests/unit/test_metrics.py``).
 """
 
 from __future__ import annotations

@@ -51,3 +51,19 @@ def _release_compiled_code():
     the cap allows, and reaching it ended in a crash (or, with pycolmap's signal handler, a hang)."""
     yield
     compiled.release_compiled_code(threshold=0.25)
+
+
+@pytest.fixture(scope="module")
+def viewer_scene():
+    """The viewer tests' textured scene (tests/viewer_scenes.py)."""
+    from viewer_scenes import textured_scene
+
+    return textured_scene()
+
+
+@pytest.fixture(scope="module")
+def viewer_run_dir(viewer_scene, tmp_path_factory):
+    """A study of two runs holding ``viewer_scene``: its ``runs/toy/patexgs`` folder."""
+    from viewer_scenes import study_of_two_runs
+
+    return study_of_two_runs(tmp_path_factory.mktemp("viewer"), viewer_scene)

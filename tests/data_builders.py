@@ -1,4 +1,4 @@
-"""Builders of small on-disk scenes (COLMAP, LLFF, transforms.json) for tests/test_data_loaders.py."""
+"""Builders of small on-disk scenes (COLMAP, LLFF, transforms.json) for tests/unit/test_data_loaders.py."""
 
 from __future__ import annotations
 

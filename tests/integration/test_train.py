@@ -25,11 +25,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from locations import BEER
 from patexgs_jax import adaptive, losses
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import densify as dens
 from patexgs_jax.data import load
-from patexgs_jax.data.synthetic import generate
 from patexgs_jax.densify import DensifyConfig
 from patexgs_jax.evaluation import evaluate
 from patexgs_jax.metrics import mb_to_texels
@@ -40,7 +40,6 @@ from patexgs_jax.training.step import STEP_TRACES
 from patexgs_jax.training.strategies import TextureStage, growth_schedule, growth_steps
 from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
 
-BEER = Path(__file__).resolve().parents[2] / "shared" / "data" / "beer"
 PER_GAUSSIAN = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
 NO_DENSIFY = DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000)
 
@@ -132,14 +131,8 @@ def compile_cache():
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    return generate(tmp_path_factory.mktemp("synthetic") / "scene", seed=0, num_views=10, width=64, height=48,
-                    num_points=400)
-
-
-@pytest.fixture(scope="module")
-def dataset(scene_dir, tmp_path_factory):
-    ds = load(scene_dir, factor=1, test_every=5, cache_dir=tmp_path_factory.mktemp("cache"), verbose=False)
+def dataset(synthetic_scene_dir, tmp_path_factory):
+    ds = load(synthetic_scene_dir, factor=1, test_every=5, cache_dir=tmp_path_factory.mktemp("cache"), verbose=False)
     assert len(ds.train_views) == 8 and len(ds.test_views) == 2 and len(ds.points) == 400
     return ds
 
@@ -436,11 +429,11 @@ def run_cli(*args, cache):
                           text=True, env=env, timeout=600)
 
 
-def test_cli(scene_dir, tmp_path, compile_cache):
+def test_cli(synthetic_scene_dir, tmp_path, compile_cache):
     cache, out = compile_cache, tmp_path / "out"
-    bad = run_cli("--data", scene_dir, "--method", "3dgs", "--out", tmp_path / "bad", cache=cache)
+    bad = run_cli("--data", synthetic_scene_dir, "--method", "3dgs", "--out", tmp_path / "bad", cache=cache)
     assert bad.returncode == 2 and "unknown method '3dgs'" in bad.stderr and "Traceback" not in bad.stderr
-    first = run_cli("--data", scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
+    first = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
     assert first.returncode == 0, first.stderr
     summary = json.loads((out / "summary.json").read_text())
     for key in ("train_psnr", "test_psnr", "num_gaussians", "texels", "storage_mb", "train_seconds"):
@@ -449,15 +442,16 @@ def test_cli(scene_dir, tmp_path, compile_cache):
     assert np.isfinite(summary["train_psnr"]) and summary["train_seconds"] > 0
     assert (out / "scene.ply").is_file() and (out / "scene.textures.npz").is_file()
     assert ckpt_step(out) == 30
-    again = run_cli("--data", scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
+    again = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
     assert again.returncode == 2 and "already holds checkpoints" in again.stderr and "--resume" in again.stderr
     assert "Traceback" not in again.stderr
     not_dir = tmp_path / "a_file"
     not_dir.write_text("")
-    blocked = run_cli("--data", scene_dir, "--method", "2dgs", "--out", not_dir, "--iters-2dgs", 30, cache=cache)
+    blocked = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", not_dir, "--iters-2dgs", 30,
+                      cache=cache)
     assert blocked.returncode == 2 and "error: cannot write to --out" in blocked.stderr
     assert "Traceback" not in blocked.stderr
-    resumed = run_cli("--data", scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, "--resume",
+    resumed = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, "--resume",
                       cache=cache)
     assert resumed.returncode == 0, resumed.stderr
     assert "resuming from" in resumed.stdout and "at step 30" in resumed.stdout

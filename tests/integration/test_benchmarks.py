@@ -6,6 +6,7 @@ import math
 import pytest
 
 from experiments import bench_render
+from locations import REPO
 
 
 def test_bench_render_reports_each_configuration(tmp_path, capsys):
@@ -65,9 +66,8 @@ def test_every_benchmark_file_names_its_provenance():
     """Each file in benchmarks/ says what code, when, on what machine and JAX it was measured; a
     header reconstructed after the fact says so, and a null commit says which code instead."""
     import datetime
-    from pathlib import Path
 
-    files = sorted((Path(__file__).resolve().parents[1] / "benchmarks").glob("*.json"))
+    files = sorted((REPO / "benchmarks").glob("*.json"))
     assert files
     for path in files:
         data = json.loads(path.read_text())

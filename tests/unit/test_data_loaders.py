@@ -28,14 +28,12 @@ from data_builders import (  # noqa: E402
     write_json,
     write_llff,
 )
+from locations import BEER, REPO
 from patexgs_jax._pycolmap import pycolmap  # noqa: E402  (keeps the fatal-signal handlers, see there)
 from patexgs_jax.camera import Camera
 from patexgs_jax.data import DatasetError, DatasetWarning
 from patexgs_jax.data.colmap_model import validate_binary_model
 from patexgs_jax.data.nerf import distort_normalized, read_ply_points
-
-REPO = Path(__file__).resolve().parents[1]
-BEER = Path(__file__).resolve().parents[2] / "shared/data/beer"
 
 
 def f32(x):
@@ -328,7 +326,9 @@ def test_lazy_loading_respects_the_cache_bound(tmp_path):
 def test_image_cache_never_holds_more_than_its_limits():
     import threading
 
-    img = lambda k: (lambda: np.full((10, 10, 3), k, np.float32))  # noqa: E731  (1200 bytes each)
+    def img(k):  # a loader of a 1200-byte image
+        return lambda: np.full((10, 10, 3), k, np.float32)
+
     by_count = data.ImageCache(maxsize=3, max_bytes=None)
     by_bytes = data.ImageCache(maxsize=100, max_bytes=2 * 1200 + 100)
     rng = np.random.default_rng(0)

@@ -20,9 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from locations import REPO
 from patexgs_jax import checkpoint as ckpt
-
-REPO = Path(__file__).resolve().parents[1]
 
 TRAIN_SCRIPT = textwrap.dedent("""
     import os, sys, time

@@ -1,8 +1,7 @@
 """The README's set-up promises: CI runs exactly the README's test command."""
 
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from locations import REPO as ROOT
 
 
 def _readme_commands():
@@ -46,7 +45,7 @@ def _third_party_imports(folder: str, skip=()) -> set[str]:
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                 names.add(node.module.split(".")[0])
     own = {"patexgs_jax", "experiments", "render_reference", "hard_scenes", "conftest"}
-    own |= {p.stem for p in (ROOT / "tests").glob("*.py")}
+    own |= {p.stem for p in (ROOT / "tests").rglob("*.py")}
     names = {_BUNDLED.get(n, n) for n in names}
     return {_DIST.get(n, n) for n in names - own - set(sys.stdlib_module_names) - {"__future__"}}
 

@@ -14,8 +14,6 @@ import numpy as np
 import pytest
 
 from experiments import mipnerf360 as mn
-from patexgs_jax import training
-from patexgs_jax.data.synthetic import generate
 from patexgs_jax.training.config import TrainConfig, config_dict, stage1_key
 from patexgs_jax.training.run import load_stage1, stage1_checkpoint
 from patexgs_jax.training.trainer import Trainer
@@ -28,16 +26,9 @@ METHODS = ["2dgs", "patexgs"]
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory):
-    # 10 views: the protocol's every-8th hold-out gives 2 test views (0 and 8).
-    return generate(tmp_path_factory.mktemp("mn360") / "scene", seed=0, num_views=10, width=64, height=48,
-                    num_points=400)
-
-
-@pytest.fixture(scope="module")
-def study(scene_dir, tmp_path_factory):
+def study(synthetic_scene_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("study")
-    data = mn.run(str(scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False,
+    data = mn.run(str(synthetic_scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False,
                   **STUDY)
     return out, data
 
@@ -119,19 +110,15 @@ def test_tables_plots_and_renders_are_written(study):
 
 
 @pytest.mark.slow
-def test_resume_skips_finished_entries(study, scene_dir, monkeypatch):
+def test_resume_skips_finished_entries(study, synthetic_scene_dir, no_training):
     out, data = study
-
-    def no_training(*a, **k):
-        raise AssertionError("a finished entry was trained again")
-
-    monkeypatch.setattr(training, "train", no_training)  # the study imports it when it runs
-    again = mn.run(str(scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False, **STUDY)
+    again = mn.run(str(synthetic_scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False,
+                   **STUDY)
     assert again["results"] == data["results"]
 
 
 @pytest.mark.slow
-def test_entry_lost_after_training_is_re_evaluated_without_training(study, scene_dir, tmp_path):
+def test_entry_lost_after_training_is_re_evaluated_without_training(study, synthetic_scene_dir, tmp_path):
     """An interruption between a run's end and its results entry: the run is finished on disk, so
     the entry comes back from it (no training step taken) with the same metrics."""
     out, data = study
@@ -140,7 +127,8 @@ def test_entry_lost_after_training_is_re_evaluated_without_training(study, scene
     (scene,) = saved["results"]
     lost = saved["results"][scene].pop("patexgs")
     path.write_text(json.dumps(saved))
-    again = mn.run(str(scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False, **STUDY)
+    again = mn.run(str(synthetic_scene_dir), methods=METHODS, out=str(out), renders=1, use_lpips=False, verbose=False,
+                   **STUDY)
     back = again["results"][scene]["patexgs"]
     for s in ("1", "2", "4", "8"):
         assert back[s]["psnr"] == pytest.approx(lost[s]["psnr"], abs=1e-6)
@@ -148,10 +136,10 @@ def test_entry_lost_after_training_is_re_evaluated_without_training(study, scene
 
 
 @pytest.mark.slow
-def test_changed_protocol_is_refused(study, scene_dir):
+def test_changed_protocol_is_refused(study, synthetic_scene_dir):
     out, _ = study
     with pytest.raises(mn.StudyError, match="iters_2dgs"):
-        mn.run(str(scene_dir), methods=METHODS, out=str(out), use_lpips=False, verbose=False,
+        mn.run(str(synthetic_scene_dir), methods=METHODS, out=str(out), use_lpips=False, verbose=False,
                **dict(STUDY, iters_2dgs=13))
 
 
@@ -171,10 +159,12 @@ def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
 
 
 def test_tables_follow_the_paper_layouts():
-    e = lambda p: {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "2": dict(psnr=p + 1, ssim=0.85, lpips=None),  # noqa: E731
-                   "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0),
-                   "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
-                   "storage_mb": 1.5, "num_gaussians": 100, "texels": 10, "train_seconds": 3.0, "render_ms": 4.0}
+    def e(p):
+        return {"1": dict(psnr=p, ssim=0.8, lpips=0.2), "2": dict(psnr=p + 1, ssim=0.85, lpips=None),
+                "4": dict(psnr=p + 2, ssim=0.9, lpips=0.1, alias_psnr=30.0),
+                "8": dict(psnr=p + 3, ssim=0.9, lpips=0.1),
+                "storage_mb": 1.5, "num_gaussians": 100, "texels": 10, "train_seconds": 3.0, "render_ms": 4.0}
+
     keys = ["2dgs", "patexgs", "patexgs-no-mip", "patexgs-no-rgb-mip", "textured-fixed-8", "patexgs(10%)"]
     data = {"config": {"preset": "tiny"},
             "results": {"a": {k: e(20.0 + i) for i, k in enumerate(keys)},
@@ -272,7 +262,7 @@ def test_arguments_are_checked(tmp_path):
 
 
 @pytest.mark.slow
-def test_zoom_ab_agrees_with_the_study(study, scene_dir, tmp_path, capsys):
+def test_zoom_ab_agrees_with_the_study(study, synthetic_scene_dir, tmp_path, capsys):
     """experiments.zoom_ab re-renders a study's runs under named settings: under a run's own
     settings its figures are the study's; a render-time switch to the low-pass changes them."""
     from experiments import zoom_ab
@@ -280,7 +270,7 @@ def test_zoom_ab_agrees_with_the_study(study, scene_dir, tmp_path, capsys):
     out, data = study
     (scene,) = data["results"]
     path = tmp_path / "ab.json"
-    assert zoom_ab.main(["--study", str(out), "--data", str(scene_dir), "--variants", "lowpass,prefilter",
+    assert zoom_ab.main(["--study", str(out), "--data", str(synthetic_scene_dir), "--variants", "lowpass,prefilter",
                          "--methods", "patexgs", "--json", str(path)]) == 0
     figs = json.loads(path.read_text())[scene]
     assert set(figs) == {"patexgs"}

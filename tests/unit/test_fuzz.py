@@ -22,13 +22,12 @@ from hypothesis import strategies as st
 
 import patexgs_jax.data as data
 from data_builders import make_colmap_scene, opengl_c2w, random_image, ring_poses, save_png
+from locations import REPO
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import random_scene
 from patexgs_jax.data import DatasetError
 from patexgs_jax.export import PlyFormatError, export_ply, load_ply, sidecar_path
 from patexgs_jax.optim import make_optimizer
-
-REPO = Path(__file__).resolve().parents[1]
 
 WORKER = textwrap.dedent("""
     import json, sys

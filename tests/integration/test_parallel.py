@@ -218,10 +218,11 @@ _RESULT = None
 def _results() -> dict:
     global _RESULT
     if _RESULT is None:
+        from locations import REPO  # here: the worker runs this file as a script, without tests/ on its path
+
         flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={DEVICES}".strip()
         env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
-        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        proc = subprocess.run([sys.executable, os.path.abspath(__file__)], env=env, cwd=root,
+        proc = subprocess.run([sys.executable, os.path.abspath(__file__)], env=env, cwd=REPO,
                               capture_output=True, text=True, timeout=600)
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         assert proc.returncode == 0 and lines, f"worker failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"

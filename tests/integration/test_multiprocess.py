@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from locations import REPO
 from patexgs_jax import checkpoint as ckpt
 
-REPO = Path(__file__).resolve().parents[1]
 STEPS = 6
 RUN_TIMEOUT = 600.0  # seconds for one run (compiles on a loaded 2-core machine)
 KILL_TIMEOUT = 60.0  # seconds for the survivor to stop after the other process was killed

@@ -36,6 +36,7 @@ from hypothesis import strategies as st
 from numpy.lib.stride_tricks import sliding_window_view
 from skimage.metrics import structural_similarity
 
+from locations import BEER
 from lpips_torch_layout import TORCH_CONV_INDICES, convert_state_dict
 from patexgs_jax import lpips as lp
 from patexgs_jax.metrics import (
@@ -237,7 +238,9 @@ def test_dssim_gradient_float64_matches_finite_differences():
     with jax.enable_x64(True):
         x = jnp.asarray(a, jnp.float64)
         y = jnp.asarray(b, jnp.float64)
-        loss = lambda z: dssim_loss(z, y)  # noqa: E731
+        def loss(z):
+            return dssim_loss(z, y)
+
         grad = jax.grad(loss)(x)
         assert grad.dtype == jnp.float64
         assert bool(jnp.all(jnp.isfinite(grad)))
@@ -753,7 +756,7 @@ def test_published_example_distances(net, shipped_params):
         assert float(lp.lpips(ref, load(other), params)) == pytest.approx(published, abs=5e-4), other
 
 
-_BEER_IMAGES = Path(__file__).resolve().parents[2] / "shared" / "data" / "beer" / "images"
+_BEER_IMAGES = BEER / "images"
 _AUTHORS_MODEL = ("pip install torch torchvision lpips (torchvision fetches the trunks' ImageNet weights "
                   "once) to compare the shipped weights with the LPIPS authors' model")
 

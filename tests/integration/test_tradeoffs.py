@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from experiments import tradeoffs as tr
-from patexgs_jax import training
 from patexgs_jax.training.config import preset_config, stage1_key
 
 # The notebook's PATEXGS_NOTEBOOK_TINY settings (see notebooks/explore.ipynb).
@@ -93,9 +92,10 @@ def test_plan_shares_stage1_where_only_stage2_differs():
 
 
 def test_markdown_table():
-    run = lambda rid, method, ts, ms, p1, p2: dict(  # noqa: E731
-        run=rid, method=method, train_seconds=ts, render_ms={"1": ms, "2": ms / 4}, psnr={"1": p1, "2": p2},
-        ssim={"1": 0.5, "2": 0.5}, num_gaussians=100, storage_mb=1.5)
+    def run(rid, method, ts, ms, p1, p2):
+        return dict(run=rid, method=method, train_seconds=ts, render_ms={"1": ms, "2": ms / 4},
+                    psnr={"1": p1, "2": p2}, ssim={"1": 0.5, "2": 0.5}, num_gaussians=100, storage_mb=1.5)
+
     study = dict(data="/x/scene", preset="tiny", scales=[1, 2], machine="test",
                  runs={"a": run("a", "patexgs", 100.0, 50.0, 25.0, 24.0),
                        "b": run("b", "2dgs", 50.0, 10.0, 22.0, 24.5)},
@@ -174,13 +174,8 @@ def test_study_end_to_end(study):
 
 
 @pytest.mark.slow
-def test_study_resume_skips_finished(study, dataset, monkeypatch):
+def test_study_resume_skips_finished(study, dataset, no_training):
     st, state = study
-
-    def no_training(*a, **k):
-        raise AssertionError("a finished run was trained again")
-
-    monkeypatch.setattr(training, "train", no_training)  # the study imports it when it runs
     again = tr.Study(dataset, st.base, st.out, data_name="embedded", preset="tiny", scales=(1, 2), verbose=False,
                      render_views=1)
     assert again.run(["texture"], fixed_sizes=(1,))["runs"] == state["runs"]

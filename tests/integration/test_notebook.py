@@ -15,7 +15,9 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 
-NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "explore.ipynb"
+from locations import REPO
+
+NOTEBOOK = REPO / "notebooks" / "explore.ipynb"
 
 
 def code_cells(path: Path) -> list[str]:

@@ -7,14 +7,13 @@ Every render here has capacity 48 and a few image sizes, so compiled renderers a
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from locations import TEST_DATA
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, random_scene, render_jit
 from patexgs_jax.data.images import box_downsample
 from patexgs_jax.training import TrainConfig
@@ -221,12 +220,12 @@ def test_mip_level_follows_texels_per_pixel(texels_per_pixel, level):
 # ---------------------------------------------------------------------------------------------
 def test_literal_mode_reproduces_the_low_pass_renderer():
     """``patexgs-literal`` (and ``2dgs``) render the images of the renderer before the prefilter
-    existed (commit b7ee7fa, stored in tests/data): the 44 x 36 textured scene of test_render.py
+    existed (commit b7ee7fa, stored in tests/data): the 44 x 36 textured scene of tests/render_cases.py
     with nearest and trilinear mipmaps, and untextured."""
-    from test_render import CAP as RCAP
-    from test_render import camera, scene
+    from render_cases import CAP as RCAP
+    from render_cases import camera, scene
 
-    gold = np.load(Path(__file__).parent / "data" / "literal_mode_b7ee7fa.npz")
+    gold = np.load(TEST_DATA / "literal_mode_b7ee7fa.npz")
     cases = {"nearest": (LITERAL, True),
              "trilinear": (RenderConfig(mip="trilinear", lambda_mip=0.4), True),
              "2dgs": (TrainConfig(method="2dgs").render_config(), False)}

@@ -1,11 +1,9 @@
-"""The browser viewer (patexgs_jax.view, patexgs_jax.viewing): the browser's camera becomes our
-Camera, camera moves never compile, the per-pixel mip level follows Eq. 11, the server answers a
-client (a protocol-level client here, headless Chromium in the last tests), stops on SIGINT, and bad
-input gets one line naming the fix.
+"""The browser viewer end to end (patexgs_jax.view): the command line's bad input, the server answering
+a client (a protocol-level client here, headless Chromium below) and stopping on SIGINT, training
+views snapped to and compared, and the viewer benchmark's report.
 
-The scene is a small random textured scene saved as a run folder (a checkpoint with its training
-configuration, as training writes it); in-process frames are 64 x 48 pixels, and the servers
-render at most 96 pixels a side (``--max-side``): the tests measure behaviour, not speed.
+The servers serve a small random textured scene's run folder (tests/viewer_scenes.py) and render at
+most 96 pixels a side (``--max-side``): the tests measure behaviour, not speed.
 """
 
 from __future__ import annotations
@@ -27,191 +25,14 @@ import jax
 import numpy as np
 import pytest
 
-from patexgs_jax import checkpoint as ckpt
-from patexgs_jax import compiled, rendering
+from locations import REPO
+from patexgs_jax import rendering
 from patexgs_jax import viewing as vw
-from patexgs_jax.camera import Camera, look_at
-from patexgs_jax.scene import Scene, random_scene
-from patexgs_jax.textures import TextureBank
+from viewer_scenes import H, W, orbit_camera
 
 viser = pytest.importorskip("viser", reason='the viewer needs viser: pip install -e ".[viewer]"')
 
-ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-
-
-def textured_scene(seed: int = 0, n: int = 300) -> Scene:
-    """A random scene of n splats around the origin with 2 x 2 or 8 x 8 RGB textures and 4 x 4 alpha
-    textures (few texture buckets: cheap to compile)."""
-    sides = np.random.default_rng(seed).choice([2, 8], size=n)
-    return random_scene(seed, n, sh_degree=1, extent=1.0, scale_range=(0.03, 0.25), rgb_sizes=sides,
-                        alpha_sizes=[4] * n)
-
-
-def write_run(folder: Path, scene: Scene, method: str = "patexgs") -> Path:
-    """A run folder as training leaves it: checkpoints/ with the scene and its configuration."""
-    ckpt.save_checkpoint(ckpt.checkpoint_path(folder / "checkpoints", 10), {"scene": scene},
-                         {"step": 10, "config": {"method": method, "background": [0.0, 0.0, 0.0]}})
-    return folder
-
-
-#: The canvas of the in-process tests: one size bucket (and its 1/4 preview), shared through
-#: ``frames``, so the renderer compiles for it once.
-W, H = 64, 48
-
-
-def orbit_camera(angle: float, width: int = W, height: int = H, radius: float = 3.5) -> Camera:
-    eye = (radius * np.sin(angle), -0.6, -radius * np.cos(angle))
-    f = 0.8 * width
-    return Camera.from_intrinsics((f, f, width / 2, height / 2), look_at(eye, (0.0, 0.0, 0.0)), width, height)
-
-
-@pytest.fixture(scope="module")
-def scene():
-    return textured_scene()
-
-
-@pytest.fixture(scope="module")
-def frames(scene):
-    """The viewer's renderer of ``scene`` in PATexGS's own mode."""
-    return vw.FrameRenderer(scene, rendering.RenderConfig(coverage="prefilter"))
-
-
-@pytest.fixture(scope="module")
-def run_dir(scene, tmp_path_factory):
-    """A study's folder with two runs of one scene: ``runs/toy/patexgs`` (returned) and
-    ``runs/toy/2dgs`` (a smaller scene, without textures)."""
-    study = tmp_path_factory.mktemp("viewer")
-    write_run(study / "runs" / "toy" / "2dgs", random_scene(1, 50), method="2dgs")
-    return write_run(study / "runs" / "toy" / "patexgs", scene)
-
-
-# ------------------------------------------------------------------------------------------------
-# Cameras, frames, compiles
-# ------------------------------------------------------------------------------------------------
-def test_quaternion_round_trip():
-    rng = np.random.default_rng(3)
-    for _ in range(50):
-        q = rng.normal(size=4)
-        q /= np.linalg.norm(q)
-        q = q if q[0] >= 0 else -q
-        R_ = vw.quat_to_matrix(q)
-        np.testing.assert_allclose(R_ @ R_.T, np.eye(3), atol=1e-12)
-        np.testing.assert_allclose(vw.matrix_to_quat(R_), q, atol=1e-10)
-
-
-def test_training_view_through_the_viewer_renders_as_render(scene, frames):
-    """A view's pose and field of view, sent the way the browser sends them, give the same Camera and
-    the same image as ``render`` of that view."""
-    cam = orbit_camera(0.7)
-    wxyz, pos, fov = vw.viewer_pose(cam)
-    back = vw.camera_from_viewer(wxyz, pos, fov, cam.width, cam.height)
-    np.testing.assert_allclose(np.asarray(back.K), np.asarray(cam.K), rtol=1e-6, atol=1e-4)
-    np.testing.assert_allclose(np.asarray(back.world_to_camera), np.asarray(cam.world_to_camera), atol=1e-6)
-    frame = frames.render(back, mode="patexgs", view="rgb")
-    r = frames.renderer("patexgs")
-    # render() of the run's own mode with its default compositor schedule: the viewer's
-    # FRAME_SCHEDULE changes the order of the work, not the image
-    assert r.config != vw.mode_config(frames.base, "patexgs")
-    ref = np.clip(np.asarray(rendering.render(scene, cam, vw.mode_config(frames.base, "patexgs")).rgb), 0, 1)
-    assert frame.image.shape == (H, W, 3)
-    assert ref.std() > 0.05  # the view sees the scene
-    np.testing.assert_allclose(frame.image / 255.0, ref, atol=1.0 / 255 + 1e-6)
-
-
-def test_camera_moves_never_compile(frames):
-    """After the first frame at a canvas size (full and preview size), frames of other poses at that
-    size compile nothing: neither the renderer nor the mip-level function."""
-    fns = (rendering.render_jit, rendering.count_pairs, vw.dominant_mip_level)
-    for view in ("rgb", "mip level"):
-        frames.render(orbit_camera(0.0), view=view)
-        frames.render(orbit_camera(0.0), view=view, scale=4, enlarge=False)
-    traces = sum(rendering.TRACE_COUNTS.values())
-    programs = [compiled.program_count(f) for f in fns]
-    for k, angle in enumerate(np.linspace(0.2, 2.5, 6)):
-        cam = orbit_camera(angle, radius=3.2 + 0.15 * k)
-        for view in ("rgb", "mip level"):
-            for f in (frames.render(cam, view=view), frames.render(cam, view=view, scale=4, enlarge=False)):
-                assert not f.grew and not f.compiled
-    assert sum(rendering.TRACE_COUNTS.values()) == traces
-    assert [compiled.program_count(f) for f in fns] == programs
-
-
-def test_every_view_and_scale(frames):
-    cam = orbit_camera(0.3)
-    for view in vw.VIEWS:
-        img = frames.render(cam, view=view).image
-        assert img.shape == (H, W, 3) and img.dtype == np.uint8
-        assert img.std() > 5, view  # something is drawn
-    small = frames.render(cam, scale=4, enlarge=False).image
-    big = frames.render(cam, scale=4).image
-    assert small.shape == (H // 4, W // 4, 3) and big.shape == (H, W, 3)
-    np.testing.assert_array_equal(big[::4, ::4], small)  # nearest neighbour
-    np.testing.assert_array_equal(big[3::4, 3::4], small)
-
-
-def test_mip_level_follows_eq11():
-    """One fronto-parallel splat of scale s with a 32 x 32 texture at depth z under focal f: a pixel
-    spans D = z / (f s) scale units, so the level is floor(log2(lambda 32 D)); rendering at 1/2
-    doubles D (one level up). (The low-pass mode's dominant splats differ only where a splat is
-    sub-pixel; the level's formula is the same with its lambda_mip.)"""
-    z, f, s = 4.0, 100.0, 0.05
-    D = z / (f * s)  # 0.8 scale units per pixel
-    tex = [np.full((32, 32, 3), 0.1, np.float32)]
-    scene = Scene.from_arrays(np.zeros((1, 3)), np.full((1, 2), s), np.array([[1.0, 0, 0, 0]]), np.array([0.9]),
-                              np.zeros((1, 1, 3)), capacity=1)
-    scene = scene.replace(rgb=TextureBank.from_list(tex, 1, 3, 0.0))
-    cam = Camera.from_intrinsics((f, f, 32.0, 32.0), look_at((0, 0, -z), (0, 0, 0)), 64, 64)
-    bare = scene.replace(rgb=None)  # the same dominant splat, cheaper to compile
-    for coverage, lam in (("prefilter", 1 / 6),):
-        cfg = rendering.RenderConfig(coverage=coverage)
-        for factor in (1, 2):
-            c = cam if factor == 1 else cam.scaled(factor)
-            out = rendering.render(bare, c, cfg)
-            lev = np.asarray(vw.dominant_mip_level(scene, c, out.dominant, bank="rgb", lambda_mip=lam, use_mip=True))
-            want = int(np.clip(np.floor(np.log2(lam * 32 * D * factor)), 0, 5))
-            centre = lev[c.height // 2, c.width // 2]
-            assert centre == want, (coverage, factor, centre, want)
-            assert (lev[np.asarray(out.dominant) < 0] == -1).all()
-        lev = vw.dominant_mip_level(scene, cam, out.dominant, bank="rgb", lambda_mip=lam, use_mip=False)
-        assert set(np.unique(np.asarray(lev))) <= {-1, 0}
-
-
-def test_modes():
-    base = rendering.RenderConfig(coverage="prefilter")
-    assert vw.own_mode(base) == "patexgs"
-    lit = vw.mode_config(base, "literal")
-    assert (lit.coverage, lit.lambda_mip, lit.mip) == ("lowpass", 0.4, "nearest")
-    off = vw.mode_config(base, "mip-off")
-    assert (off.coverage, off.mip) == ("prefilter", "none")
-    assert vw.own_mode(vw.render_config_of({"method": "2dgs"})) == "literal"
-    assert vw.own_mode(vw.render_config_of({"method": "patexgs-no-mip"})) == "mip-off"
-    with pytest.raises(vw.ViewerError, match="choose one of"):
-        vw.mode_config(base, "bogus")
-
-
-# ------------------------------------------------------------------------------------------------
-# Runs and bad input
-# ------------------------------------------------------------------------------------------------
-def test_find_runs(run_dir, tmp_path):
-    study = run_dir.parents[2]
-    names = [r.name for r in vw.find_runs(study)]
-    assert names == ["toy/2dgs", "toy/patexgs"]
-    assert [r.name for r in vw.find_runs(run_dir)] == ["patexgs"]
-    ck = ckpt.latest_checkpoint(run_dir / "checkpoints")
-    assert vw.find_runs(ck)[0].path == ck
-    run = vw.load_run(vw.find_runs(ck)[0])
-    assert run.method == "patexgs" and run.config.coverage == "prefilter"
-    with pytest.raises(vw.ViewerError, match="does not exist"):
-        vw.find_runs(tmp_path / "nope")
-    with pytest.raises(vw.ViewerError, match="no trained run"):
-        vw.find_runs(tmp_path)
-    (tmp_path / "notes.txt").write_text("x")
-    with pytest.raises(vw.ViewerError, match="not a checkpoint"):
-        vw.find_runs(tmp_path / "notes.txt")
-    (tmp_path / "bad.ckpt").write_bytes(b"not a zip")
-    with pytest.raises(vw.ViewerError, match="cannot read the run"):
-        vw.load_run(vw.find_runs(tmp_path / "bad.ckpt")[0])
 
 
 def free_port() -> int:
@@ -223,7 +44,7 @@ def free_port() -> int:
 def subprocess_env(**extra) -> dict:
     """The environment of a viewer subprocess: this checkout first, and the session's XLA cache (the
     server's programs, shared by the tests that start one)."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT), **extra)
+    env = dict(os.environ, PYTHONPATH=str(REPO), **extra)
     cache = jax.config.jax_compilation_cache_dir
     if cache:
         env.update(JAX_COMPILATION_CACHE_DIR=cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1")
@@ -233,10 +54,10 @@ def subprocess_env(**extra) -> dict:
 def run_cli(*args, timeout=120):
     env = subprocess_env()
     return subprocess.run([sys.executable, "-m", "patexgs_jax.view", *map(str, args)], capture_output=True,
-                          text=True, timeout=timeout, env=env, cwd=ROOT)
+                          text=True, timeout=timeout, env=env, cwd=REPO)
 
 
-def test_cli_bad_input(run_dir, tmp_path, capsys):
+def test_cli_bad_input(viewer_run_dir, tmp_path, capsys):
     """Each gets one line naming the fix and exit status 2 (in-process; the command line's own exit
     status and the absence of a traceback in a subprocess, for a port in use)."""
     from patexgs_jax.view import main
@@ -247,15 +68,15 @@ def test_cli_bad_input(run_dir, tmp_path, capsys):
         busy = held.getsockname()[1]
         cases = [((tmp_path / "missing",), "does not exist"),
                  ((tmp_path,), "no trained run"),
-                 ((run_dir, "--port", busy), f"port {busy} on 127.0.0.1 is already in use: pass another one"),
-                 ((run_dir, "--port", 70000), "is not a TCP port"),
-                 ((run_dir, "--host", "no.such.host.invalid"), "is not an address of this machine"),
-                 ((run_dir, "--max-side", 4), "--max-side must be at least 16")]
+                 ((viewer_run_dir, "--port", busy), f"port {busy} on 127.0.0.1 is already in use: pass another one"),
+                 ((viewer_run_dir, "--port", 70000), "is not a TCP port"),
+                 ((viewer_run_dir, "--host", "no.such.host.invalid"), "is not an address of this machine"),
+                 ((viewer_run_dir, "--max-side", 4), "--max-side must be at least 16")]
         for args, message in cases:
             assert main([str(a) for a in args]) == 2, args
             err = capsys.readouterr().err.strip().splitlines()
             assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], (args, err)
-        r = run_cli(run_dir, "--port", busy)
+        r = run_cli(viewer_run_dir, "--port", busy)
     assert r.returncode == 2 and r.stderr.startswith("error: port") and len(r.stderr.strip().splitlines()) == 1
     assert "Traceback" not in r.stderr + r.stdout
 
@@ -267,7 +88,7 @@ def start_viewer(path, port, *extra):
     env = subprocess_env(PYTHONUNBUFFERED="1")
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
     proc = subprocess.Popen([sys.executable, "-m", "patexgs_jax.view", str(path), "--port", str(port), *extra],
-                            stdout=log, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT)
+                            stdout=log, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         text = Path(log.name).read_text()
@@ -330,11 +151,11 @@ def client_frames(port: int, width: int, height: int, poses, timeout: float = 12
 
 
 @pytest.fixture(scope="module")
-def server(run_dir):
-    """(process, log file, port) of one viewer serving ``run_dir`` (frames at most 96 pixels a side),
+def server(viewer_run_dir):
+    """(process, log file, port) of one viewer serving ``viewer_run_dir`` (frames at most 96 pixels a side),
     shared by the server tests; ``test_server_stops_on_sigint`` ends it."""
     port = free_port()
-    proc, log = start_viewer(run_dir, port, "--max-side", "96")
+    proc, log = start_viewer(viewer_run_dir, port, "--max-side", "96")
     yield proc, log, port
     if proc.poll() is None:
         proc.kill()
@@ -359,9 +180,9 @@ def test_server_serves_page_and_answers_cameras(server):
     assert log.read_text().count("first frame") >= 2
 
 
-def test_non_loopback_host_warns(run_dir):
+def test_non_loopback_host_warns(viewer_run_dir):
     port = free_port()
-    proc, log = start_viewer(run_dir, port, "--host", "0.0.0.0")
+    proc, log = start_viewer(viewer_run_dir, port, "--host", "0.0.0.0")
     try:
         text = log.read_text()
         warnings = [l for l in text.splitlines() if l.startswith("warning:")]
@@ -450,28 +271,6 @@ def test_server_stops_on_sigint(server):
     assert text.rstrip().endswith("viewer: stopped"), text
 
 
-def test_browser_input_only_picks_from_lists(run_dir, tmp_path):
-    """Values a browser sends are looked up in the lists made at start-up; anything else (a path, a
-    made-up mode) is logged and ignored."""
-    from patexgs_jax.view import Viewer
-
-    lines = []
-    viewer = Viewer(vw.find_runs(run_dir.parents[1]), log=lines.append)
-
-    class Legend:
-        content = ""
-
-    viewer.gui_legend = Legend()
-    before = dict(viewer.settings)
-    viewer._pick_run(str(tmp_path / "elsewhere"))
-    viewer._pick("mode", {v: k for k, v in vw.MODES.items()}, "../../etc/passwd")
-    viewer._pick("scale", {"1": 1, "1/2": 2}, "1/3")
-    assert viewer.settings == before
-    assert sum("ignored" in line for line in lines) == 3, lines
-    viewer._pick("view", {v: v for v in vw.VIEWS}, "depth")
-    assert viewer.settings["view"] == "depth" and "Depth" in viewer.gui_legend.content
-
-
 def test_bench_viewer_reports_frames(tmp_path, capsys):
     from experiments import bench_viewer
 
@@ -490,7 +289,7 @@ def test_bench_viewer_reports_frames(tmp_path, capsys):
     assert "32x32" in capsys.readouterr().out
 
 
-def test_training_views_snap_and_compare(run_dir, scene):
+def test_training_views_snap_and_compare(viewer_run_dir, viewer_scene):
     """With a dataset, the training cameras are frustums; snapping a tab to one moves its camera to
     the view's pose and shows the render beside the ground truth with the PSNR."""
     import contextlib
@@ -499,11 +298,11 @@ def test_training_views_snap_and_compare(run_dir, scene):
     from patexgs_jax.view import Viewer
 
     cams = [orbit_camera(a) for a in (0.2, 1.0, 2.0)]
-    gt = vw.FrameRenderer(scene, rendering.RenderConfig(coverage="prefilter"))
+    gt = vw.FrameRenderer(viewer_scene, rendering.RenderConfig(coverage="prefilter"))
     views = [types.SimpleNamespace(camera=c, name=f"view{i}", image=gt.render(c).image / np.float32(255))
              for i, c in enumerate(cams)]
     lines = []
-    viewer = Viewer(vw.find_runs(run_dir.parents[2]), types.SimpleNamespace(train_views=views), log=lines.append)
+    viewer = Viewer(vw.find_runs(viewer_run_dir.parents[2]), types.SimpleNamespace(train_views=views), log=lines.append)
     assert viewer.run.name == "toy/patexgs"  # a study opens on its patexgs run
     viewer.start("127.0.0.1", free_port())
     try:

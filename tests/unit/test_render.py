@@ -1,0 +1,199 @@
+"""The tile renderer against the brute-force float64 reference (tests/render_reference.py), its
+outputs' invariants, its compiles and tile capacity, and its input checks."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from patexgs_jax import Capacity, RenderConfig, Scene, render, render_jit, rendering
+from patexgs_jax.rendering import chunks
+from render_cases import (
+    CAP,
+    CONFIGS,
+    C,
+    H,
+    W,
+    camera,
+    ref_render,
+    scene,
+    tile_render,
+)
+from render_reference import scene_to_reference, sh_color
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_matches_reference(name):
+    textured, degree, cfg = CONFIGS[name]
+    sc = scene(3 + len(name), textured, degree)
+    cam = camera()
+    ref = ref_render(sc, cam, cfg)
+    # float64 tile renderer: the same maths, so it agrees to rounding everywhere.
+    out64 = tile_render(sc, cam, cfg, jnp.float64)
+    np.testing.assert_allclose(out64.rgb, ref["rgb"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.alpha, ref["alpha"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.depth, ref["depth"], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(out64.normal, ref["normal"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.distortion, ref["distortion"], atol=1e-9, rtol=1e-6)
+    best = ref["best"].ravel()
+    counts = np.bincount(best[best >= 0], minlength=C)
+    np.testing.assert_array_equal(out64.max_contrib_count, counts)
+    assert ref["alpha"].mean() > 0.2, "the test scene should cover much of the image"
+    # float32 production renderer: within 2e-4 except where a threshold (alpha >= 1/255, the
+    # 1e-4 transmittance stop, a mip level boundary) flips on rounding: at most 0.5% of pixels.
+    out32 = tile_render(sc, cam, cfg)
+    err = np.abs(out32.rgb - ref["rgb"]).max(axis=-1)
+    assert np.mean(err > 2e-4) <= 0.005, (err.max(), np.mean(err > 2e-4))
+    assert np.median(err) < 2e-5
+
+
+def test_inactive_slots_render_nothing():
+    sc = scene(1)
+    cam = camera()
+    cfg = CONFIGS["nearest"][2]
+    keep = np.arange(C) % 3 != 0
+    masked = sc.replace(active=jnp.asarray(keep, jnp.float32))
+    ref = ref_render(masked, cam, cfg)
+    out = tile_render(masked, cam, cfg, jnp.float64)
+    np.testing.assert_allclose(out.rgb, ref["rgb"], atol=1e-7)
+    assert np.all(out.max_contrib_count[~keep] == 0)
+    assert not np.any(out.visible[~keep])
+
+
+def test_output_invariants():
+    sc = scene(5)
+    out = tile_render(sc, camera(), CONFIGS["nearest"][2])
+    assert np.all((out.alpha >= 0) & (out.alpha <= 1))
+    # Colour lies in the convex hull of the splat colours and the black background: bounded by
+    # the extreme SH colours plus the extreme texture offsets.
+    g = scene_to_reference(sc)
+    cam = camera()
+    origin = np.asarray(cam.center)
+    cols = np.array([sh_color(g["sh"][i], (g["means"][i] - origin) / np.linalg.norm(g["means"][i] - origin))
+                     for i in range(C)])
+    offs = np.concatenate([t.reshape(-1, 3) for t in g["rgb"] if t is not None])
+    assert np.all(out.rgb >= min(0.0, cols.min() + offs.min()) - 1e-6)
+    assert np.all(out.rgb <= max(0.0, cols.max() + offs.max()) + 1e-6)
+    assert out.max_contrib_count.sum() <= W * H
+    assert np.all(out.radius_px[out.visible] > 0)
+    # The per-pixel dominant splat: -1 where nothing was drawn, else a visible splat; its counts are
+    # max_contrib_count.
+    dom = np.asarray(out.dominant)
+    assert dom.shape == (H, W) and dom.min() >= -1
+    assert np.all(np.asarray(out.visible)[dom[dom >= 0]])
+    np.testing.assert_array_equal(np.bincount(dom[dom >= 0], minlength=C), out.max_contrib_count)
+    assert np.all(np.asarray(out.alpha)[dom < 0] < 1e-6)
+
+
+def test_scaled_camera_is_pixel_consistent():
+    cam = camera(w=48, h=32)
+    small = cam.scaled(4)
+    assert (small.width, small.height) == (12, 8)
+    X = np.array([0.2, -0.1, 0.3, 1.0])
+    pc = np.asarray(cam.world_to_camera) @ X
+    big = (np.asarray(cam.K) @ pc[:3])[:2] / pc[2]
+    sm = (np.asarray(small.K) @ pc[:3])[:2] / pc[2]
+    np.testing.assert_allclose(sm, big / 4, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Compiles and capacity
+# ---------------------------------------------------------------------------------------------
+def test_one_compile_per_configuration():
+    cfg = RenderConfig(mip="nearest", lambda_mip=0.7)  # a config no other test uses
+    before = rendering.TRACE_COUNTS[(cfg, CAP)]
+    for seed, eye in [(11, (0.3, -0.4, -3.2)), (12, (-0.5, 0.2, -3.0)), (13, (0.0, 0.1, -2.5))]:
+        render_jit(scene(seed), camera(eye=eye), config=cfg, capacity=CAP).rgb.block_until_ready()
+    assert rendering.TRACE_COUNTS[(cfg, CAP)] - before == 1
+
+
+def test_overflow_is_counted_and_render_grows():
+    sc, cam, cfg = scene(7), camera(), CONFIGS["nearest"][2]
+    full = tile_render(sc, cam, cfg)
+    tiny = Capacity(pairs=64)
+    out = render_jit(sc, cam, config=cfg, capacity=tiny)
+    assert bool(out.overflow)
+    assert float(out.pairs_needed) == float(full.pairs_needed)
+    assert int(out.max_tile_count) == int(full.max_tile_count)
+    assert int(full.max_tile_count) > 4 and float(full.pairs_needed) > 64
+    with pytest.warns(UserWarning, match="growing"):
+        grown = render(sc, cam, cfg, capacity=tiny)
+    assert not bool(grown.overflow)
+    np.testing.assert_allclose(np.asarray(grown.rgb), full.rgb, atol=1e-6)
+
+
+def test_render_public_api_and_grad():
+    sc, cam = scene(8), camera()
+    out = render(sc, cam)  # default config: mip nearest
+    assert out.rgb.shape == (H, W, 3) and out.depth.shape == (H, W) and out.normal.shape == (H, W, 3)
+
+    def loss(s):
+        return jnp.mean(render(s, cam, RenderConfig()).rgb)
+
+    g = jax.grad(loss)(sc)
+    assert isinstance(g, Scene)
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        leaf = getattr(g, name)
+        assert np.all(np.isfinite(leaf)), name
+        assert np.abs(leaf).sum() > 0, name
+    assert sum(float(jnp.abs(b).sum()) for b in g.rgb.buckets) > 0
+    assert sum(float(jnp.abs(b).sum()) for b in g.alpha.buckets) > 0
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), eye_x=st.floats(-1.0, 1.0), eye_y=st.floats(-1.0, 1.0))
+def test_random_views_match_reference(seed, eye_x, eye_y):
+    cfg = CONFIGS["nearest"][2]
+    sc = scene(seed % 100000)
+    cam = camera(eye=(eye_x, eye_y, -3.0))
+    ref = ref_render(sc, cam, cfg)
+    out = tile_render(sc, cam, cfg, jnp.float64)
+    np.testing.assert_allclose(out.rgb, ref["rgb"], atol=1e-7)
+
+
+@pytest.mark.parametrize("num_tiles, tile_batch, batch", [(1, 8, 1), (6, 8, 6), (12, 8, 6), (17, 8, 6),
+                                                          (300, 8, 8), (301, 8, 8), (5, 1, 1)])
+def test_tile_batches_do_not_repeat_tiles_needlessly(num_tiles, tile_batch, batch):
+    """Every lane of a tile batch is computed, padding included: the batch is the smallest size that
+    keeps the fewest batches, so a one-tile image (a zoom-out by 8) is not rendered 8 times over."""
+    st_ = chunks.Static(config=RenderConfig(tile_batch=tile_batch), tiles_x=1, num_tiles=num_tiles,
+                             rgb=False, alpha=False)
+    assert st_.batch == batch
+    num_batches = -(-num_tiles // tile_batch)
+    assert num_batches * st_.batch - num_tiles < num_batches  # less than one padding lane per batch
+    ctx = dict(binned=jnp.arange(num_tiles, dtype=jnp.int32))
+    tiles = np.asarray(chunks.tile_batches(st_, ctx))
+    assert tiles.shape == (num_batches, batch)
+    assert set(tiles.reshape(-1).tolist()) == set(range(num_tiles))
+
+
+def test_inputs_off_the_layout_fail_at_trace_time_naming_the_field():
+    """A Scene or Camera edited by hand against the layout fails before any rendering work, with the
+    field, the expected shape or dtype and how to build one; float64 scenes (the references) pass."""
+    sc, cam = scene(3), camera()
+    rendering.check_inputs(sc, cam)
+    with jax.enable_x64(True):
+        rendering.check_inputs(sc.astype(jnp.float64), cam)
+    cases = [
+        (sc.replace(means=sc.means[:, :2]), cam, r"Scene\.means must be \(\d+, 3\)"),
+        (sc.replace(quats=sc.quats[:-1]), cam, r"Scene\.quats must be \(\d+, 4\)"),
+        (sc.replace(active=sc.active.astype(jnp.int32)), cam, r"Scene\.active .* floating-point"),
+        (sc.replace(sh=jnp.zeros((sc.capacity, 2, 3))), cam, r"Scene\.sh has 2 coefficients"),
+        (sc, dataclasses.replace(cam, K=cam.K[:2]), r"Camera\.K must be \(3, 3\)"),
+    ]
+    for bad_scene, bad_cam, match in cases:
+        with pytest.raises(AssertionError, match=match) as err:
+            render_jit(bad_scene, bad_cam, config=RenderConfig(), capacity=CAP)
+        assert "Scene.from_arrays" in str(err.value)
+
+
+def test_texture_pairs_is_validated():
+    for bad in (0.0, -0.5, 1.5):
+        with pytest.raises(ValueError, match="texture_pairs"):
+            RenderConfig(texture_pairs=bad)
