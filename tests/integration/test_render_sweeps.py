@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, render, render_jit, rendering
-from patexgs_jax.data.dataset import box_downsample
+from patexgs_jax.data import box_downsample
 from patexgs_jax.training import TrainConfig
 from render_cases import (
     CAP,

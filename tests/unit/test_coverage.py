@@ -14,7 +14,7 @@ import pytest
 
 from locations import TEST_DATA
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, render_jit
-from patexgs_jax.data.dataset import box_downsample
+from patexgs_jax.data.images import box_downsample
 from patexgs_jax.training import TrainConfig
 from render_reference import tent_down
 
