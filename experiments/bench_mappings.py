@@ -126,7 +126,7 @@ def instrument(meter: Meter) -> None:
     from patexgs_jax.training.trainer import Trainer
 
     M = importlib.import_module("experiments.mipnerf360")
-    E = importlib.import_module("experiments.evaluation")
+    E = importlib.import_module("patexgs_jax.evaluation")
 
     orig_after = Trainer.after_step
 

@@ -325,7 +325,7 @@ class Study:
             self.data["version"] = _version()
         else:
             self.data = dict(version=_version(), config=record, results={})
-        from experiments.evaluation import LPIPS
+        from patexgs_jax.evaluation import LPIPS
 
         self.lpips = LPIPS(enabled=use_lpips, net=lpips_net)
         if use_lpips and not self.lpips.available:
@@ -427,8 +427,8 @@ class Study:
         return dataclasses.replace(self.cfg.train_config(method, max_gaussians), devices=self.devices)
 
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
-        from experiments.evaluation import evaluate_scales, render_ms, side_by_side
         from patexgs_jax.buckets import ViewRenderer
+        from patexgs_jax.evaluation import evaluate_scales, render_ms, side_by_side
 
         views = list(ds.test_views)
         if not views:
@@ -599,12 +599,30 @@ def tables_markdown(data: dict) -> str:
     return "\n".join(out)
 
 
-def write_plots(data: dict, directory) -> list[Path]:
-    """``psnr_vs_scale.png`` and ``accuracy_vs_time.png`` (means over scenes); returns the paths."""
+def _pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (files only, no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save_figure(fig, path, dpi: int = 120) -> Path:
+    """Lays out ``fig``, writes it to ``path`` and closes it; returns the path."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+def write_plots(data: dict, directory) -> list[Path]:
+    """``psnr_vs_scale.png`` and ``accuracy_vs_time.png`` (means over scenes); returns the paths."""
+    plt = _pyplot()
 
     results = data.get("results", {})
     labels = _labels(results)
@@ -629,10 +647,7 @@ def write_plots(data: dict, directory) -> list[Path]:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle("zoom-out (mean over scenes)")
-    fig.tight_layout()
-    paths.append(directory / "psnr_vs_scale.png")
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    paths.append(_save_figure(fig, directory / "psnr_vs_scale.png"))
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, field, xlabel in ((axes[0], "train_seconds", "training time (s)"),
@@ -648,10 +663,7 @@ def write_plots(data: dict, directory) -> list[Path]:
         ax.set_ylabel("PSNR at full resolution (dB)")
         ax.grid(alpha=0.3)
     fig.suptitle("accuracy vs time (mean over scenes)")
-    fig.tight_layout()
-    paths.append(directory / "accuracy_vs_time.png")
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    paths.append(_save_figure(fig, directory / "accuracy_vs_time.png"))
     side_path = plot_sides(data, directory / "texture_sides.png")
     return paths + ([side_path] if side_path else [])
 
@@ -661,10 +673,7 @@ def plot_sides(data: dict, path) -> Path | None:
     side after the Eq. 7 allocation and at the end (after Eqs. 8-10), and the share of the texels at
     each side; from the entries' ``sides_allocated`` / ``sides_final`` (summary.json). None if no
     entry has them."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
 
     panels = [(scene, key, e) for scene, per in data.get("results", {}).items() for key, e in per.items()
               if e.get("sides_allocated") and e.get("sides_final") and e.get("sigma") is not None]
@@ -686,11 +695,7 @@ def plot_sides(data: dict, path) -> Path | None:
         for ax in axes[:, col]:
             ax.grid(alpha=0.3)
             ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save_figure(fig, path)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -810,7 +815,10 @@ def _study_cli(args) -> int:
 
     if not args.no_compile_cache:
         _enable_compile_cache()
-    split = lambda s: None if s is None else [x.strip() for x in s.split(",") if x.strip()]  # noqa: E731
+
+    def split(s):
+        return None if s is None else [x.strip() for x in s.split(",") if x.strip()]
+
     config = {k: v for k, v in dict(preset=args.preset, factor=args.factor, budget=args.budget,
                                     iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
                                     max_gaussians=args.max_gaussians, seed=args.seed,

@@ -333,45 +333,20 @@ def _scaled(views, s):
     return list(views) if int(s) == 1 else [v.scaled(int(s)) for v in views]
 
 
-def render_ms_min(scene, views, render_config, *, max_views=8, repeats=3, active_sh_degree=None,
-                  renderer=None) -> float | None:
-    """Milliseconds per frame: per view the fastest of ``repeats`` timed renders (compilation and
-    capacity counting excluded; the minimum is robust to other processes on the machine), the
-    median over up to ``max_views`` usable views. Views are rendered as evaluation renders them, at
-    their size buckets (:class:`patexgs_jax.buckets.ViewRenderer`: one program per bucket; ``renderer``:
-    one of ``scene`` to use, as in :func:`experiments.evaluation.evaluate_scales`)."""
-    import jax
-
-    from experiments.evaluation import _renderer, usable
-
-    ts = []
-    views = [v for v in views if usable(v)][:max_views]
-    with _renderer(scene, render_config, active_sh_degree, renderer) as renderer:
-        renderer.prepare([v.camera for v in views])
-        for v in views:
-            jax.block_until_ready(renderer.padded(v.camera).rgb)
-            best = np.inf
-            for _ in range(repeats):
-                t = time.perf_counter()
-                jax.block_until_ready(renderer.padded(v.camera).rgb)
-                best = min(best, time.perf_counter() - t)
-            ts.append(best)
-    return 1e3 * float(np.median(ts)) if ts else None
-
-
 def measure(scene, views, render_config, scales=SCALES, *, active_sh_degree=None, max_views=8) -> dict:
     """``{"psnr", "ssim", "alias_psnr", "render_ms": {scale: value}}`` of a scene on ``views`` (full
-    resolution; alias PSNR as in :func:`experiments.evaluation.evaluate_scales`; render time by
-    :func:`render_ms_min`)."""
-    from experiments.evaluation import evaluate_scales
+    resolution; alias PSNR as in :func:`patexgs_jax.evaluation.evaluate_scales`; render time: per
+    view the fastest of three renders, robust to other processes on the machine, see
+    :func:`patexgs_jax.evaluation.render_ms`)."""
     from patexgs_jax.buckets import ViewRenderer
+    from patexgs_jax.evaluation import evaluate_scales, render_ms
 
     # One renderer for the metrics and the timings: its programs (one per size bucket) serve both.
     with ViewRenderer(scene, render_config, active_sh_degree=active_sh_degree) as renderer:
         ev = evaluate_scales(scene, views, render_config, scales=scales, active_sh_degree=active_sh_degree,
                              renderer=renderer)
-        ms = {str(s): render_ms_min(scene, _scaled(views, s), render_config, max_views=max_views,
-                                    active_sh_degree=active_sh_degree, renderer=renderer) for s in scales}
+        ms = {str(s): render_ms(scene, _scaled(views, s), render_config, max_views=max_views, repeats=3,
+                                active_sh_degree=active_sh_degree, renderer=renderer) for s in scales}
     return dict(psnr={str(s): ev[str(s)]["psnr"] for s in scales}, ssim={str(s): ev[str(s)]["ssim"] for s in scales},
                 alias_psnr={str(s): ev[str(s)]["alias_psnr"] for s in scales},
                 render_ms=ms)
@@ -499,26 +474,17 @@ class Study:
 # ------------------------------------------------------------------------------------------------
 def load_trained(run_dir):
     """(scene, render config, summary or None) of a training run directory: the newest checkpoint's
-    scene (or ``scene.ply`` + sidecar without checkpoints) and its method's render configuration."""
-    from patexgs_jax import checkpoint as ckpt
-    from patexgs_jax.export import load_ply
-    from patexgs_jax.training import Method
+    scene (or ``scene.ply`` + sidecar without checkpoints) and its method's render configuration
+    (:func:`patexgs_jax.viewing.load_run`)."""
+    from patexgs_jax.viewing import RunEntry, load_run
 
     run_dir = Path(run_dir)
-    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else None
-    latest = ckpt.latest_checkpoint(run_dir / "checkpoints") if (run_dir / "checkpoints").is_dir() else None
-    if latest is not None:
-        tree, meta = ckpt.load_checkpoint(latest)
-        scene, cfg = tree["scene"], meta.get("config") or {}
-    elif (run_dir / "scene.ply").exists():
-        scene, cfg = load_ply(run_dir / "scene.ply"), (summary or {}).get("config") or {}
-    else:
+    if not ((run_dir / "checkpoints").is_dir() or (run_dir / "scene.ply").exists()):
         raise FileNotFoundError(f"{run_dir} has neither checkpoints/ nor scene.ply: pass --run a folder "
                                 "that python -m patexgs_jax.train --out wrote.")
-    lam = cfg.get("lambda_mip")
-    rc = Method.from_name(cfg.get("method", "patexgs")).render_config(
-        lambda_mip=None if lam is None else float(lam), background=cfg.get("background", (0, 0, 0)))
-    return scene, rc, summary
+    run = load_run(RunEntry(run_dir.name, run_dir))
+    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else None
+    return run.scene, run.config, summary
 
 
 def present_effects(scene, rc) -> list[str]:

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import jax
 
-from experiments.evaluation import evaluate_scales, render_ms, usable
 from patexgs_jax.camera import ZOOM_SCALES
 from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
+from patexgs_jax.evaluation import evaluate_scales, render_ms, usable
 from patexgs_jax.rendering import RenderConfig
 
 SCALES = ZOOM_SCALES

@@ -3,9 +3,6 @@
 Conventions (cameras, kernel, textures, mip levels) are fixed in :mod:`patexgs_jax.rendering`.
 """
 
-# pycolmap's extension bundles and exports its own zlib; if it is loaded before the system zlib,
-# later zlib users (PNG writing) corrupt the heap. Loading zlib first makes import order safe.
-import zlib  # noqa: F401  (see patexgs_jax/data/__init__.py)
 from typing import TYPE_CHECKING
 
 from .camera import Camera, look_at

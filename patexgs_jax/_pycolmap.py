@@ -1,13 +1,20 @@
 """The one place this package imports pycolmap, undoing two of its import side effects.
 
-* zlib / Pillow first: pycolmap's extension exports its own zlib symbols; loaded before the system
-  libz they corrupt the heap on the first deflate (see :mod:`patexgs_jax.data`).
+* zlib / Pillow first (checked with pycolmap 4.2.1, pillow 13, CPython 3.11): pycolmap's extension
+  module contains and exports its own zlib symbols. If the system ``libz.so.1`` is first loaded
+  *after* pycolmap (by Pillow's ``_imaging`` or Python's ``zlib`` module), libz's internal calls
+  bind to pycolmap's copies and the first deflate (saving a PNG, ``zlib.compress``) aborts with
+  ``free(): invalid pointer``. This module loads zlib and PIL.Image before pycolmap, so every module
+  that gets pycolmap from here is safe in any import order (and so is a caller's own pycolmap
+  imported after :mod:`patexgs_jax`, whose jax loads libz). If the caller imported pycolmap before
+  zlib / PIL, nothing can be repaired any more and a RuntimeWarning says so (detected from the
+  dynamic linker's load order).
 * Fatal-signal handlers kept: importing pycolmap (4.2) installs glog's failure-signal handler for
   SIGSEGV, SIGBUS, SIGFPE, SIGILL and SIGABRT. That handler calls ``backtrace()``, which deadlocks
-  when the signal arrives inside the C++ unwinder (seen here: an XLA compile error unwinding
-  through JIT-compiled frames). A crash then became a process that hangs forever at 100% CPU. The
-  handlers in place before the import (Python's ``faulthandler`` or the default action) are
-  restored, so a fatal error crashes with Python's traceback instead.
+  when the signal arrives inside the C++ unwinder (e.g. an XLA compile error unwinding through
+  JIT-compiled frames), turning a crash into a process that hangs at 100% CPU. The handlers in place
+  before the import (Python's ``faulthandler`` or the default action) are restored, so a fatal
+  error crashes with Python's traceback instead.
 
 Other modules use ``from patexgs_jax._pycolmap import pycolmap``.
 """
@@ -15,9 +22,11 @@ Other modules use ``from patexgs_jax._pycolmap import pycolmap``.
 from __future__ import annotations
 
 import ctypes
+import os
 import signal
 import sys
-import zlib  # noqa: F401  -- before pycolmap (heap corruption otherwise)
+import warnings
+import zlib  # noqa: F401  -- before pycolmap, see the module docstring
 
 import PIL.Image  # noqa: F401  -- before pycolmap (it loads libz)
 
@@ -63,6 +72,37 @@ def restore_fatal_handlers(saved: dict | None) -> None:
     for sig, act in saved.items():
         libc.sigaction(int(sig), ctypes.byref(act), None)
 
+
+def pycolmap_loaded_before_libz() -> bool:
+    """Whether pycolmap's extension was loaded before the system libz (the state that crashes).
+
+    Uses the dynamic linker's load order (``dl_iterate_phdr``, Linux/glibc); False where unavailable.
+    """
+    names = []
+
+    def collect(info, size, data):
+        names.append(os.fsdecode(info.contents.name or b""))
+        return 0
+
+    try:
+        class _Info(ctypes.Structure):
+            _fields_ = [("addr", ctypes.c_void_p), ("name", ctypes.c_char_p), ("phdr", ctypes.c_void_p),
+                        ("phnum", ctypes.c_uint16)]
+
+        callback = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(_Info), ctypes.c_size_t, ctypes.c_void_p)(collect)
+        ctypes.CDLL(None).dl_iterate_phdr(callback, None)
+    except Exception:
+        return False
+    core = next((i for i, n in enumerate(names) if "pycolmap" in n and "_core" in os.path.basename(n)), None)
+    libz = next((i for i, n in enumerate(names) if os.path.basename(n).startswith("libz.so")), None)
+    return core is not None and (libz is None or core < libz)
+
+
+if pycolmap_loaded_before_libz():
+    warnings.warn(
+        "pycolmap was imported before zlib / PIL / jax: with pycolmap 4.2.1 the process may abort "
+        "('free(): invalid pointer') when saving a PNG or compressing with zlib. Import patexgs_jax "
+        "(or PIL.Image) before pycolmap.", RuntimeWarning, stacklevel=2)
 
 _saved = fatal_handlers()
 import pycolmap  # noqa: E402

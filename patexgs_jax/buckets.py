@@ -87,6 +87,11 @@ def valid_mask(shape: tuple[int, int], valid_hw) -> jax.Array:
     return rows & cols
 
 
+def crop(x, height: int, width: int) -> np.ndarray:
+    """``x[:height, :width]`` as a host array, copied from the device first (no slice program per size)."""
+    return np.asarray(x)[:height, :width]
+
+
 def crop_output(out, height: int, width: int):
     """A :class:`patexgs_jax.RenderOutput` of a padded render with its images cropped to
     ``height x width`` (host numpy arrays: cropping on the device would compile a slice per size)
@@ -97,12 +102,14 @@ def crop_output(out, height: int, width: int):
 
     if out.rgb.shape[:2] == (height, width):
         return out
-    crop = lambda x: np.asarray(x)[:height, :width]  # noqa: E731
-    dominant = crop(out.dominant)
+    def crop_hw(x):
+        return crop(x, height, width)
+
+    dominant = crop_hw(out.dominant)
     best = dominant.reshape(-1)
     counts = np.bincount(best[best >= 0], minlength=out.max_contrib_count.shape[0]).astype(np.int32)
-    return dataclasses.replace(out, rgb=crop(out.rgb), alpha=crop(out.alpha), depth=crop(out.depth),
-                               normal=crop(out.normal), distortion=crop(out.distortion), dominant=dominant,
+    return dataclasses.replace(out, rgb=crop_hw(out.rgb), alpha=crop_hw(out.alpha), depth=crop_hw(out.depth),
+                               normal=crop_hw(out.normal), distortion=crop_hw(out.distortion), dominant=dominant,
                                max_contrib_count=counts)
 
 

@@ -23,13 +23,13 @@ Conventions, fixed for the whole package:
     pixels; the two agree to float rounding.)
 
   The Gaussian filter is separable and is applied as two 1-D passes written as a weighted sum of
-  shifted slices, which on CPU is much faster (about 15x at 800x800) than
-  ``lax.conv_general_dilated`` with a depthwise kernel; zero padding of each 1-D pass is exactly
-  the zero padding of the 2-D window.
+  shifted slices, which XLA's CPU backend runs much faster than ``lax.conv_general_dilated`` with a
+  depthwise kernel (docs/performance.md); zero padding of each 1-D pass is exactly the zero
+  padding of the 2-D window.
 * **Training loss.** 3DGS trains with ``(1 - lambda) * L1 + lambda * (1 - SSIM)`` and
   ``lambda = 0.2``, SSIM with the zero-pad border; :func:`dssim_loss` is that ``1 - SSIM`` term (not
-  the ``(1 - SSIM) / 2`` that some papers call D-SSIM) and :func:`l1_dssim_loss` the whole
-  photometric loss.
+  the ``(1 - SSIM) / 2`` that some papers call D-SSIM); the whole photometric loss, as the step
+  computes it (SSIM summed in strips, optionally masked), is :func:`patexgs_jax.losses.photometric`.
 * **Storage** is reported in MiB: ``1 MB = 2**20 bytes`` (what ``bytes / 1024 / 1024`` gives, as
   3DGS-compression papers compute model sizes). See :func:`storage_mb`.
 """
@@ -58,7 +58,6 @@ __all__ = [
     "strip_rows",
     "sum_over_row_strips",
     "dssim_loss",
-    "l1_dssim_loss",
     "mb_to_texels",
     "scene_storage",
     "storage_mb",
@@ -190,7 +189,10 @@ def sum_over_row_strips(fn, arrays, *, rows: int, halo: int):
     if rows < max(halo, 1):
         raise ValueError(f"strip rows ({rows}) must be at least the halo ({halo}) and 1.")
     S = -(-H // rows)
-    pad = lambda x, top, bottom: jnp.pad(x, [(top, bottom)] + [(0, 0)] * (x.ndim - 1))  # noqa: E731
+
+    def pad(x, top, bottom):  # rows only
+        return jnp.pad(x, [(top, bottom)] + [(0, 0)] * (x.ndim - 1))
+
     if S == 1:
         return fn(tuple(pad(x, halo, halo) for x in arrays), jnp.int32(-halo))
 
@@ -313,13 +315,6 @@ def ssim(
 def dssim_loss(img, ref, *, border: str = "zero_pad") -> jax.Array:
     """The 3DGS structural loss term ``1 - SSIM`` (zero-pad border), averaged over a batch."""
     return 1.0 - jnp.mean(ssim(img, ref, border=border))
-
-
-def l1_dssim_loss(img, ref, lambda_dssim: float = 0.2) -> jax.Array:
-    """The 3DGS photometric loss ``(1 - lambda) * mean|img - ref| + lambda * (1 - SSIM)``."""
-    img, ref = jnp.asarray(img), jnp.asarray(ref)
-    l1 = jnp.mean(jnp.abs(img - ref))
-    return (1.0 - lambda_dssim) * l1 + lambda_dssim * dssim_loss(img, ref)
 
 
 # ------------------------------------------------------------------------------------------ storage

@@ -22,9 +22,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-import PIL.Image  # import PIL before pycolmap: the reverse order was seen to corrupt the heap
+import PIL.Image
 
 from ._pycolmap import pycolmap
+from .data import images
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".JPG", ".JPEG", ".PNG")
 DOWNSAMPLE_FACTORS = (2, 4, 8)
@@ -37,37 +38,10 @@ class PrepareError(RuntimeError):
 
 
 def box_downsample(image: np.ndarray, factor: int) -> np.ndarray:
-    """Area (box) downsampling by an integer factor.
-
-    Args:
-      image: (H, W, C) or (H, W) uint8 or float array.
-      factor: positive integer; each output pixel is the mean of a ``factor x factor`` block. A partial
-        last block is cropped, so the size is ``(H // factor, W // factor)`` (as :meth:`Camera.scaled`).
-    Returns:
-      The downsampled image, same dtype as the input (uint8 is rounded to nearest).
-    """
-    factor = int(factor)
-    if factor < 1:
-        raise ValueError(f"factor must be a positive integer, got {factor}.")
-    img = np.asarray(image)
-    H, W = img.shape[0] // factor, img.shape[1] // factor
-    if H < 1 or W < 1:
-        raise ValueError(f"factor {factor} leaves no pixel of a {img.shape[1]}x{img.shape[0]} image.")
-    blocks = img[:H * factor, :W * factor].astype(np.float64)
-    blocks = blocks.reshape((H, factor, W, factor) + img.shape[2:]).mean(axis=(1, 3))
-    if img.dtype == np.uint8:
-        return np.clip(np.round(blocks), 0, 255).astype(np.uint8)
-    return blocks.astype(img.dtype)
-
-
-def save_image(image: np.ndarray, path, jpeg_quality: int = 95) -> None:
-    """Saves an (H, W, 3) uint8 image; the format follows the suffix (PNG or JPEG)."""
-    path = Path(path)
-    im = PIL.Image.fromarray(np.asarray(image, np.uint8))
-    if path.suffix.lower() in (".jpg", ".jpeg"):
-        im.save(path, quality=jpeg_quality)
-    else:
-        im.save(path)
+    """:func:`patexgs_jax.data.images.box_downsample` in the input's dtype (uint8 rounded to nearest),
+    as the ``images_N`` files are written."""
+    image = np.asarray(image)
+    return images.box_downsample(image, factor, dtype=image.dtype)
 
 
 def write_downsampled(images_dir, out_root, factors=DOWNSAMPLE_FACTORS) -> None:
@@ -82,7 +56,7 @@ def write_downsampled(images_dir, out_root, factors=DOWNSAMPLE_FACTORS) -> None:
         for f in factors:
             target = out_root / f"images_{f}" / rel
             target.parent.mkdir(parents=True, exist_ok=True)
-            save_image(box_downsample(img, f), target)
+            images.save_image(box_downsample(img, f), target)
 
 
 def _list_images(images_dir: Path) -> list[str]:

@@ -265,10 +265,15 @@ def _empty_bank(C: int, channels: int) -> TextureBank:
                        channels=channels)
 
 
+def _is_scene(x) -> bool:
+    """Whether an optimiser-state node is a :class:`Scene` of moments (a leaf for tree maps)."""
+    return isinstance(x, Scene)
+
+
 def _map_scene_nodes(opt_state, fn: Callable[[Scene], Scene]):
     """Applies ``fn`` to every Scene-shaped node (Adam's mu and nu) of an optimiser state."""
-    return jax.tree_util.tree_map(lambda x: fn(x) if isinstance(x, Scene) else x, opt_state,
-                                  is_leaf=lambda x: isinstance(x, Scene))
+    return jax.tree_util.tree_map(lambda x: fn(x) if _is_scene(x) else x, opt_state,
+                                  is_leaf=_is_scene)
 
 
 def _check_moment_bank(mbank, bank: TextureBank, name: str):
@@ -306,7 +311,7 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
         plans[name] = _plan(bank, _check_sizes(sizes, C, f"{name}_sizes", int(max_size)), int(min_capacity))
 
     if opt_state is not None:
-        for m in jax.tree_util.tree_leaves(opt_state, is_leaf=lambda x: isinstance(x, Scene)):
+        for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene):
             if isinstance(m, Scene):
                 for name in plans:
                     _check_moment_bank(getattr(m, name), getattr(scene, name), name)
@@ -379,21 +384,20 @@ def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb
     if opt_state is None:
         return new_scene, None, info
 
-    is_scene = lambda x: isinstance(x, Scene)  # noqa: E731
     if optimizer is None:
         def merge(m: Scene) -> Scene:
             return m.replace(**{k: jax.tree_util.tree_map(jnp.zeros_like, v) for k, v in kw.items()})
         return new_scene, _map_scene_nodes(opt_state, merge), info
 
     fresh = optimizer.init(new_scene)
-    old_leaves, old_def = jax.tree_util.tree_flatten(opt_state, is_leaf=is_scene)
-    new_leaves, new_def = jax.tree_util.tree_flatten(fresh, is_leaf=is_scene)
+    old_leaves, old_def = jax.tree_util.tree_flatten(opt_state, is_leaf=_is_scene)
+    new_leaves, new_def = jax.tree_util.tree_flatten(fresh, is_leaf=_is_scene)
     if old_def != new_def:
         raise ValueError("optimizer.init(new scene) is not laid out like opt_state (outside the "
                          "Scene-shaped moments); is `optimizer` the one that made opt_state?")
     merged = []
     for o, n in zip(old_leaves, new_leaves):
-        if is_scene(o):
+        if _is_scene(o):
             merged.append(o.replace(**{k: getattr(n, k) for k in kw}))
         else:
             if np.shape(o) != np.shape(n):

@@ -237,9 +237,9 @@ def _sandwich(D, X, once: bool = False):
     """``D X D^T`` per slot and channel: D (K | 1, I, P) filters, X (K, P, P, C) -> (K, I, I, C).
 
     Written as sums over the P contracted rows, then columns, of broadcast products, which XLA fuses
-    into one loop each. As an einsum, XLA's CPU backend first transposes X (and, in the backward, the
-    cotangent) into a batched matmul's layout, 2-4x slower at 65,536 slots of 8 x 8 texels. With
-    ``once``, each stage is computed once (:func:`_once`).
+    into one loop each; an einsum would make XLA's CPU backend first transpose X (and, in the
+    backward, the cotangent) into a batched matmul's layout, which is slower for these tiny
+    matrices (docs/benchmarks.md). With ``once``, each stage is computed once (:func:`_once`).
     """
     K, P, _, C = X.shape
     I = D.shape[1]
@@ -251,8 +251,9 @@ def _sandwich(D, X, once: bool = False):
 @jax.custom_vjp
 def _filter(D, X):
     """:func:`_sandwich`, linear in X, whose transpose is the same sums with D^T (no gradient for D:
-    the filters depend on texture sizes only). The forward's stages are computed once; in the
-    transpose, conditionals measured 2x slower (the cotangents' sums fuse well as they are)."""
+    the filters depend on texture sizes only). The forward's stages are computed once; the transpose
+    has no conditionals, which would slow it (the cotangents' sums fuse well as they are;
+    docs/benchmarks.md)."""
     return _sandwich(D, X, once=True)
 
 

@@ -235,7 +235,10 @@ class Viewer:
 
     def _status(self) -> str:
         s = self.stats
-        ms = lambda k: f"{self.last_ms[k]:.0f}" if k in self.last_ms else "-"  # noqa: E731
+
+        def ms(k):
+            return f"{self.last_ms[k]:.0f}" if k in self.last_ms else "-"
+
         return (f"**{self.runs[self.settings['run']].name}** ({self.run.method}): {s['gaussians']:,} Gaussians, "
                 f"{s['texels']:,} texels, {s['storage_mb']:.2f} MB; {ms('final')} ms per frame "
                 f"({ms('preview')} ms while moving)")

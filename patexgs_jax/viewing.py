@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import textures as tex
-from .buckets import ViewRenderer, release_scene_programs
+from .buckets import ViewRenderer, crop, release_scene_programs
 from .camera import ZOOM_SCALES, Camera
 from .rendering import RenderConfig
 from .rendering.kernel import UV_LIMIT
@@ -378,14 +378,17 @@ class FrameRenderer:
 
     def _colour(self, out, r: ViewRenderer, cam: Camera, view: str) -> np.ndarray:
         H, W = cam.height, cam.width
-        crop = lambda x: np.asarray(x)[:H, :W]  # noqa: E731  (device -> host, then crop: no per-size slice)
+
+        def crop_hw(x):
+            return crop(x, H, W)
+
         if view == "rgb":
-            return _to_uint8(crop(out.rgb))
-        alpha = crop(out.alpha)
+            return _to_uint8(crop_hw(out.rgb))
+        alpha = crop_hw(out.alpha)
         if view == "alpha":
             return np.repeat(_to_uint8(alpha)[..., None], 3, axis=-1)
         if view == "depth":
-            depth = crop(out.depth)
+            depth = crop_hw(out.depth)
             hit = alpha > 0.05
             if not hit.any():
                 return np.zeros((H, W, 3), np.uint8)
@@ -393,7 +396,7 @@ class FrameRenderer:
             img = colour_ramp(1.0 - (depth - lo) / max(hi - lo, 1e-9))  # near: light
             return _to_uint8(np.where(hit[..., None], img, 0.0))
         if view == "normal":
-            n = crop(out.normal) / np.maximum(alpha, 1e-6)[..., None]
+            n = crop_hw(out.normal) / np.maximum(alpha, 1e-6)[..., None]
             n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-9)
             img = 0.5 + 0.5 * n * np.array([1.0, -1.0, -1.0], np.float32)
             return _to_uint8(np.where((alpha > 0.05)[..., None], img, 0.0))
@@ -403,11 +406,11 @@ class FrameRenderer:
         cfg = r.config
         if view == "mip level":
             use = cfg.mip != "none" and (cfg.rgb_mip if bank == "rgb" else cfg.alpha_mip)
-            lev = crop(dominant_mip_level(self.scene, r.camera(cam), out.dominant, bank=bank,
+            lev = crop_hw(dominant_mip_level(self.scene, r.camera(cam), out.dominant, bank=bank,
                                           lambda_mip=float(cfg.lambda_mip), use_mip=bool(use)))
             img = LEVEL_COLOURS[np.clip(lev, 0, len(LEVEL_COLOURS) - 1)]
             return _to_uint8(np.where((lev >= 0)[..., None], img, 0.0))
-        dom = crop(out.dominant)
+        dom = crop_hw(out.dominant)
         sizes = np.asarray(getattr(self.scene, bank).size)
         n = sizes[np.maximum(dom, 0)]
         img = colour_ramp(np.log2(np.maximum(n, 1.0)) / 5.0)

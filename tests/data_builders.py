@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import zlib  # noqa: F401  -- before pycolmap (see patexgs_jax/data/__init__.py)
 from pathlib import Path
 
 import numpy as np

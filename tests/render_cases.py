@@ -69,3 +69,115 @@ def single_splat_scene(tex_rgb, tex_alpha=None, scale=1.0, n_pad=C):
     sh = np.zeros((1, 1, 3))
     return Scene.from_arrays([[0.0, 0.0, 0.0]], [[scale, scale]], [q], [1.0], sh,
                              rgb_textures=[tex_rgb], alpha_textures=[tex_alpha], capacity=n_pad)
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks run over configurations: a few in tests/unit, the rest in tests/integration/test_render_sweeps.py
+# ---------------------------------------------------------------------------------------------
+def check_matches_reference(name):
+    """The render of configuration ``name`` (``CONFIGS``) against the float64 brute-force reference."""
+    textured, degree, cfg = CONFIGS[name]
+    sc = scene(3 + len(name), textured, degree)
+    cam = camera()
+    ref = ref_render(sc, cam, cfg)
+    # float64 tile renderer: the same maths, so it agrees to rounding everywhere.
+    out64 = tile_render(sc, cam, cfg, jnp.float64)
+    np.testing.assert_allclose(out64.rgb, ref["rgb"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.alpha, ref["alpha"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.depth, ref["depth"], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(out64.normal, ref["normal"], atol=1e-7, rtol=0)
+    np.testing.assert_allclose(out64.distortion, ref["distortion"], atol=1e-9, rtol=1e-6)
+    best = ref["best"].ravel()
+    counts = np.bincount(best[best >= 0], minlength=C)
+    np.testing.assert_array_equal(out64.max_contrib_count, counts)
+    assert ref["alpha"].mean() > 0.2, "the test scene should cover much of the image"
+    # float32 production renderer: within 2e-4 except where a threshold (alpha >= 1/255, the
+    # 1e-4 transmittance stop, a mip level boundary) flips on rounding: at most 0.5% of pixels.
+    out32 = tile_render(sc, cam, cfg)
+    err = np.abs(out32.rgb - ref["rgb"]).max(axis=-1)
+    assert np.mean(err > 2e-4) <= 0.005, (err.max(), np.mean(err > 2e-4))
+    assert np.median(err) < 2e-5
+
+
+def directional_fd_check(sc, cam, cfg, seed, h=1e-6, rtol=2e-4):
+    with jax.enable_x64(True):
+        sc64 = sc.astype(jnp.float64)
+        rng = np.random.default_rng(seed)
+        wts = jnp.asarray(rng.uniform(0.5, 1.5, (H, W, 3)))
+
+        def loss(s):
+            out = render_jit(s, cam, config=cfg, capacity=CAP)
+            return (jnp.sum(out.rgb * wts) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth)
+                    + jnp.sum(out.distortion))
+
+        g = jax.grad(loss)(sc64)
+        leaves, treedef = jax.tree_util.tree_flatten(sc64)
+        gleaves = jax.tree_util.tree_leaves(g)
+        frozen = {id(x) for x in (sc64.active,) + tuple(
+            getattr(b, f) for b in (sc64.rgb, sc64.alpha) if b is not None for f in ("bucket", "slot", "size"))}
+        dirs = [jnp.zeros_like(x) if id(x) in frozen else jnp.asarray(rng.normal(size=x.shape))
+                for x in leaves]
+        analytic = sum(float(jnp.sum(a * d)) for a, d in zip(gleaves, dirs))
+        def shift(eps):
+            return jax.tree_util.tree_unflatten(treedef, [x + eps * d for x, d in zip(leaves, dirs)])
+
+        fd = (float(loss(shift(h))) - float(loss(shift(-h)))) / (2 * h)
+        assert np.isfinite(analytic)
+        assert abs(analytic - fd) <= rtol * abs(fd) + 1e-6, (analytic, fd)
+
+
+def check_gradients_match_finite_differences(name):
+    """Directional float64 finite differences of configuration ``name`` against its gradient."""
+    textured, degree, cfg = CONFIGS[name]
+    sc = scene(21, textured, degree)
+    # The prefilter composites more faint pairs (a skipped pair's alpha jumps from 0 to 1/255 times
+    # its coverage): a smaller step keeps the difference off those jumps.
+    h = 1e-7 if cfg.coverage == "prefilter" else 1e-6
+    for seed in range(3):
+        directional_fd_check(sc, camera(), cfg, seed, h=h)
+
+
+HARD_CASES = ["edge_on", "tiny_and_huge", "needles", "near_plane", "saturated"]
+
+
+def hard_scene(case):
+    rng = np.random.default_rng(0)
+    n = 8
+    means = rng.uniform(-0.3, 0.3, (n, 3))
+    scales = np.full((n, 2), 0.3)
+    quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)) + rng.normal(0, 0.1, (n, 4))
+    opac = np.full(n, 0.7)
+    if case == "edge_on":
+        # normal along x: the splat plane contains the viewing rays (camera looks along +z).
+        quats = np.tile([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0], (n, 1))
+        quats[1:] += rng.normal(0, 1e-7, (n - 1, 4))
+    elif case == "tiny_and_huge":
+        scales = np.exp(rng.uniform(np.log(1e-6), np.log(1e3), (n, 2)))
+    elif case == "needles":
+        scales = np.stack([np.full(n, 1e-4), np.full(n, 1e2)], axis=1)
+    elif case == "near_plane":
+        means[:, 2] = np.linspace(-3.2, -2.9, n)  # camera at z = -3: behind, on, just past near
+        scales[:] = 1.0
+    elif case == "saturated":
+        opac[:] = 1.0
+    alpha = [np.full((4, 4), 50.0) if case == "saturated" else rng.uniform(0, 2, (4, 4)) for _ in range(n)]
+    rgb = [rng.uniform(-1, 1, (3, 3, 3)) for _ in range(n)]
+    return Scene.from_arrays(means, scales, quats, opac, rng.normal(0, 1, (n, 4, 3)),
+                             rgb_textures=rgb, alpha_textures=alpha, capacity=n)
+
+
+def check_hard_case_gradients_finite(case, mip):
+    """Every gradient of a loss of every output finite on the hard scene ``case`` (``hard_scene``)."""
+    sc = hard_scene(case)
+    cam = camera(eye=(0.0, 0.0, -3.0), target=(0.0, 0.0, 1.0))
+    cfg = RenderConfig(mip=mip)
+    cap = Capacity(pairs=1024)
+
+    def loss(s):
+        out = render_jit(s, cam, config=cfg, capacity=cap)
+        return jnp.sum(out.rgb) + jnp.sum(out.depth) + jnp.sum(out.normal) + jnp.sum(out.alpha)
+
+    val, g = jax.value_and_grad(loss)(sc)
+    assert np.isfinite(float(val))
+    for path, leaf in jax.tree_util.tree_leaves_with_path(g):
+        assert np.all(np.isfinite(np.asarray(leaf))), jax.tree_util.keystr(path)

@@ -4,84 +4,31 @@
 >>> ds.train_views[0].camera, ds.train_views[0].image.shape   # image loads lazily (LRU-cached)
 >>> ds.zoom_out_views((2, 4, 8))[4][0].image    # first test view box-downsampled by 4
 
-Import-order hazard (checked with pycolmap 4.2.1, pillow 13, CPython 3.11): pycolmap's extension
-module contains and exports its own zlib symbols. If the system ``libz.so.1`` is first loaded *after*
-pycolmap (by Pillow's ``_imaging`` or Python's ``zlib`` module), libz's internal calls bind to
-pycolmap's copies and the first deflate (saving a PNG, ``zlib.compress``) aborts with
-``free(): invalid pointer``. Loading zlib / PIL.Image before pycolmap avoids it, so this package
-imports them first (here and in every module that imports pycolmap). If pycolmap was already imported
-before zlib / PIL by the caller, nothing can be repaired any more and a RuntimeWarning says so (detected from the
-dynamic linker's load order).
+Modules: :mod:`.dataset` (:class:`Dataset`, :class:`View`, :class:`SceneNormalization`, the split),
+:mod:`.images` (reading, resizing, the image cache), :mod:`.records` (the loaders' shared steps),
+:mod:`.cache` (cache folders), :mod:`.errors`; the formats :mod:`.colmap` (with :mod:`.colmap_model`),
+:mod:`.llff`, :mod:`.nerf`; the embedded scene :mod:`.synthetic` (with :mod:`.synthetic_scene`).
 """
 
 from __future__ import annotations
 
-import ctypes as _ctypes
-import os as _os
-import warnings as _warnings
+from pathlib import Path
 
-
-def _pycolmap_loaded_before_libz() -> bool:
-    """Whether pycolmap's extension was loaded before the system libz (the state that crashes).
-
-    Uses the dynamic linker's load order (``dl_iterate_phdr``, Linux/glibc); False where unavailable.
-    """
-    try:
-        class _Info(_ctypes.Structure):
-            _fields_ = [("addr", _ctypes.c_void_p), ("name", _ctypes.c_char_p), ("phdr", _ctypes.c_void_p),
-                        ("phnum", _ctypes.c_uint16)]
-
-        names = []
-        callback = _ctypes.CFUNCTYPE(_ctypes.c_int, _ctypes.POINTER(_Info), _ctypes.c_size_t, _ctypes.c_void_p)(
-            lambda info, size, data: names.append(_os.fsdecode(info.contents.name or b"")) or 0)
-        _ctypes.CDLL(None).dl_iterate_phdr(callback, None)
-    except Exception:
-        return False
-    core = next((i for i, n in enumerate(names) if "pycolmap" in n and "_core" in _os.path.basename(n)), None)
-    libz = next((i for i, n in enumerate(names) if _os.path.basename(n).startswith("libz.so")), None)
-    return core is not None and (libz is None or core < libz)
-
-
-import zlib  # noqa: E402,F401  -- before pycolmap, see the module docstring
-
-import PIL.Image  # noqa: E402,F401  -- before pycolmap, see the module docstring
-
-if _pycolmap_loaded_before_libz():
-    _warnings.warn(
-        "pycolmap was imported before zlib / PIL / jax: with pycolmap 4.2.1 the process may abort "
-        "('free(): invalid pointer') when saving a PNG or compressing with zlib. Import patexgs_jax "
-        "(or PIL.Image) before pycolmap.", RuntimeWarning, stacklevel=2)
-
-from pathlib import Path  # noqa: E402
-
-from .colmap import (  # noqa: E402
+from .cache import resolve_cache_dir
+from .colmap import (
     DEFAULT_MAX_WIDTH,
     MIPNERF360_FACTORS,
     default_factor,
     default_resolution,
-    find_sparse_dir,
     load_colmap,
-    read_model,
 )
-from .dataset import (  # noqa: E402
-    DEFAULT_IMAGE_CACHE_BYTES,
-    DEFAULT_IMAGE_CACHE_SIZE,
-    DEFAULT_NUM_RANDOM_POINTS,
-    Dataset,
-    DatasetError,
-    DatasetWarning,
-    ImageCache,
-    SceneNormalization,
-    View,
-    box_downsample,
-    compute_normalization,
-    read_image,
-    resolve_cache_dir,
-    split_indices,
-    zoom_out_views,
-)
-from .llff import load_llff  # noqa: E402
-from .nerf import find_transforms, load_nerf  # noqa: E402
+from .colmap_model import find_sparse_dir, read_model
+from .dataset import Dataset, SceneNormalization, View, compute_normalization, split_indices, zoom_out_views
+from .errors import DatasetError, DatasetWarning
+from .images import DEFAULT_IMAGE_CACHE_BYTES, DEFAULT_IMAGE_CACHE_SIZE, ImageCache, box_downsample, read_image
+from .llff import load_llff
+from .nerf import find_transforms, load_nerf
+from .records import DEFAULT_NUM_RANDOM_POINTS
 
 __all__ = [
     "load",

@@ -13,22 +13,25 @@ from pathlib import Path
 
 import numpy as np
 
-from .colmap import default_resolution, find_sparse_dir, model_points, read_model
-from .dataset import (
+from .colmap import default_resolution
+from .colmap_model import find_sparse_dir, model_points, read_model
+from .dataset import Dataset
+from .errors import DatasetError
+from .images import (
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
-    DEFAULT_NUM_RANDOM_POINTS,
-    Dataset,
-    DatasetError,
     ImageCache,
+    image_loader,
+    list_images,
+    probe_image,
+)
+from .records import (
+    DEFAULT_NUM_RANDOM_POINTS,
     check_size_against_camera,
     finish_dataset,
     fit_records_to_width,
     handle_unreadable,
-    image_loader,
-    list_images,
     orthonormalize_pose,
-    probe_image,
     random_points_in_frustums,
 )
 

@@ -26,33 +26,25 @@ import json
 import math
 import sys
 import time
-import zlib  # noqa: F401  -- must be loaded before pycolmap (see data/__init__)
 from pathlib import Path
 
 import numpy as np
 import PIL.Image
 
 from .._pycolmap import pycolmap
+from .cache import atomic_build_dir, fingerprint, is_complete_dir, resolve_cache_dir
 from .colmap import default_resolution
-from .dataset import (
-    DEFAULT_IMAGE_CACHE_BYTES,
-    DEFAULT_IMAGE_CACHE_SIZE,
+from .dataset import Dataset
+from .errors import DatasetError
+from .images import DEFAULT_IMAGE_CACHE_BYTES, DEFAULT_IMAGE_CACHE_SIZE, ImageCache, image_loader, probe_image
+from .records import (
     DEFAULT_NUM_RANDOM_POINTS,
-    Dataset,
-    DatasetError,
-    ImageCache,
-    atomic_build_dir,
     check_size_against_camera,
-    fingerprint,
     finish_dataset,
     fit_records_to_width,
     handle_unreadable,
-    image_loader,
-    is_complete_dir,
     orthonormalize_pose,
-    probe_image,
     random_points_in_box,
-    resolve_cache_dir,
 )
 
 __all__ = ["load_nerf", "find_transforms", "distort_normalized", "undistort_image", "read_ply_points",
@@ -108,6 +100,11 @@ def _resolve_file(base: Path, file_path: str) -> Path | None:
 # ----------------------------------------------------------------------------------------------------
 
 
+def _coefficients(params: dict) -> dict[str, float]:
+    """k1..k4, p1, p2 of a distortion ``params`` dict as floats (missing or null: 0)."""
+    return {k: float(params.get(k, 0.0) or 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")}
+
+
 def distort_normalized(x, y, params: dict, fisheye: bool = False):
     """Applies lens distortion to normalised camera coordinates (x = X/Z, y = Y/Z).
 
@@ -124,17 +121,17 @@ def distort_normalized(x, y, params: dict, fisheye: bool = False):
     Returns:
       (xd, yd) arrays of the input shape.
     """
-    g = lambda k: float(params.get(k, 0.0) or 0.0)  # noqa: E731
+    c = _coefficients(params)
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
     if fisheye:
         r = np.hypot(x, y)
         th = np.arctan(r)
         t2 = th * th
-        thd = th * (1 + t2 * (g("k1") + t2 * (g("k2") + t2 * (g("k3") + t2 * g("k4")))))
+        thd = th * (1 + t2 * (c["k1"] + t2 * (c["k2"] + t2 * (c["k3"] + t2 * c["k4"]))))
         s = np.where(r > 1e-12, thd / np.maximum(r, 1e-12), 1.0)
         return x * s, y * s
-    k1, k2, k3, p1, p2 = g("k1"), g("k2"), g("k3"), g("p1"), g("p2")
+    k1, k2, k3, p1, p2 = c["k1"], c["k2"], c["k3"], c["p1"], c["p2"]
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
@@ -193,14 +190,14 @@ def undistort_image(image: np.ndarray, K: np.ndarray, params: dict, K_new: np.nd
 
 
 def _pycolmap_camera(K, params, fisheye, width, height):
-    g = lambda k: float(params.get(k, 0.0) or 0.0)  # noqa: E731
+    c = _coefficients(params)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     if fisheye:
-        model, p = "OPENCV_FISHEYE", [fx, fy, cx, cy, g("k1"), g("k2"), g("k3"), g("k4")]
-    elif g("k3") != 0.0:
-        model, p = "FULL_OPENCV", [fx, fy, cx, cy, g("k1"), g("k2"), g("p1"), g("p2"), g("k3"), 0.0, 0.0, 0.0]
+        model, p = "OPENCV_FISHEYE", [fx, fy, cx, cy, c["k1"], c["k2"], c["k3"], c["k4"]]
+    elif c["k3"] != 0.0:
+        model, p = "FULL_OPENCV", [fx, fy, cx, cy, c["k1"], c["k2"], c["p1"], c["p2"], c["k3"], 0.0, 0.0, 0.0]
     else:
-        model, p = "OPENCV", [fx, fy, cx, cy, g("k1"), g("k2"), g("p1"), g("p2")]
+        model, p = "OPENCV", [fx, fy, cx, cy, c["k1"], c["k2"], c["p1"], c["p2"]]
     cam = pycolmap.Camera.create_from_model_name(1, model, float(fx), int(width), int(height))
     cam.params = p
     return cam

@@ -7,12 +7,13 @@ One module a concern:
 - :mod:`.strategies`: densification and the texture stage, called between steps;
 - :mod:`.trainer`: the host loop (:class:`~.trainer.Trainer`);
 - :mod:`.run`: :func:`train` (resume, stage-1 sharing, outputs);
-- :mod:`.evaluation`: the PSNR / SSIM a run reports;
 - :mod:`.cli`: ``python -m patexgs_jax.train``.
+
+The PSNR / SSIM a run reports come from :func:`patexgs_jax.evaluation.evaluate` (re-exported).
 """
 
+from ..evaluation import evaluate
 from .config import FIXED_SIZES, METHODS, PRESETS, Method, TrainConfig, preset_config
-from .evaluation import evaluate
 from .run import TrainResult, stage1_checkpoint, train
 
 __all__ = [

@@ -12,10 +12,10 @@ import numpy as np
 
 from .. import checkpoint as ckpt
 from .. import compiled
+from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
 from .config import STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
-from .evaluation import evaluate
 from .strategies import side_histogram
 from .trainer import STAGE1_DIR, Trainer
 

@@ -74,7 +74,10 @@ def _guarded_update(scene, opt_state, g_scene, loss, overflow, optimizer):
     ok = all_finite & ~overflow
     updates, new_opt = optimizer.update(g_scene, opt_state, scene)
     new_scene = optax.apply_updates(scene, updates)
-    keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)  # noqa: E731
+
+    def keep(new, old):  # the update where every gradient is finite and nothing overflowed, else the old state
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)
+
     return keep(new_scene, scene), keep(new_opt, opt_state), ok, finite
 
 

@@ -43,11 +43,11 @@ from .. import buckets, compiled, progress
 from .. import checkpoint as ckpt
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
+from ..evaluation import camera_problem, image_problem
 from ..optim import make_optimizer, upgrade_state
 from ..rendering import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from .config import TrainConfig, config_dict
-from .evaluation import camera_problem, image_problem
 from .step import STEP_TRACES, batch_step, single_view_step
 from .strategies import Densification, TextureStage, TrainState
 
@@ -469,7 +469,10 @@ class Trainer:
             self.after_step(step + 1)
             if self.step % cfg.log_every == 0 or self.step == total:
                 now = time.perf_counter()
-                mean = lambda k: float(np.mean([w[k] for w in window])) if window else float("nan")  # noqa: E731
+
+                def mean(k):
+                    return float(np.mean([w[k] for w in window])) if window else float("nan")
+
                 rec = dict(step=self.step, loss=mean(0), psnr=mean(1), gaussians=self.scene.num_active(),
                            texels=sum(self.scene.texel_count().values()),
                            ms_per_step=1e3 * (now - t_last) / cfg.log_every, recompiles=self.recompiles,

@@ -2,7 +2,7 @@
 
 
 import numpy as np
-import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
+import PIL.Image
 import pytest
 
 from patexgs_jax import prepare as prep

@@ -31,10 +31,10 @@ from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import densify as dens
 from patexgs_jax.data import load
 from patexgs_jax.densify import DensifyConfig
+from patexgs_jax.evaluation import evaluate
 from patexgs_jax.metrics import mb_to_texels
 from patexgs_jax.optim import adam_moments
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
-from patexgs_jax.training.evaluation import evaluate
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import STEP_TRACES
 from patexgs_jax.training.strategies import TextureStage, growth_schedule, growth_steps

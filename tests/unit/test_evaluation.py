@@ -1,4 +1,4 @@
-"""experiments.evaluation: the zoom-out metrics the studies record, the alias PSNR above all (the
+"""patexgs_jax.evaluation: the zoom-out metrics the studies record, the alias PSNR above all (the
 render at 1/s against the same model's full-resolution render box-downsampled by s)."""
 
 from __future__ import annotations
@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiments.evaluation import evaluate_scales, render_image
 from patexgs_jax.data import load
-from patexgs_jax.data.dataset import box_downsample
+from patexgs_jax.data.images import box_downsample
 from patexgs_jax.data.synthetic import generate
+from patexgs_jax.evaluation import evaluate_scales, render_image
 from patexgs_jax.metrics import psnr
 from patexgs_jax.rendering import RenderConfig
 from patexgs_jax.scene import Scene

@@ -24,6 +24,7 @@ from render_cases import (
     H,
     W,
     camera,
+    check_matches_reference,
     ref_render,
     scene,
     tile_render,
@@ -31,29 +32,11 @@ from render_cases import (
 from render_reference import scene_to_reference, sh_color
 
 
-@pytest.mark.parametrize("name", list(CONFIGS))
+@pytest.mark.parametrize("name", ["2dgs", "nearest", "prefilter"])
 def test_matches_reference(name):
-    textured, degree, cfg = CONFIGS[name]
-    sc = scene(3 + len(name), textured, degree)
-    cam = camera()
-    ref = ref_render(sc, cam, cfg)
-    # float64 tile renderer: the same maths, so it agrees to rounding everywhere.
-    out64 = tile_render(sc, cam, cfg, jnp.float64)
-    np.testing.assert_allclose(out64.rgb, ref["rgb"], atol=1e-7, rtol=0)
-    np.testing.assert_allclose(out64.alpha, ref["alpha"], atol=1e-7, rtol=0)
-    np.testing.assert_allclose(out64.depth, ref["depth"], atol=1e-6, rtol=0)
-    np.testing.assert_allclose(out64.normal, ref["normal"], atol=1e-7, rtol=0)
-    np.testing.assert_allclose(out64.distortion, ref["distortion"], atol=1e-9, rtol=1e-6)
-    best = ref["best"].ravel()
-    counts = np.bincount(best[best >= 0], minlength=C)
-    np.testing.assert_array_equal(out64.max_contrib_count, counts)
-    assert ref["alpha"].mean() > 0.2, "the test scene should cover much of the image"
-    # float32 production renderer: within 2e-4 except where a threshold (alpha >= 1/255, the
-    # 1e-4 transmittance stop, a mip level boundary) flips on rounding: at most 0.5% of pixels.
-    out32 = tile_render(sc, cam, cfg)
-    err = np.abs(out32.rgb - ref["rgb"]).max(axis=-1)
-    assert np.mean(err > 2e-4) <= 0.005, (err.max(), np.mean(err > 2e-4))
-    assert np.median(err) < 2e-5
+    """The baseline, the textured default and PATexGS's own coverage; the other configurations are in
+    tests/integration/test_render_sweeps.py."""
+    check_matches_reference(name)
 
 
 def test_inactive_slots_render_nothing():

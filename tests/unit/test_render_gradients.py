@@ -11,102 +11,25 @@ import pytest
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, render_jit, rendering
 from patexgs_jax.rendering import chunks, composite, kernel
 from patexgs_jax.rendering.projection import COLS
-from render_cases import (
-    CAP,
-    CONFIGS,
-    H,
-    W,
-    camera,
-    scene,
-)
+from render_cases import HARD_CASES, check_gradients_match_finite_differences, check_hard_case_gradients_finite
 
 
 # ---------------------------------------------------------------------------------------------
 # Gradients: float64 finite differences
 # ---------------------------------------------------------------------------------------------
-def _directional_fd_check(sc, cam, cfg, seed, h=1e-6, rtol=2e-4):
-    with jax.enable_x64(True):
-        sc64 = sc.astype(jnp.float64)
-        rng = np.random.default_rng(seed)
-        wts = jnp.asarray(rng.uniform(0.5, 1.5, (H, W, 3)))
-
-        def loss(s):
-            out = render_jit(s, cam, config=cfg, capacity=CAP)
-            return (jnp.sum(out.rgb * wts) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth)
-                    + jnp.sum(out.distortion))
-
-        g = jax.grad(loss)(sc64)
-        leaves, treedef = jax.tree_util.tree_flatten(sc64)
-        gleaves = jax.tree_util.tree_leaves(g)
-        frozen = {id(x) for x in (sc64.active,) + tuple(
-            getattr(b, f) for b in (sc64.rgb, sc64.alpha) if b is not None for f in ("bucket", "slot", "size"))}
-        dirs = [jnp.zeros_like(x) if id(x) in frozen else jnp.asarray(rng.normal(size=x.shape))
-                for x in leaves]
-        analytic = sum(float(jnp.sum(a * d)) for a, d in zip(gleaves, dirs))
-        def shift(eps):
-            return jax.tree_util.tree_unflatten(treedef, [x + eps * d for x, d in zip(leaves, dirs)])
-
-        fd = (float(loss(shift(h))) - float(loss(shift(-h)))) / (2 * h)
-        assert np.isfinite(analytic)
-        assert abs(analytic - fd) <= rtol * abs(fd) + 1e-6, (analytic, fd)
-
-
-@pytest.mark.parametrize("name", ["2dgs", "trilinear", "prefilter"])
-def test_gradients_match_finite_differences(name):
-    textured, degree, cfg = CONFIGS[name]
-    sc = scene(21, textured, degree)
-    # The prefilter composites more faint pairs (a skipped pair's alpha jumps from 0 to 1/255 times
-    # its coverage): a smaller step keeps the difference off those jumps.
-    h = 1e-7 if cfg.coverage == "prefilter" else 1e-6
-    for seed in range(3):
-        _directional_fd_check(sc, camera(), cfg, seed, h=h)
+def test_gradients_match_finite_differences():
+    """PATexGS's own configuration; the baseline and trilinear mipmaps are in
+    tests/integration/test_render_sweeps.py."""
+    check_gradients_match_finite_differences("prefilter")
 
 
 # ---------------------------------------------------------------------------------------------
 # Hard cases: every gradient finite
 # ---------------------------------------------------------------------------------------------
-def _hard_scene(case):
-    rng = np.random.default_rng(0)
-    n = 8
-    means = rng.uniform(-0.3, 0.3, (n, 3))
-    scales = np.full((n, 2), 0.3)
-    quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)) + rng.normal(0, 0.1, (n, 4))
-    opac = np.full(n, 0.7)
-    if case == "edge_on":
-        # normal along x: the splat plane contains the viewing rays (camera looks along +z).
-        quats = np.tile([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0], (n, 1))
-        quats[1:] += rng.normal(0, 1e-7, (n - 1, 4))
-    elif case == "tiny_and_huge":
-        scales = np.exp(rng.uniform(np.log(1e-6), np.log(1e3), (n, 2)))
-    elif case == "needles":
-        scales = np.stack([np.full(n, 1e-4), np.full(n, 1e2)], axis=1)
-    elif case == "near_plane":
-        means[:, 2] = np.linspace(-3.2, -2.9, n)  # camera at z = -3: behind, on, just past near
-        scales[:] = 1.0
-    elif case == "saturated":
-        opac[:] = 1.0
-    alpha = [np.full((4, 4), 50.0) if case == "saturated" else rng.uniform(0, 2, (4, 4)) for _ in range(n)]
-    rgb = [rng.uniform(-1, 1, (3, 3, 3)) for _ in range(n)]
-    return Scene.from_arrays(means, scales, quats, opac, rng.normal(0, 1, (n, 4, 3)),
-                             rgb_textures=rgb, alpha_textures=alpha, capacity=n)
-
-
-@pytest.mark.parametrize("case", ["edge_on", "tiny_and_huge", "needles", "near_plane", "saturated"])
-@pytest.mark.parametrize("mip", ["nearest", "trilinear"])
-def test_hard_case_gradients_finite(case, mip):
-    sc = _hard_scene(case)
-    cam = camera(eye=(0.0, 0.0, -3.0), target=(0.0, 0.0, 1.0))
-    cfg = RenderConfig(mip=mip)
-    cap = Capacity(pairs=1024)
-
-    def loss(s):
-        out = render_jit(s, cam, config=cfg, capacity=cap)
-        return jnp.sum(out.rgb) + jnp.sum(out.depth) + jnp.sum(out.normal) + jnp.sum(out.alpha)
-
-    val, g = jax.value_and_grad(loss)(sc)
-    assert np.isfinite(float(val))
-    for path, leaf in jax.tree_util.tree_leaves_with_path(g):
-        assert np.all(np.isfinite(np.asarray(leaf))), jax.tree_util.keystr(path)
+@pytest.mark.parametrize("case", HARD_CASES)
+def test_hard_case_gradients_finite(case):
+    """Nearest mipmaps; trilinear ones are in tests/integration/test_render_sweeps.py."""
+    check_hard_case_gradients_finite(case, "nearest")
 
 
 def test_thousands_of_splats_on_one_pixel():

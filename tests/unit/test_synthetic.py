@@ -4,7 +4,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-import PIL.Image  # before pycolmap (see the module docstring of patexgs_jax.prepare)
+import PIL.Image
 import pytest
 
 from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)

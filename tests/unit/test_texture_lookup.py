@@ -1,25 +1,19 @@
-"""Texture lookups: the mip pyramid and its transpose, the mip level's effect (invariance, magnification,
-minification against a supersampled truth), and the lookups done in passes over the pairs that can
-contribute."""
+"""Texture lookups: the mip pyramid and its transpose, the mip level's effect (invariance under a
+constant texture, level 0 under magnification), and the bookkeeping of the lookups done in passes
+over the pairs that can contribute. Minification against a supersampled truth, and the passes'
+images and gradients against looking up every pair, are in tests/integration/test_render_sweeps.py."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from patexgs_jax import Camera, Capacity, RenderConfig, render, rendering
+from patexgs_jax import Capacity, RenderConfig
 from patexgs_jax.rendering import texture_lookup
 from render_cases import (
-    CAP,
-    CONFIGS,
-    H,
-    W,
     camera,
-    scene,
     single_splat_scene,
     tile_render,
 )
@@ -89,30 +83,6 @@ def test_magnification_picks_level_zero():
     assert base.alpha.max() > 0.5
 
 
-@pytest.mark.parametrize("channel", ["rgb", "alpha"])
-def test_minification_is_closer_to_supersampled_truth(channel):
-    n = 32
-    checker = ((np.add.outer(np.arange(n), np.arange(n)) % 2) * 2 - 1).astype(np.float64)
-    if channel == "rgb":
-        sc = single_splat_scene(0.4 * checker[..., None].repeat(3, -1), None, scale=1.0)
-    else:
-        sc = single_splat_scene(None, 0.5 + 0.5 * checker, scale=1.0)
-    sc = sc.replace(sh=sc.sh.at[0, 0].set(0.5 / 0.28209479177387814 * 0.3))
-    # Small view: the 6x6 texture square spans about 16 px, so 32 texels alias badly.
-    cam_small = camera(eye=(0.0, 0.0, -10.0), target=(0.0, 0.0, 0.0), f=27.0, w=W, h=H)
-    factor = 8
-    K_big = np.asarray(cam_small.K, np.float64) * np.array([[factor], [factor], [1]])
-    cam_big = Camera.from_intrinsics(K_big, np.asarray(cam_small.world_to_camera), W * factor, H * factor)
-    truth = render(sc, cam_big, RenderConfig(mip="none"))
-    truth = np.asarray(truth.rgb).reshape(H, factor, W, factor, 3).mean(axis=(1, 3))
-    errs = {}
-    for mip in ("none", "nearest", "trilinear"):
-        out = render(sc, cam_small, RenderConfig(mip=mip))
-        errs[mip] = float(np.sqrt(np.mean((np.asarray(out.rgb) - truth) ** 2)))
-    assert errs["nearest"] < 0.7 * errs["none"], errs
-    assert errs["trilinear"] < 0.7 * errs["none"], errs
-
-
 # ---------------------------------------------------------------------------------------------
 # Texture lookups only where a pair can contribute, in passes
 # ---------------------------------------------------------------------------------------------
@@ -170,36 +140,3 @@ def test_rows_of_ranks_match_searchsorted(K):
         got = np.asarray(texture_lookup._rows_of_ranks(jnp.asarray(ends), jnp.int32(start), K))
         want = np.searchsorted(ends, start + np.arange(K), side="right")
         np.testing.assert_array_equal(got, want, err_msg=f"start {start}")
-
-
-@pytest.mark.parametrize("name", ["nearest", "trilinear"])
-def test_texture_passes_do_not_change_the_result(name):
-    """Looking textures up only for the pairs that can reach alpha 1/255, in many small passes, gives
-    the image and gradients of looking up every pair. (At 1/512 a pass holds 80 of the 40,960 pairs
-    of a chunk step here, far fewer than contribute. The default share, about one pass per step, is
-    what the float64 reference tests above render with.)"""
-    textured, degree, cfg = CONFIGS[name]
-    sc = scene(31, textured, degree)
-    cam = camera()
-    cfgs = [dataclasses.replace(cfg, texture_pairs=t) for t in (1.0, 1 / 512)]
-
-    def loss(s, c):  # the image and the gradient from one compiled function per configuration
-        out = rendering._render(s, cam, c, CAP)
-        return jnp.mean(jnp.abs(out.rgb - 0.3)) + 0.1 * jnp.mean(out.alpha * out.depth), out
-
-    with jax.enable_x64(True):
-        sc64 = sc.astype(jnp.float64)
-        res = []
-        for c in cfgs:
-            (_, out), g = jax.jit(jax.value_and_grad(lambda s, c=c: loss(s, c), has_aux=True))(sc64)
-            res.append(jax.tree_util.tree_map(np.asarray, (out, g)))
-    (out_d, g_d) = res[0]
-    assert out_d.alpha.mean() > 0.2
-    for out, g in res[1:]:
-        for a, b in [(out.rgb, out_d.rgb), (out.alpha, out_d.alpha), (out.depth, out_d.depth),
-                     (out.normal, out_d.normal), (out.distortion, out_d.distortion)]:
-            np.testing.assert_allclose(a, b, atol=1e-12, rtol=0)
-        np.testing.assert_array_equal(out.max_contrib_count, out_d.max_contrib_count)
-        for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(g_d)):
-            scale = float(np.abs(b).max()) if b.size else 0.0
-            np.testing.assert_allclose(a, b, atol=1e-10 * max(scale, 1.0), rtol=0)
