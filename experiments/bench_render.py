@@ -119,7 +119,9 @@ def prepare(name, n, width, height):
         ts = cfg.tile_size
         tx, ty = -(-c.width // ts), -(-c.height // ts)
         tx0, tx1, ty0, ty1, ok = binning.tile_ranges(proj.bounds, proj.visible, ts, tx, ty)
-        return binning.bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs)
+        return binning.bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs,
+                                 footprint=proj.footprint if cfg.tile_cull else None, tile_size=ts,
+                                 lowpass=cfg.coverage == "lowpass")
 
     bin_c = jax.jit(bin_view).lower(scene, cam).compile()
     jax.block_until_ready(bin_c(scene, cam))

@@ -45,7 +45,8 @@ Structure: one stage a module
   :mod:`.projection`: per-splat quantities (C of them) and screen-space bounds, packed into one
   (C, F) array whose columns :data:`projection.COLS` lays out.
   :mod:`.binning`: depth-ordered per-tile lists, with one stable sort of (tile) keys over pairs
-  generated in depth order.
+  generated in depth order; the tiles of a splat's screen box it cannot reach alpha 1/255 in are
+  left out (``RenderConfig.tile_cull``).
   The compositor walks each tile's list front to back in chunks of ``RenderConfig.chunk`` splats
   (pixels x chunk at a time) and stops the tile once every pixel saturated or the list ended, so the
   work follows the splats that actually contribute: :mod:`.chunks` (tile batches, a chunk's slots
@@ -54,6 +55,9 @@ Structure: one stage a module
   pairs that can contribute, their backward) and :mod:`.composite` (front-to-back compositing, its
   hand-written backward, ``jax.custom_vjp``, which re-walks the chunks and stores nothing per pair).
   This module: :func:`render`, :data:`render_jit`, :data:`count_pairs` and :func:`check_inputs`.
+
+  One-texel textures are constants: they are folded into the splat's colour and opacity
+  (:func:`projection.constant_textures`) and not looked up.
 
   The one static capacity (``Capacity.pairs``, the length of the sorted pair list) is checked
   against the exact need (counted before binning) and the need is returned, so callers grow the
@@ -88,7 +92,7 @@ from .config import (
     RenderConfig,
     RenderOutput,
 )
-from .projection import alpha_peak, project
+from .projection import alpha_peak, constant_textures, project
 from .texture_lookup import meta_table
 
 __all__ = [
@@ -161,11 +165,12 @@ def _tile_grid(camera: Camera, config: RenderConfig):
     return -(-camera.width // ts), -(-camera.height // ts)
 
 
-def _project_and_range(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, active_sh_degree, peak):
+def _project_and_range(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, active_sh_degree, peak,
+                       constant=None):
     """The projection of a view, its splats' tile ranges (tx0, tx1, ty0, ty1, ok), the (splat, tile)
     pairs it needs (() float32) and the most splats any tile lists (() int32)."""
     tiles_x, tiles_y = _tile_grid(camera, config)
-    proj = project(scene, camera, config, screen_offset, active_sh_degree, peak)
+    proj = project(scene, camera, config, screen_offset, active_sh_degree, peak, constant)
     ranges = tile_ranges(proj.bounds, proj.visible, config.tile_size, tiles_x, tiles_y)
     hist = tile_histogram(*ranges, tiles_x, tiles_y)
     return proj, ranges, pair_count(*ranges), jnp.max(hist)
@@ -179,10 +184,12 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     tiles_x, tiles_y = _tile_grid(camera, config)
     num_tiles = tiles_x * tiles_y
     peak = alpha_peak(scene)
+    rgb_add, alpha_mul, rgb_const, alpha_const = constant_textures(scene)
     proj, (tx0, tx1, ty0, ty1, ok), pairs_needed, max_tile = _project_and_range(
-        scene, camera, config, screen_offset, active_sh_degree, peak)
-    ids_sorted, tile_start, binned = bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles,
-                                               capacity.pairs)
+        scene, camera, config, screen_offset, active_sh_degree, peak, (rgb_add, alpha_mul))
+    ids_sorted, tile_start, binned = bin_pairs(
+        proj.depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, capacity.pairs,
+        footprint=proj.footprint if config.tile_cull else None, tile_size=ts, lowpass=config.coverage == "lowpass")
 
     use_mip = config.mip != "none"
     rgb_atlas = alpha_atlas = None
@@ -192,9 +199,18 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
         alpha_atlas = tex.build_atlas(scene.alpha, use_mip and config.alpha_mip)
     st = Static(config=config, tiles_x=tiles_x, num_tiles=num_tiles, rgb=rgb_atlas is not None,
                 alpha=alpha_atlas is not None)
+    # One-texel textures are folded into the colour and opacity (constant_textures): not looked up.
+    rgb_has = alpha_has = None
+    if rgb_atlas is not None:
+        rgb_has = rgb_atlas.has if rgb_const is None else rgb_atlas.has & ~rgb_const
+    if alpha_atlas is not None:
+        alpha_has = alpha_atlas.has if alpha_const is None else alpha_atlas.has & ~alpha_const
+    if alpha_const is not None:
+        peak = jnp.where(alpha_const, 1.0, peak)  # the pass bound reads the folded opacity
+    tex_has = rgb_has if alpha_has is None else (alpha_has if rgb_has is None else rgb_has | alpha_has)
     ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
-               rgb_has=None if rgb_atlas is None else rgb_atlas.has,
-               alpha_has=None if alpha_atlas is None else alpha_atlas.has,
+               rgb_has=rgb_has, alpha_has=alpha_has,
+               tex_has=tex_has,
                tex_meta=meta_table(rgb_atlas, alpha_atlas) if st.rgb or st.alpha else None,
                rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
                alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,

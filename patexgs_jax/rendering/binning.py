@@ -1,11 +1,20 @@
 """Binning: each splat's screen box to a range of tiles, and the (splat, tile) pairs sorted into
 depth-ordered per-tile lists with one stable sort of 32-bit tile keys (pairs are generated in depth
-order, so a stable sort by tile keeps each tile's list front to back)."""
+order, so a stable sort by tile keeps each tile's list front to back). Pairs of a box's tiles that
+the splat cannot reach alpha 1/255 in are left out (:func:`tile_touches`)."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import lax
+
+from .projection import FOOTPRINT
+
+#: tile_touches tests each tile grown by this many pixels a side, and accepts quadratic forms down
+#: to -TOUCH_EPS (their terms normalised to 1): margins for float32 rounding, so that a pixel the
+#: compositor keeps is never in a tile left out.
+TOUCH_GROW = 1.0
+TOUCH_EPS = 1e-4
 
 
 def tile_ranges(bounds, visible, tile_size, tiles_x, tiles_y):
@@ -37,8 +46,77 @@ def tile_histogram(tx0, tx1, ty0, ty1, ok, tiles_x, tiles_y):
     return jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)[:tiles_y, :tiles_x].reshape(-1)
 
 
-def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity):
+def tile_touches(fp, tx, ty, tile_size: int, lowpass: bool):
+    """Whether the splats of footprint rows ``fp`` (one per pair, a list of :data:`FOOTPRINT`'s 16
+    columns, each (N,)) can reach alpha 1/255 at a pixel centre of tile (tx, ty) (each (N,) int32):
+    False only where none can (up to the margins :data:`TOUCH_GROW`, :data:`TOUCH_EPS`).
+
+    The ray through pixel (x, y) meets the plane at the homogeneous point s = x A + y B + C (u =
+    s0 / s2, v = s1 / s2), in front of the camera where ``side * s2 > 0``, and inside the region
+    ``h^T P h <= r2`` where ``Phi(s) = r2 s2^2 - s01^T P s01 >= 0``: the region's rays form one nappe
+    of a quadratic cone in s, which is convex, and the tile's rays the convex cone spanned by the
+    rays of its four corners. They meet iff a corner's ray is in the nappe, or the nappe's axis (the
+    splat's centre, always in front) falls in the tile, or a side of the tile (the cone over a
+    segment between corners) crosses the nappe: where the segment is in front, the maximum of Phi, a
+    quadratic along it, is at its ends or its vertex. An unbounded footprint (the region crosses the
+    plane of the camera centre parallel to the image) is bounded here by its front half.
+    Without the prefilter (``lowpass``), the low-pass disc ``2 |d|^2 <= r2`` counts too. The
+    prefilter's screen support is not tested (the box of :func:`projection.project` has it).
+    """
+    F = FOOTPRINT
+    A, B, C = fp[F.a], fp[F.b], fp[F.c]
+    p, r, t = fp[F.conic]
+    r2, side = fp[F.r2], fp[F.side]
+    mx, my = fp[F.mu]
+    dt = r2.dtype
+    x0 = (tx * tile_size).astype(dt) + (0.5 - TOUCH_GROW)
+    y0 = (ty * tile_size).astype(dt) + (0.5 - TOUCH_GROW)
+    x1 = x0 + (tile_size - 1 + 2 * TOUCH_GROW)
+    y1 = y0 + (tile_size - 1 + 2 * TOUCH_GROW)
+    inside = (mx >= x0) & (mx <= x1) & (my >= y0) & (my <= y1)
+
+    def corner(x, y):  # s at a corner, scaled to unit norm under r2 s2^2 + s01^T P s01 (a positive scale)
+        s = [x * A[i] + y * B[i] + C[i] for i in range(3)]
+        n = r2 * s[2] * s[2] + (p * s[0] + 2.0 * r * s[1]) * s[0] + t * s[1] * s[1]
+        k = lax.rsqrt(n + 1e-20)
+        return [si * k for si in s]
+
+    def phi(a, b):  # the bilinear form of Phi
+        return r2 * a[2] * b[2] - (p * a[0] * b[0] + r * (a[0] * b[1] + a[1] * b[0]) + t * a[1] * b[1])
+
+    s = [corner(x0, y0), corner(x1, y0), corner(x1, y1), corner(x0, y1)]
+    front = [side * q[2] for q in s]
+    pp = [phi(q, q) for q in s]
+    hit = inside
+    for k in range(4):
+        hit = hit | ((front[k] > 0) & (pp[k] >= -TOUCH_EPS))
+    for k in range(4):  # the side from corner k (alpha = 1) to corner j (alpha = 0)
+        j = (k + 1) % 4
+        pij = phi(s[k], s[j])
+        c2 = pp[k] - 2.0 * pij + pp[j]
+        c1 = 2.0 * (pij - pp[j])
+        fk, fj = front[k], front[j]
+        d = fj - fk
+        cross = jnp.clip(fj / jnp.where(d == 0, 1.0, d), 0.0, 1.0)  # where the front changes sign
+        lo = jnp.where(fj >= 0, 0.0, cross)
+        hi = jnp.where(fk >= 0, 1.0, cross)
+        vertex = jnp.clip(-c1 / jnp.where(c2 == 0, 1.0, 2.0 * c2), lo, hi)
+        some = (fk >= 0) | (fj >= 0)
+        for a in (lo, hi, vertex):
+            hit = hit | (some & ((c2 * a + c1) * a + pp[j] >= -TOUCH_EPS))
+    if lowpass:
+        dx = jnp.clip(mx, x0, x1) - mx
+        dy = jnp.clip(my, y0, y1) - my
+        hit = hit | (2.0 * (dx * dx + dy * dy) <= r2)
+    return hit | (side == 0)
+
+
+def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity, footprint=None,
+              tile_size: int = 16, lowpass: bool = False):
     """Depth-ordered per-tile lists.
+
+    With ``footprint`` ((C, 16), :attr:`projection.Projection.footprint`), a box's tiles that
+    :func:`tile_touches` rules out are left out.
 
     Returns (sorted_ids (P,), tile_start (T,), tile_count_binned (T,)): the splat ids of pairs
     sorted by tile, each tile's run in front-to-back order.
@@ -61,6 +139,10 @@ def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity):
     w = jnp.maximum(tx1[g] - tx0[g], 1)
     tile = (ty0[g] + k // w) * tiles_x + tx0[g] + k % w
     valid = (p < total) & (k >= 0)
+    if footprint is not None:
+        rows = footprint[g]
+        fp = [rows[:, i] for i in range(FOOTPRINT.width)]
+        valid = valid & tile_touches(fp, tx0[g] + k % w, ty0[g] + k // w, tile_size, lowpass)
     tile = jnp.where(valid, tile, num_tiles)
     tile_sorted, ids_sorted = lax.sort((tile, g), num_keys=1, is_stable=True)
     binned = jnp.zeros((num_tiles + 1,), jnp.int32).at[tile].add(1)[:num_tiles]

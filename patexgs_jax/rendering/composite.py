@@ -222,11 +222,12 @@ def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx):
       rgb_texels, alpha_texels: (M, 3) / (M, 1) flat atlases (:class:`textures.Atlas`) or None
         (differentiable).
       ctx: dict of arrays without gradient: the tile lists (``ids_sorted``, ``tile_start``,
-        ``binned``, from :func:`binning.bin_pairs`); per bank, which splats have a texture
-        (``rgb_has``, ``alpha_has``) and the texels to read (``rgb_texels``, ``alpha_texels``), or
-        None; the texture addressing (``tex_meta``, :func:`texture_lookup.meta_table`); the
-        splats' largest alpha-texture values (``peak``); and ``flag``, a traced True (see
-        :func:`chunks.barrier`).
+        ``binned``, from :func:`binning.bin_pairs`); per bank, which splats have a texture to look
+        up (``rgb_has``, ``alpha_has``: not the one-texel ones, folded into ``packed``) and the
+        texels to read (``rgb_texels``, ``alpha_texels``), or None; which splats have either
+        (``tex_has``); the texture addressing (``tex_meta``, :func:`texture_lookup.meta_table`);
+        the splats' largest alpha-texture values (``peak``; 1 where it is folded into the
+        opacity); and ``flag``, a traced True (see :func:`chunks.barrier`).
     Returns:
       acc (T, P, 9) accumulators, t_final (T, P), best (T, P) int32 id of the largest-weight splat.
 

@@ -61,6 +61,9 @@ class RenderConfig:
         contribute). Any value gives the same image; 1.0 looks up every pair without gathering
         them (the dense path, faster only for the forward of cheap lookups: one alpha bank
         without mipmaps).
+      tile_cull: leave out the (splat, tile) pairs of a splat's screen box whose tile it cannot
+        reach alpha 1/255 in (:func:`binning.tile_touches`): the same image and gradients (to
+        float32 rounding), less compositing where footprints are large or unbounded on screen.
     """
 
     mip: str = "nearest"
@@ -76,6 +79,7 @@ class RenderConfig:
     chunk: int = 32
     tile_batch: int = 8
     texture_pairs: float = 1 / 32
+    tile_cull: bool = True
 
     def __post_init__(self):
         if self.mip not in MIP_MODES:
@@ -137,8 +141,9 @@ class RenderOutput:
         gradient (e.g. to look up per-pixel texture sizes or mip levels).
       radius_px: (C,) float, screen-space half-extent of each splat's footprint (0: not visible).
       visible: (C,) bool, binned into at least one tile.
-      pairs_needed: () float32, (splat, tile) pairs the view needs.
-      max_tile_count: () int32, the most splats any tile lists (a statistic).
+      pairs_needed: () float32, (splat, tile) pairs of the splats' screen boxes: what the capacity
+        must hold (``tile_cull`` then leaves some out of the lists).
+      max_tile_count: () int32, the most screen boxes any tile is in (a statistic).
       overflow: () bool, some pair did not fit the capacity (the image is then truncated).
     """
 

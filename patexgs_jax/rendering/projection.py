@@ -59,6 +59,8 @@ class Projection(NamedTuple):
     bounds: (xmin, xmax, ymin, ymax), each (C,): the footprint's screen-space box in pixels (no
       gradient; +-1e9 where unbounded).
     radius: (C,) half the box's larger side in pixels (0 where not visible, 1e9 where unbounded).
+    footprint: (C, 16) what the binning's per-tile test reads (no gradient; layout
+      :data:`FOOTPRINT`).
     """
 
     packed: jax.Array
@@ -66,6 +68,29 @@ class Projection(NamedTuple):
     visible: jax.Array
     bounds: tuple[jax.Array, jax.Array, jax.Array, jax.Array]
     radius: jax.Array
+    footprint: jax.Array
+
+
+class Footprint(NamedTuple):
+    """The column layout of :attr:`Projection.footprint` (C, 16), the alpha-1/255 region of each splat
+    as :func:`binning.tile_touches` tests it against a tile. The region is where the pixel's ray meets
+    the splat's plane in front of the camera at (u, v) with ``h^T P h <= r2`` (``P`` the kernel's
+    quadratic form: the identity without the prefilter; ``r2`` as in :func:`project`, with the
+    margin of ``texture_lookup.texture_passes``), plus, without the prefilter, the low-pass disc
+    ``2 |d|^2 <= r2`` around the centre."""
+
+    a: slice = slice(0, 3)  # the ray-plane map, as COLS.a, b, c
+    b: slice = slice(3, 6)
+    c: slice = slice(6, 9)
+    conic: slice = slice(9, 12)  # P as (p, r, t)
+    r2: int = 12
+    side: int = 13  # sign(det M): the homogeneous (u, v, 1) of a ray in front of the camera has this sign; 0: unsure
+    mu: slice = slice(14, 16)  # the centre on screen (px)
+    width: int = 16
+
+
+#: The footprint columns' layout (:class:`Footprint`).
+FOOTPRINT = Footprint()
 
 
 def _cross(a, b):
@@ -158,7 +183,7 @@ def ray_planes(M0, M1, M2):
 
 
 def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, active_sh_degree,
-            tex_peak) -> Projection:
+            tex_peak, constant=None) -> Projection:
     """The per-splat quantities of a view (see :class:`Projection` and :class:`Columns`).
 
     Args:
@@ -167,6 +192,8 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
       active_sh_degree: None or a traced int: SH bands above it are masked.
       tex_peak: (C,) the largest alpha-texture value of each splat (:func:`alpha_peak`), for the
         culling.
+      constant: None, or the :func:`constant_textures` of the scene, folded into the colour and
+        the opacity (the compositor then does not look those textures up).
     """
     dt = scene.means.dtype
     w2c = camera.world_to_camera.astype(dt)
@@ -199,6 +226,12 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
     # rho <= 2 log(255 * opacity * max A) =: r2 (with the prefilter, alpha / coverage >= 1/255 and
     # q <= r2: see kernel.alpha_min).
     peak = lax.stop_gradient(opacity * tex_peak)
+    if constant is not None:
+        rgb_add, alpha_mul = constant
+        if rgb_add is not None:
+            color = color + rgb_add
+        if alpha_mul is not None:
+            opacity = opacity * alpha_mul
     if prefilter:
         opacity = opacity * coverage
 
@@ -256,7 +289,31 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
     packed = jnp.concatenate(cols, axis=-1)
     assert packed.shape[-1] == (COLS.width_prefilter if prefilter else COLS.width)
     return Projection(packed=packed, depth=depth, visible=visible, bounds=(xmin, xmax, ymin, ymax),
-                      radius=jnp.where(jnp.isfinite(radius), radius, big))
+                      radius=jnp.where(jnp.isfinite(radius), radius, big),
+                      footprint=_footprint(lax.stop_gradient(packed), peak, prefilter))
+
+
+def _footprint(packed, peak, prefilter: bool):
+    """The (C, 16) :data:`FOOTPRINT` columns of packed splats (see :class:`Footprint`)."""
+    A, B, Cc, M2 = packed[:, COLS.a], packed[:, COLS.b], packed[:, COLS.c], packed[:, COLS.m2]
+    # A ray (x, y) meets the plane at camera z = det M / s2, s2 = x A2 + y B2 + C2, det M = M2 . C.
+    # Where the plane (nearly) contains the camera centre, the sign is not to be trusted in float32:
+    # side 0, every tile of the box is kept.
+    det = jnp.sum(M2 * Cc, axis=-1)
+    sure = jnp.abs(det) > 1e-4 * jnp.linalg.norm(M2, axis=-1) * jnp.linalg.norm(Cc, axis=-1)
+    side = jnp.where(sure, jnp.sign(det), 0.0)
+    if prefilter:
+        conic = packed[:, COLS.conic]
+    else:
+        conic = jnp.broadcast_to(jnp.asarray([1.0, 0.0, 1.0], packed.dtype), A.shape)
+    r2 = 2.0 * jnp.log(jnp.maximum(peak, ALPHA_MIN) * (255.0 / (1.0 - 1e-3)))
+    # The test is homogeneous in (A, B, C): scaled so that s = x A + y B + C stays far from float32's
+    # range at any pixel (x, y up to about 1e4).
+    m = jnp.maximum(jnp.max(jnp.abs(jnp.concatenate([A, B], axis=-1)), axis=-1) * 1e4,
+                    jnp.max(jnp.abs(Cc), axis=-1))
+    k = 1.0 / jnp.maximum(m, 1e-30)[:, None]
+    A, B, Cc = A * k, B * k, Cc * k
+    return jnp.concatenate([A, B, Cc, conic, r2[:, None], side[:, None], packed[:, COLS.mu]], axis=-1)
 
 
 def alpha_peak(scene: Scene):
@@ -273,3 +330,23 @@ def alpha_peak(scene: Scene):
         m = jnp.max(lax.stop_gradient(data), axis=(1, 2, 3))
         peak = jnp.where(bucket == b, m[jnp.clip(slot, 0, data.shape[0] - 1)], peak)
     return peak
+
+
+def constant_textures(scene: Scene):
+    """The textures of one texel (side 1, bucket 0: a constant, which a lookup returns exactly) as
+    per-splat terms: (rgb_add (C, 3) or None, alpha_mul (C,) or None, rgb_const (C,) bool or None,
+    alpha_const (C,) bool or None): the RGB offset to add to the colour (0 elsewhere), the factor of
+    the opacity (1 elsewhere), and which splats' textures they are. Differentiable in the texels."""
+    out = []
+    for bank, neutral in ((scene.rgb, 0.0), (scene.alpha, 1.0)):
+        if bank is None or not bank.buckets or bank.buckets[0].shape[0] == 0:
+            out.append((None, None))
+            continue
+        data = bank.buckets[0]
+        const = lax.stop_gradient(bank.bucket) == 0
+        slot = jnp.clip(lax.stop_gradient(bank.slot).astype(jnp.int32), 0, data.shape[0] - 1)
+        value = data[slot, 0, 0]  # (C, ch)
+        value = jnp.where(const[:, None], value, neutral)
+        out.append((value if bank.channels > 1 else value[:, 0], const))
+    (rgb_add, rgb_const), (alpha_mul, alpha_const) = out
+    return rgb_add, alpha_mul, rgb_const, alpha_const

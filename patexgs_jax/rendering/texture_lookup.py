@@ -224,7 +224,7 @@ def texture_passes(st: Static, ctx, pk, gid, valid, G, done):
     if K >= N:
         return None
     bound = cols(pk)[COLS.opacity] * per_slot(ctx["peak"][gid]) * G
-    take = per_slot(valid) & ~done & (bound >= alpha_min(st, pk) * (1.0 - 1e-3))
+    take = per_slot(valid & ctx["tex_has"][gid]) & ~done & (bound >= alpha_min(st, pk) * (1.0 - 1e-3))
     return _mark_passes(take, K)
 
 
