@@ -1,4 +1,4 @@
-"""Builders of numerically hard scenes for tests/unit/test_hard_cases.py.
+"""Builders of numerically hard scenes for tests/integration/test_hard_cases.py.
 
 Every scene has the same shapes (capacity ``C``, the texture sizes of ``RGB_SIZES`` / ``ALPHA_SIZES`` on
 the first ``NTEX`` slots) and every camera the same image size, so one compiled renderer serves them
@@ -62,7 +62,7 @@ def build(case: str, seed: int, knob: float):
 
     ``info``: dict with ``n`` (slots used) and ``ill_conditioned``: None, "near_plane" (splat centres
     within float32 rounding of the near plane) or "alpha_tie" (alpha textures that clamp alpha at 0.99
-    on many pixels); see tests/unit/test_hard_cases.py for what each means.
+    on many pixels); see tests/integration/test_hard_cases.py for what each means.
     """
     rng = np.random.default_rng(seed)
     n = NTEX

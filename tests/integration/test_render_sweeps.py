@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import hard_scenes as hs
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, render, render_jit, rendering
 from patexgs_jax.data import box_downsample
 from patexgs_jax.training import TrainConfig
@@ -29,6 +30,7 @@ from render_cases import (
     check_gradients_match_finite_differences,
     check_hard_case_gradients_finite,
     check_matches_reference,
+    check_tile_cull_keeps_every_pair,
     scene,
     single_splat_scene,
 )
@@ -45,6 +47,11 @@ def test_matches_reference(name):
 @pytest.mark.parametrize("name", ["2dgs", "trilinear"])
 def test_gradients_match_finite_differences(name):
     check_gradients_match_finite_differences(name)
+
+
+@pytest.mark.parametrize("case", [c for c in hs.CASES if c not in ("edge_on", "near_plane")])
+def test_tile_cull_keeps_every_pair_that_can_contribute(case):
+    check_tile_cull_keeps_every_pair(case)
 
 
 @pytest.mark.parametrize("case", HARD_CASES)

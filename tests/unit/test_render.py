@@ -4,7 +4,6 @@ outputs' invariants, its compiles and tile capacity, and its input checks."""
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -15,8 +14,7 @@ from hypothesis import strategies as st
 
 import hard_scenes as hs
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, render, render_jit, rendering
-from patexgs_jax.rendering import binning, chunks, kernel, projection
-from patexgs_jax.rendering.projection import COLS
+from patexgs_jax.rendering import chunks
 from render_cases import (
     CAP,
     CONFIGS,
@@ -25,6 +23,8 @@ from render_cases import (
     W,
     camera,
     check_matches_reference,
+    check_tile_cull_keeps_every_pair,
+    cull_pairs,
     ref_render,
     scene,
     tile_render,
@@ -188,61 +188,11 @@ def test_texture_pairs_is_validated():
 # ---------------------------------------------------------------------------------------------
 # Pairs left out of a splat's screen box (binning.tile_touches)
 # ---------------------------------------------------------------------------------------------
-_CULL_PAIRS = 8192  # pairs checked per scene (padded): one compile for every scene of a shape
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def _cull_check(sc, cam, config, g, px, py, real):
-    """For the (splat g, tile (px, py)) pairs (real ones marked): whether tile_touches keeps each,
-    and whether the compositor's own kernel reaches alpha 1/255 (bounded by each splat's largest
-    alpha texel) at a pixel of the tile in front of the near plane."""
-    ts = config.tile_size
-    prefilter = config.coverage == "prefilter"
-    peak = projection.alpha_peak(sc)
-    proj = projection.project(sc, cam, config, None, None, peak)
-    keep = binning.tile_touches([proj.footprint[:, i][g] for i in range(projection.FOOTPRINT.width)],
-                                px, py, ts, not prefilter)
-    pk = proj.packed[g][:, None, :]                                        # (N, 1, F): one slot a "tile"
-    iy, ix = jnp.divmod(jnp.arange(ts * ts), ts)
-    x = (px[:, None] * ts + ix).astype(jnp.float32) + 0.5
-    y = (py[:, None] * ts + iy).astype(jnp.float32) + 0.5
-    G, z = kernel.chunk_geometry(pk, x, y, prefilter)                      # (1, N, P)
-    col = chunks.cols(pk)
-    bound = col[COLS.opacity] * peak[g][None, :, None] * G
-    floor = kernel.alpha_min(chunks.Static(config, 1, 1, False, False), pk)
-    reach = jnp.any((bound >= floor) & (z > config.near), axis=(0, 2)) & real
-    return keep & real, reach
-
-
-def _cull_pairs(sc, cam, config):
-    """(kept, reached, boxed): tile_touches' verdicts and the kernel's over every pair of the screen
-    boxes of a view (kept, reached (N,) bool; N = boxed)."""
-    proj = projection.project(sc, cam, config, None, None, projection.alpha_peak(sc))
-    ts = config.tile_size
-    tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in binning.tile_ranges(
-        proj.bounds, proj.visible, ts, -(-cam.width // ts), -(-cam.height // ts)))
-    pairs = [(i, x, y) for i in np.flatnonzero(ok) for y in range(ty0[i], ty1[i]) for x in range(tx0[i], tx1[i])]
-    n = len(pairs)
-    assert 0 < n <= _CULL_PAIRS
-    g, px, py = (np.pad(np.asarray(v, np.int32), (0, _CULL_PAIRS - n)) for v in zip(*pairs))
-    keep, reach = _cull_check(sc, cam, config, g, px, py, np.arange(_CULL_PAIRS) < n)
-    return np.asarray(keep)[:n], np.asarray(reach)[:n], n
-
-
-_CULL_CONFIGS = [RenderConfig(coverage="prefilter"), RenderConfig(coverage="lowpass")]
-
-
-@pytest.mark.parametrize("case", hs.CASES)
+@pytest.mark.parametrize("case", ["edge_on", "near_plane"])
 def test_tile_cull_keeps_every_pair_that_can_contribute(case):
-    """No (splat, tile) pair that tile_touches leaves out reaches alpha 1/255 at a pixel of its tile in
-    front of the near plane, by the compositor's own float32 kernel, on the hard cases (splats
-    edge-on, needles, tiny and huge, across the near plane, far, at extreme focal lengths), in both
-    coverage modes."""
-    for seed, knob in [(0, 0.0), (1, 0.5), (2, 1.0)]:
-        sc, cam, _ = hs.build(case, seed, knob)
-        for cfg in _CULL_CONFIGS:
-            keep, reach, _ = _cull_pairs(sc, cam, cfg)
-            assert not np.any(reach & ~keep), (case, seed, knob, cfg.coverage)
+    """Edge-on splats and splats across the near plane; the other hard cases are in
+    tests/integration/test_render_sweeps.py."""
+    check_tile_cull_keeps_every_pair(case)
 
 
 def _far_walls_scene():
@@ -279,7 +229,7 @@ def test_tile_cull_drops_pairs_of_unbounded_footprints_and_keeps_the_image(cover
     is the one without the cull (rgb, alpha, depth, normal, the dominant splat)."""
     sc, cam = _far_walls_scene()
     cfg = RenderConfig(coverage=coverage)
-    keep, reach, n = _cull_pairs(sc, cam, cfg)
+    keep, reach, n = cull_pairs(sc, cam, cfg)
     assert not np.any(reach & ~keep)
     assert keep.sum() < 0.6 * n, (int(keep.sum()), n)
     cap = Capacity(pairs=8192)
