@@ -5,6 +5,7 @@ the splat cannot reach alpha 1/255 in are left out (:func:`tile_touches`)."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -111,6 +112,59 @@ def tile_touches(fp, tx, ty, tile_size: int, lowpass: bool):
     return hit | (side == 0)
 
 
+#: bin_pairs tests the pairs' tiles in this many blocks of slots (of at least _CULL_MIN_BLOCK), and
+#: skips the blocks past the box pairs: a capacity is a power of two, with headroom in the viewer
+#: (twice a view's pairs), so that many of its slots are empty.
+_CULL_BLOCKS = 16
+_CULL_MIN_BLOCK = 4096
+
+
+def _touches_in_blocks(footprint, g, tx, ty, total, tile_size: int, lowpass: bool):
+    """:func:`tile_touches` of the slots' splats ``g`` and tiles (tx, ty) (each (N,)), computed only
+    for the blocks of slots that hold a pair (slot < ``total``); False in the others."""
+    N = g.shape[0]
+    nb = _CULL_BLOCKS if N % _CULL_BLOCKS == 0 and N // _CULL_BLOCKS >= _CULL_MIN_BLOCK else 1
+    n = N // nb
+
+    def block(args):
+        gb, txb, tyb = args
+        rows = footprint[gb]
+        return tile_touches([rows[:, i] for i in range(FOOTPRINT.width)], txb, tyb, tile_size, lowpass)
+
+    def one(i, args):
+        return lax.cond(i * n < total, block, lambda a: jnp.zeros(a[0].shape, bool), args)
+
+    if nb == 1:
+        return block((g, tx, ty))
+    blocks = jax.tree.map(lambda a: a.reshape(nb, n), (g, tx, ty))
+    return lax.map(lambda a: one(*a), (jnp.arange(nb), blocks)).reshape(N)
+
+
+#: bin_pairs sorts the shortest prefix of the slots, of 1/2**k of them (k < this), that holds every
+#: box pair: pairs fill the slots from the first, and the tiles' lists read only the kept pairs.
+_SORT_PREFIXES = 4
+
+
+def _sort_prefix(tile, g, total):
+    """The splat ids ``g`` (N,) stably sorted by ``tile`` (N,), where only the first ``total`` slots
+    can hold pairs (the others have the largest key): only the shortest prefix of N / 2**k slots
+    that holds them is sorted (a branch per prefix length); the output's other slots are 0."""
+    N = g.shape[0]
+    sizes = [N] + [N >> k for k in range(1, _SORT_PREFIXES) if (N >> k) >= _CULL_MIN_BLOCK and (N >> k) << k == N]
+
+    def branch(n):
+        def run(args):
+            t, ids = args
+            out = lax.sort((t[:n], ids[:n]), num_keys=1, is_stable=True)[1]
+            return out if n == N else jnp.concatenate([out, jnp.zeros((N - n,), out.dtype)])
+        return run
+
+    if len(sizes) == 1:
+        return branch(N)((tile, g))
+    index = jnp.sum(jnp.asarray(sizes[1:], jnp.int32) >= total)  # sizes decrease
+    return lax.switch(index, [branch(n) for n in sizes], (tile, g))
+
+
 def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity, footprint=None,
               tile_size: int = 16, lowpass: bool = False):
     """Depth-ordered per-tile lists.
@@ -140,11 +194,9 @@ def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity, 
     tile = (ty0[g] + k // w) * tiles_x + tx0[g] + k % w
     valid = (p < total) & (k >= 0)
     if footprint is not None:
-        rows = footprint[g]
-        fp = [rows[:, i] for i in range(FOOTPRINT.width)]
-        valid = valid & tile_touches(fp, tx0[g] + k % w, ty0[g] + k // w, tile_size, lowpass)
+        valid = valid & _touches_in_blocks(footprint, g, tx0[g] + k % w, ty0[g] + k // w, total, tile_size, lowpass)
     tile = jnp.where(valid, tile, num_tiles)
-    tile_sorted, ids_sorted = lax.sort((tile, g), num_keys=1, is_stable=True)
+    ids_sorted = _sort_prefix(tile, g, total)
     binned = jnp.zeros((num_tiles + 1,), jnp.int32).at[tile].add(1)[:num_tiles]
     tile_start = jnp.cumsum(binned) - binned
     return ids_sorted, tile_start, binned
