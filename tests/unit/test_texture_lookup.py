@@ -57,6 +57,26 @@ def test_pyramid_levels_and_their_transpose_match_numpy():
                                        rtol=0, atol=1e-12)
 
 
+def test_level_addresses_are_the_pyramid_layout():
+    """Level l of a block of bucket side P starts at sum_{k<l} (P >> k)^2 = (4/3)(P^2 - (P >> l)^2),
+    with row stride and side P >> l (level 0: stride P, side the texture's own n), for every
+    bucket side up to 4096 and level, under jit as the renderer computes it."""
+    from patexgs_jax import textures as tx
+
+    sides, levels, want = [], [], []
+    for b in range(13):
+        for lev in range(b + 1):
+            sides.append(1 << b)
+            levels.append(lev)
+            want.append(sum(((1 << b) >> k) ** 2 for k in range(lev)))
+    P, L = jnp.asarray(sides, jnp.int32), jnp.asarray(levels, jnp.int32)
+    n = jnp.maximum(P - 1, 1)
+    off, stride, side = jax.jit(tx.level_address)(P, n, L)
+    np.testing.assert_array_equal(np.asarray(off), want)
+    np.testing.assert_array_equal(np.asarray(stride), np.where(L == 0, P, P >> L))
+    np.testing.assert_array_equal(np.asarray(side), np.where(L == 0, n, P >> L))
+
+
 def test_constant_texture_is_mip_invariant():
     rgb = np.full((9, 9, 3), 0.25)
     alpha = np.full((6, 6), 0.8)
