@@ -28,7 +28,7 @@ import numpy as np
 
 from . import compiled
 from .camera import Camera
-from .rendering import Capacity, count_pairs, render_jit
+from .rendering import Capacity, count_pairs, prepare_textures, render_jit
 
 #: Bucket sizes per octave of tiles used by evaluation: the exact tile grid up to 16 x 16 = 256
 #: pixels a side, at most an eighth of extra tiles above (beer's test views at 1/4 and their
@@ -128,17 +128,21 @@ class ViewRenderer:
       steps_per_octave: the buckets (see :func:`bucket_side`; None: the exact tile grid).
       active_sh_degree: optional cap on the SH bands.
       headroom: a bucket first met in :meth:`padded` gets the capacity of ``headroom`` times the
-        view's need, so that nearby views (an interactive camera) fit it without a new program; the
-        sort runs over the whole capacity, so headroom costs render time.
+        view's need, so that nearby views (an interactive camera) fit it without a new program.
+      reuse_textures: build the scene's texture atlases and their pyramids once
+        (:func:`rendering.prepare_textures`) and reuse them for every view, instead of in every
+        render: for many views of one scene (a viewer), at the cost of one more program.
     """
 
     def __init__(self, scene, config, *, steps_per_octave: int | None = EVAL_STEPS_PER_OCTAVE,
-                 active_sh_degree=None, headroom: float = 1.0):
+                 active_sh_degree=None, headroom: float = 1.0, reuse_textures: bool = False):
         if not headroom >= 1.0:
             raise ValueError(f"headroom must be >= 1, got {headroom}.")
         self.scene, self.config, self.steps = scene, config, steps_per_octave
         self.active_sh_degree = active_sh_degree
         self.headroom = float(headroom)
+        self.reuse_textures = reuse_textures
+        self._textures = None  # the scene's prepare_textures, once built (reuse_textures)
         self.capacities: dict = {}  # (height, width) of a bucket -> Capacity; as many as buckets
 
     def camera(self, camera: Camera) -> Camera:
@@ -164,12 +168,14 @@ class ViewRenderer:
         cap = self.capacities.get(key)
         if cap is None:
             cap = self.capacities[key] = Capacity.fit(self.headroom * self._needed(cam))
+        if self.reuse_textures and self._textures is None:
+            self._textures = prepare_textures(self.scene, config=self.config)
         out = render_jit(self.scene, cam, config=self.config, capacity=cap,
-                         active_sh_degree=self.active_sh_degree)
+                         active_sh_degree=self.active_sh_degree, textures=self._textures)
         if bool(out.overflow):  # a view not prepared for, needing more than its bucket holds
             cap = self.capacities[key] = Capacity.fit(float(out.pairs_needed), minimum=cap)
             out = render_jit(self.scene, cam, config=self.config, capacity=cap,
-                             active_sh_degree=self.active_sh_degree)
+                             active_sh_degree=self.active_sh_degree, textures=self._textures)
         return out
 
     def __call__(self, camera: Camera):
@@ -185,6 +191,7 @@ class ViewRenderer:
         """Releases the compiled renderer and pair counter (see :func:`release_scene_programs`)."""
         release_scene_programs()
         self.capacities.clear()
+        self._textures = None
 
     def __enter__(self):
         return self
@@ -195,8 +202,8 @@ class ViewRenderer:
 
 
 def release_scene_programs() -> None:
-    """Releases the renderer's and the pair counter's compiled programs (one per scene shape, image
-    size and capacity), and the image metrics' (one per image size)."""
+    """Releases the renderer's, the pair counter's and the texture preparer's compiled programs (one
+    per scene shape, image size and capacity), and the image metrics' (one per image size)."""
     from . import metrics
 
-    compiled.release_programs(render_jit, count_pairs, metrics.ssim)
+    compiled.release_programs(render_jit, count_pairs, prepare_textures, metrics.ssim)

@@ -181,6 +181,7 @@ class TextureBank:
         return int(np.sum(n * n))
 
 
+@jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Atlas:
     """The texels of one bank, all buckets and used levels flattened (built inside jit).

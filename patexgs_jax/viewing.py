@@ -349,7 +349,7 @@ class FrameRenderer:
         r = self._renderers.get(mode)
         if r is None:
             config = dataclasses.replace(mode_config(self.base, mode), **FRAME_SCHEDULE)
-            r = self._renderers[mode] = ViewRenderer(self.scene, config, headroom=self.headroom)
+            r = self._renderers[mode] = ViewRenderer(self.scene, config, headroom=self.headroom, reuse_textures=True)
         return r
 
     def render(self, camera: Camera, *, mode: str = "patexgs", view: str = "rgb", scale: int = 1,
@@ -428,13 +428,13 @@ class FrameRenderer:
 
 
 def _programs() -> tuple:
-    """Traces of the renderer and programs of the pair counter and the mip-level function: a frame
-    that changes them compiled something."""
+    """Traces of the renderer and programs of the pair counter, the texture preparer and the mip-level
+    function: a frame that changes them compiled something."""
     from . import compiled
-    from .rendering import TRACE_COUNTS, count_pairs
+    from .rendering import TRACE_COUNTS, count_pairs, prepare_textures
 
     return (sum(TRACE_COUNTS.values()), compiled.program_count(count_pairs),
-            compiled.program_count(dominant_mip_level))
+            compiled.program_count(prepare_textures), compiled.program_count(dominant_mip_level))
 
 
 def scene_stats(scene) -> dict:

@@ -54,7 +54,8 @@ Structure: one stage a module
   hand-derived backward), :mod:`.texture_lookup` (the mip footprint, the atlas lookups of only the
   pairs that can contribute, their backward) and :mod:`.composite` (front-to-back compositing, its
   hand-written backward, ``jax.custom_vjp``, which re-walks the chunks and stores nothing per pair).
-  This module: :func:`render`, :data:`render_jit`, :data:`count_pairs` and :func:`check_inputs`.
+  This module: :func:`render`, :data:`render_jit`, :data:`count_pairs`, :data:`prepare_textures`
+  and :func:`check_inputs`.
 
   One-texel textures are constants: they are folded into the splat's colour and opacity
   (:func:`projection.constant_textures`) and not looked up.
@@ -67,6 +68,7 @@ Structure: one stage a module
 from __future__ import annotations
 
 import collections
+import dataclasses
 import warnings
 
 import chex
@@ -109,6 +111,8 @@ __all__ = [
     "RenderOutput",
     "check_inputs",
     "count_pairs",
+    "SceneTextures",
+    "prepare_textures",
     "render",
     "render_jit",
 ]
@@ -176,27 +180,76 @@ def _project_and_range(scene: Scene, camera: Camera, config: RenderConfig, scree
     return proj, ranges, pair_count(*ranges), jnp.max(hist)
 
 
+def _mip_banks(config: RenderConfig) -> tuple[bool, bool]:
+    """Whether the RGB and the alpha atlases hold mip pyramids under ``config``."""
+    use_mip = config.mip != "none"
+    return use_mip and config.rgb_mip, use_mip and config.alpha_mip
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SceneTextures:
+    """What a render derives from the scene's textures alone, for any view: reusable across the
+    views of a scene that does not change (:func:`prepare_textures`).
+
+    Attributes:
+      peak: (C,) each splat's largest alpha-texture value (:func:`projection.alpha_peak`).
+      rgb_add, alpha_mul, rgb_const, alpha_const: the one-texel textures folded into the colour and
+        opacity (:func:`projection.constant_textures`), or None.
+      rgb_atlas, alpha_atlas: the banks' :class:`textures.Atlas` (with their mip pyramids), or None.
+      mips: (static) whether each atlas holds its pyramid, as :func:`_mip_banks` of the config it
+        was prepared for.
+    """
+
+    peak: jax.Array
+    rgb_add: jax.Array | None
+    alpha_mul: jax.Array | None
+    rgb_const: jax.Array | None
+    alpha_const: jax.Array | None
+    rgb_atlas: tex.Atlas | None
+    alpha_atlas: tex.Atlas | None
+    mips: tuple = dataclasses.field(metadata=dict(static=True))
+
+
+def _scene_textures(scene: Scene, config: RenderConfig) -> SceneTextures:
+    rgb_mip, alpha_mip = mips = _mip_banks(config)
+    return SceneTextures(
+        alpha_peak(scene), *constant_textures(scene),
+        rgb_atlas=None if scene.rgb is None else tex.build_atlas(scene.rgb, rgb_mip),
+        alpha_atlas=None if scene.alpha is None else tex.build_atlas(scene.alpha, alpha_mip), mips=mips)
+
+
+#: ``prepare_textures(scene, config=...)`` -> :class:`SceneTextures`: the texture atlases (with
+#: their mip pyramids), peaks and one-texel folds of ``scene`` for renders with ``config``'s mip
+#: settings, built once. Pass them to :data:`render_jit` (``textures=``) for every view of a scene
+#: that does not change (a viewer, an evaluation): each frame then does its view's work only, where
+#: it would otherwise rebuild every texture's pyramid. No gradient reaches the textures through
+#: prepared ones.
+prepare_textures = jax.jit(_scene_textures, static_argnames=("config",))
+
+
 def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capacity,
-            screen_offset=None, active_sh_degree=None) -> RenderOutput:
+            screen_offset=None, active_sh_degree=None, textures: SceneTextures | None = None) -> RenderOutput:
     TRACE_COUNTS[(config, capacity)] += 1
     check_inputs(scene, camera)
     H, W, ts = camera.height, camera.width, config.tile_size
     tiles_x, tiles_y = _tile_grid(camera, config)
     num_tiles = tiles_x * tiles_y
-    peak = alpha_peak(scene)
-    rgb_add, alpha_mul, rgb_const, alpha_const = constant_textures(scene)
+    if textures is None:
+        textures = _scene_textures(scene, config)
+    elif textures.mips != _mip_banks(config) or (textures.rgb_atlas is None) != (scene.rgb is None) or (
+            textures.alpha_atlas is None) != (scene.alpha is None):
+        raise ValueError("render: the prepared textures were made for another scene or other mip settings; "
+                         "call prepare_textures(scene, config=config) with this render's scene and config.")
+    peak, rgb_add, alpha_mul = textures.peak, textures.rgb_add, textures.alpha_mul
+    rgb_const, alpha_const = textures.rgb_const, textures.alpha_const
+    rgb_atlas, alpha_atlas = textures.rgb_atlas, textures.alpha_atlas
     proj, (tx0, tx1, ty0, ty1, ok), pairs_needed, max_tile = _project_and_range(
         scene, camera, config, screen_offset, active_sh_degree, peak, (rgb_add, alpha_mul))
     ids_sorted, tile_start, binned = bin_pairs(
         proj.depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, capacity.pairs,
         footprint=proj.footprint if config.tile_cull else None, tile_size=ts, lowpass=config.coverage == "lowpass")
 
-    use_mip = config.mip != "none"
-    rgb_atlas = alpha_atlas = None
-    if scene.rgb is not None:
-        rgb_atlas = tex.build_atlas(scene.rgb, use_mip and config.rgb_mip)
-    if scene.alpha is not None:
-        alpha_atlas = tex.build_atlas(scene.alpha, use_mip and config.alpha_mip)
     st = Static(config=config, tiles_x=tiles_x, num_tiles=num_tiles, rgb=rgb_atlas is not None,
                 alpha=alpha_atlas is not None)
     # One-texel textures are folded into the colour and opacity (constant_textures): not looked up.
@@ -241,11 +294,12 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
 
 
 #: The jitted renderer: ``render_jit(scene, camera, config=..., capacity=..., screen_offset=None,
-#: active_sh_degree=None)``. It never grows its capacity: check ``output.overflow`` on the host
+#: active_sh_degree=None, textures=None)``. It never grows its capacity: check ``output.overflow`` on the host
 #: (training does, between steps) and call again with ``Capacity.fit(output.pairs_needed)``.
 #: ``screen_offset`` ((C, 2) zeros) is a gradient hook: its gradient is the loss gradient with
 #: respect to a screen-space translation of each splat, in pixels (the densification statistic);
-#: ``active_sh_degree`` (traced int) masks SH bands above it.
+#: ``active_sh_degree`` (traced int) masks SH bands above it; ``textures``: the scene's
+#: :func:`prepare_textures` for this config, or None to build them (differentiably) in the render.
 render_jit = jax.jit(_render, static_argnames=("config", "capacity"))
 
 

@@ -33,6 +33,7 @@ from render_cases import (
     check_tile_cull_keeps_every_pair,
     scene,
     single_splat_scene,
+    tile_render,
 )
 
 PREFILTER = TrainConfig(method="patexgs").render_config()
@@ -155,3 +156,19 @@ def test_zoom_out_matches_supersampled_render(seed, factor, textured):
     assert got["prefilter"] >= 28.0, got
     assert got["prefilter"] >= got["lowpass"] - 0.5, got
 
+
+def test_prepared_textures_render_the_same_image_and_must_match_the_config():
+    """render_jit with the scene's prepare_textures (built once, as the viewer reuses them) gives the
+    render that builds them itself, to the bit; textures prepared for other mip settings or a scene
+    without textures are refused with a line that names the fix."""
+    sc, cam = scene(3), camera()
+    cfg = RenderConfig(mip="nearest", coverage="prefilter")
+    tx = rendering.prepare_textures(sc, config=cfg)
+    own = tile_render(sc, cam, cfg)
+    out = jax.tree_util.tree_map(np.asarray, render_jit(sc, cam, config=cfg, capacity=CAP, textures=tx))
+    for name in ("rgb", "alpha", "depth", "normal", "dominant"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(own, name), err_msg=name)
+    with pytest.raises(ValueError, match="prepare_textures"):
+        render_jit(sc, cam, config=dataclasses.replace(cfg, mip="none"), capacity=CAP, textures=tx)
+    with pytest.raises(ValueError, match="prepare_textures"):
+        render_jit(scene(3, textured=False), cam, config=cfg, capacity=CAP, textures=tx)
