@@ -284,4 +284,3 @@ def test_bin_pairs_lists_with_culled_blocks_and_sorted_prefixes(box):
                 if ok[g] and every[g] and tx0[g] <= x < tx1[g] and ty0[g] <= y < ty1[g]]
         assert binned[t] == len(want)
         np.testing.assert_array_equal(ids[start[t]:start[t] + binned[t]], want)
-
