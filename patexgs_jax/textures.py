@@ -328,9 +328,9 @@ def level_address(bucket_side, size, level):
     """
     s = jnp.right_shift(bucket_side, level)
     zero = level == 0
-    # 4 (P^2 - s^2) = 4 s^2 (4^l - 1) and its third 4 s^2 (4^l - 1) / 3 are exact in float32 for l <= 12
-    # (bucket sides up to 4096): the division is exact, where XLA's CPU integer floor division is
-    # emulated per element and cost a texture lookup several times more.
+    # 4 (P^2 - s^2) = 4 s^2 (4^l - 1) and its third are exact in float32 for l <= 12 (bucket sides up
+    # to 4096), so the division is exact; XLA's CPU emulates an integer floor division per element
+    # (a sign, a remainder and selects) in every texture lookup.
     off = ((bucket_side * bucket_side - s * s) * 4).astype(jnp.float32) / 3.0
     return jnp.where(zero, 0, off.astype(jnp.int32)), jnp.where(zero, bucket_side, s), jnp.where(zero, size, s)
 
