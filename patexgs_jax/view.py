@@ -471,7 +471,11 @@ def main(argv=None) -> int:
     print(f"viewer: open http://{shown}:{args.port} ({len(runs)} run{'s' if len(runs) > 1 else ''}; "
           "Ctrl-C to stop)", flush=True)
     done = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    # Ctrl-C and SIGTERM end the viewer even when the process that started it ignores or blocks
+    # them (both are inherited: a test runner's worker, a job controller).
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     try:
         while not done.wait(0.5):
             pass

@@ -84,11 +84,17 @@ def test_cli_bad_input(viewer_run_dir, tmp_path, capsys):
 # ------------------------------------------------------------------------------------------------
 # The server
 # ------------------------------------------------------------------------------------------------
-def start_viewer(path, port, *extra):
+def start_viewer(path, port, *extra, before=None):
+    """The viewer's process and its log file, once it printed its URL; ``before``: Python statements
+    run in the process first, which then becomes the viewer (exec keeps signal dispositions and
+    masks, as a viewer started by another program inherits them)."""
     env = subprocess_env(PYTHONUNBUFFERED="1")
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
-    proc = subprocess.Popen([sys.executable, "-m", "patexgs_jax.view", str(path), "--port", str(port), *extra],
-                            stdout=log, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
+    cmd = [sys.executable, "-m", "patexgs_jax.view", str(path), "--port", str(port), *extra]
+    if before is not None:
+        cmd = [sys.executable, "-c", f"import os, signal, sys; {before}; os.execv(sys.executable, "
+               "[sys.executable] + sys.argv[1:])"] + cmd[1:]
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         text = Path(log.name).read_text()
@@ -273,6 +279,23 @@ def test_server_stops_on_sigint(server):
     assert proc.returncode == 0 and "Traceback" not in text, text
     assert took < 10, took
     assert text.rstrip().endswith("viewer: stopped"), text
+
+
+@pytest.mark.parametrize("inherit", ["signal.signal(signal.SIGINT, signal.SIG_IGN)",
+                                     "signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})"],
+                         ids=["ignored", "blocked"])
+def test_server_stops_on_sigint_it_inherited_ignored_or_blocked(viewer_run_dir, inherit):
+    """A viewer started with SIGINT ignored or blocked (both are inherited, e.g. from a test runner's
+    worker) still ends on Ctrl-C."""
+    proc, log = start_viewer(viewer_run_dir, free_port(), before=inherit)
+    try:
+        took = stop_viewer(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = log.read_text()
+    assert proc.returncode == 0 and text.rstrip().endswith("viewer: stopped"), text
+    assert took < 10, took
 
 
 def test_bench_viewer_reports_frames(tmp_path, capsys):
