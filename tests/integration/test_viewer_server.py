@@ -284,7 +284,7 @@ def test_server_stops_on_sigint(server):
 @pytest.mark.parametrize("inherit", ["signal.signal(signal.SIGINT, signal.SIG_IGN)",
                                      "signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})"],
                          ids=["ignored", "blocked"])
-def test_server_stops_on_sigint_it_inherited_ignored_or_blocked(viewer_run_dir, inherit):
+def test_server_stops_on_sigint_inherited_ignored_or_blocked(viewer_run_dir, inherit):
     """A viewer started with SIGINT ignored or blocked (both are inherited, e.g. from a test runner's
     worker) still ends on Ctrl-C."""
     proc, log = start_viewer(viewer_run_dir, free_port(), before=inherit)
