@@ -118,10 +118,8 @@ def prepare(name, n, width, height):
         proj = projection.project(s, c, cfg, None, None, projection.alpha_peak(s))
         ts = cfg.tile_size
         tx, ty = -(-c.width // ts), -(-c.height // ts)
-        tx0, tx1, ty0, ty1, ok = binning.tile_ranges(proj.bounds, proj.visible, ts, tx, ty)
-        return binning.bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tx, tx * ty, cap.pairs,
-                                 footprint=proj.footprint if cfg.tile_cull else None, tile_size=ts,
-                                 lowpass=cfg.coverage == "lowpass")
+        ranges = binning.tile_ranges(proj.bounds, proj.visible, ts, tx, ty)
+        return binning.bin_projection(proj, ranges, tx, tx * ty, cap.pairs, cfg)
 
     bin_c = jax.jit(bin_view).lower(scene, cam).compile()
     jax.block_until_ready(bin_c(scene, cam))

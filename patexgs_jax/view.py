@@ -476,10 +476,7 @@ def main(argv=None) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
-    try:
-        while not done.wait(0.5):
-            pass
-    except KeyboardInterrupt:
+    while not done.wait(0.5):
         pass
     viewer.stop(timeout=3.0)  # a frame still compiling is not waited for (see below)
     print("viewer: stopped", flush=True)

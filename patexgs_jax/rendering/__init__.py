@@ -79,7 +79,7 @@ from jax import lax
 from .. import textures as tex
 from ..camera import Camera
 from ..scene import Scene
-from .binning import bin_pairs, pair_count, tile_histogram, tile_ranges
+from .binning import bin_projection, pair_count, tile_histogram, tile_ranges
 from .chunks import Static
 from .composite import composite_tiles
 from .config import (
@@ -244,11 +244,10 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     peak, rgb_add, alpha_mul = textures.peak, textures.rgb_add, textures.alpha_mul
     rgb_const, alpha_const = textures.rgb_const, textures.alpha_const
     rgb_atlas, alpha_atlas = textures.rgb_atlas, textures.alpha_atlas
-    proj, (tx0, tx1, ty0, ty1, ok), pairs_needed, max_tile = _project_and_range(
+    proj, ranges, pairs_needed, max_tile = _project_and_range(
         scene, camera, config, screen_offset, active_sh_degree, peak, (rgb_add, alpha_mul))
-    ids_sorted, tile_start, binned = bin_pairs(
-        proj.depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, capacity.pairs,
-        footprint=proj.footprint if config.tile_cull else None, tile_size=ts, lowpass=config.coverage == "lowpass")
+    ids_sorted, tile_start, binned = bin_projection(proj, ranges, tiles_x, num_tiles, capacity.pairs, config)
+    ok = ranges[4]
 
     st = Static(config=config, tiles_x=tiles_x, num_tiles=num_tiles, rgb=rgb_atlas is not None,
                 alpha=alpha_atlas is not None)

@@ -112,32 +112,34 @@ def tile_touches(fp, tx, ty, tile_size: int, lowpass: bool):
     return hit | (side == 0)
 
 
-#: bin_pairs tests the pairs' tiles in this many blocks of slots (of at least _CULL_MIN_BLOCK), and
-#: skips the blocks past the box pairs: a capacity is a power of two, with headroom in the viewer
-#: (twice a view's pairs), so that many of its slots are empty.
+#: bin_pairs tests the pairs' tiles in this many blocks of slots and skips the blocks past the box
+#: pairs: a capacity is a power of two, with headroom in the viewer (twice a view's pairs), so that
+#: many of its slots are empty. Neither the cull's blocks nor the sort's prefixes (below) go under
+#: _MIN_BLOCK slots (a smaller capacity is tested and sorted whole).
 _CULL_BLOCKS = 16
-_CULL_MIN_BLOCK = 4096
+_MIN_BLOCK = 4096
 
 
 def _touches_in_blocks(footprint, g, tx, ty, total, tile_size: int, lowpass: bool):
     """:func:`tile_touches` of the slots' splats ``g`` and tiles (tx, ty) (each (N,)), computed only
     for the blocks of slots that hold a pair (slot < ``total``); False in the others."""
     N = g.shape[0]
-    nb = _CULL_BLOCKS if N % _CULL_BLOCKS == 0 and N // _CULL_BLOCKS >= _CULL_MIN_BLOCK else 1
-    n = N // nb
 
     def block(args):
         gb, txb, tyb = args
         rows = footprint[gb]
         return tile_touches([rows[:, i] for i in range(FOOTPRINT.width)], txb, tyb, tile_size, lowpass)
 
-    def one(i, args):
-        return lax.cond(i * n < total, block, lambda a: jnp.zeros(a[0].shape, bool), args)
-
-    if nb == 1:
+    if N % _CULL_BLOCKS or N // _CULL_BLOCKS < _MIN_BLOCK:
         return block((g, tx, ty))
-    blocks = jax.tree.map(lambda a: a.reshape(nb, n), (g, tx, ty))
-    return lax.map(lambda a: one(*a), (jnp.arange(nb), blocks)).reshape(N)
+    n = N // _CULL_BLOCKS
+
+    def one(args):
+        i, rest = args
+        return lax.cond(i * n < total, block, lambda a: jnp.zeros(a[0].shape, bool), rest)
+
+    blocks = jax.tree.map(lambda a: a.reshape(_CULL_BLOCKS, n), (g, tx, ty))
+    return lax.map(one, (jnp.arange(_CULL_BLOCKS), blocks)).reshape(N)
 
 
 #: bin_pairs sorts the shortest prefix of the slots, of 1/2**k of them (k < this), that holds every
@@ -150,7 +152,7 @@ def _sort_prefix(tile, g, total):
     can hold pairs (the others have the largest key): only the shortest prefix of N / 2**k slots
     that holds them is sorted (a branch per prefix length); the output's other slots are 0."""
     N = g.shape[0]
-    sizes = [N] + [N >> k for k in range(1, _SORT_PREFIXES) if (N >> k) >= _CULL_MIN_BLOCK and (N >> k) << k == N]
+    sizes = [N] + [N >> k for k in range(1, _SORT_PREFIXES) if (N >> k) >= _MIN_BLOCK and (N >> k) << k == N]
 
     def branch(n):
         def run(args):
@@ -200,6 +202,15 @@ def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity, 
     binned = jnp.zeros((num_tiles + 1,), jnp.int32).at[tile].add(1)[:num_tiles]
     tile_start = jnp.cumsum(binned) - binned
     return ids_sorted, tile_start, binned
+
+
+def bin_projection(proj, ranges, tiles_x: int, num_tiles: int, pair_capacity: int, config):
+    """:func:`bin_pairs` of a view's :class:`projection.Projection` ``proj`` and its
+    :func:`tile_ranges` ``ranges``, with ``config``'s tile size, tile cull and coverage mode."""
+    tx0, tx1, ty0, ty1, ok = ranges
+    return bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity,
+                     footprint=proj.footprint if config.tile_cull else None, tile_size=config.tile_size,
+                     lowpass=config.coverage == "lowpass")
 
 
 def pair_count(tx0, tx1, ty0, ty1, ok):
