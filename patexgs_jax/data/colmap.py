@@ -14,11 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .._pycolmap import pycolmap
 from .cache import atomic_build_dir, fingerprint, is_complete_dir, resolve_cache_dir
 from .colmap_model import find_sparse_dir, model_points, read_model
 from .dataset import Dataset
-from .errors import DatasetError, warn
+from .errors import DatasetError, pycolmap_module, warn
 from .images import (
     DEFAULT_IMAGE_CACHE_BYTES,
     DEFAULT_IMAGE_CACHE_SIZE,
@@ -294,6 +293,8 @@ def _undistort(scene, sparse, rec, kept, files, ratios, folder, cache_dir, disto
     final = root / f"{folder.name}-{key}"
     if is_complete_dir(final):
         return final
+
+    pycolmap = pycolmap_module("Undistorting a COLMAP scene's images")
 
     def build(tmp: Path):
         src_model = sparse

@@ -8,15 +8,18 @@ Non-finite camera parameters, poses and points are errors naming the file and th
 
 from __future__ import annotations
 
+import functools
 import re
 import struct
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import numpy as np
 
-from .._pycolmap import pycolmap
-from .errors import DatasetError
+from .errors import DatasetError, pycolmap_module
+
+if TYPE_CHECKING:
+    import pycolmap
 
 __all__ = ["find_sparse_dir", "model_points", "read_model", "validate_binary_model", "validate_text_model"]
 
@@ -47,7 +50,10 @@ def _model_ext(folder: Path) -> str | None:
 # ----------------------------------------------------------------------------------------------------
 
 
-def _num_params_by_model_id() -> dict[int, tuple[str, int]]:
+@functools.cache
+def _model_table() -> dict[int, tuple[str, int]]:
+    """COLMAP camera model id -> (name, number of parameters), as pycolmap defines them."""
+    pycolmap = pycolmap_module("Reading a COLMAP model")
     table = {}
     for name, mid in pycolmap.CameraModelId.__members__.items():
         if int(mid.value) < 0:
@@ -56,8 +62,6 @@ def _num_params_by_model_id() -> dict[int, tuple[str, int]]:
         table[int(mid.value)] = (name, len(cam.params))
     return table
 
-
-_MODEL_TABLE = _num_params_by_model_id()
 
 
 class _Reader:
@@ -119,11 +123,11 @@ def validate_binary_model(folder: Path) -> dict[str, int]:
     n = r.count("<Q", 24, "cameras")
     for _ in range(n):
         cam_id, model_id, width, height = r.unpack("<IiQQ", "a camera record")
-        if model_id not in _MODEL_TABLE:
+        if model_id not in _model_table():
             r.fail(f"camera {cam_id} has unknown camera model id {model_id}")
         if not (0 < width < 1 << 20 and 0 < height < 1 << 20):
             r.fail(f"camera {cam_id} has implausible size {width}x{height}")
-        r.skip(8 * _MODEL_TABLE[model_id][1], f"the parameters of camera {cam_id}")
+        r.skip(8 * _model_table()[model_id][1], f"the parameters of camera {cam_id}")
     r.finish()
     counts["cameras"] = n
 
@@ -184,7 +188,7 @@ def validate_text_model(folder: Path) -> None:
       DatasetError naming the file and line.
     """
     folder = Path(folder)
-    names = {name: mid for mid, (name, _) in _MODEL_TABLE.items()}
+    names = {name: mid for mid, (name, _) in _model_table().items()}
 
     def fail(fname, lineno, what) -> NoReturn:
         raise DatasetError(f"COLMAP file {folder / fname} is corrupt or truncated at line {lineno} ({what}). "
@@ -209,7 +213,7 @@ def validate_text_model(folder: Path) -> None:
             continue
         if len(t) < 4 or t[1] not in names:
             fail("cameras.txt", lineno, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
-        nparams = _MODEL_TABLE[names[t[1]]][1]
+        nparams = _model_table()[names[t[1]]][1]
         if len(t) != 4 + nparams:
             fail("cameras.txt", lineno, f"model {t[1]} needs {nparams} parameters, found {len(t) - 4}")
         numbers("cameras.txt", lineno, [t[0]] + t[2:])
@@ -273,6 +277,7 @@ def read_model(folder: Path) -> pycolmap.Reconstruction:
         validate_binary_model(folder)
     else:
         validate_text_model(folder)
+    pycolmap = pycolmap_module("Reading a COLMAP model")
     try:
         rec = pycolmap.Reconstruction()
         if ext == ".bin":

@@ -31,11 +31,10 @@ from pathlib import Path
 import numpy as np
 import PIL.Image
 
-from .._pycolmap import pycolmap
 from .cache import atomic_build_dir, fingerprint, is_complete_dir, resolve_cache_dir
 from .colmap import default_resolution
 from .dataset import Dataset
-from .errors import DatasetError
+from .errors import DatasetError, pycolmap_module
 from .images import DEFAULT_IMAGE_CACHE_BYTES, DEFAULT_IMAGE_CACHE_SIZE, ImageCache, image_loader, probe_image
 from .records import (
     DEFAULT_NUM_RANDOM_POINTS,
@@ -189,7 +188,7 @@ def undistort_image(image: np.ndarray, K: np.ndarray, params: dict, K_new: np.nd
     return _bilinear(img, u, v).astype(np.float32)
 
 
-def _pycolmap_camera(K, params, fisheye, width, height):
+def _pycolmap_camera(pycolmap, K, params, fisheye, width, height):
     c = _coefficients(params)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     if fisheye:
@@ -471,8 +470,9 @@ def _undistort_frames(scene: Path, metas: list[dict], cache_dir, verbose: bool, 
     (file, K, w, h) to the undistorted PNGs and their pinhole cameras."""
     todo = [m for m in metas if m["distorted"]]
     new_cams = []
+    pycolmap = pycolmap_module("Undistorting the frames of a transforms.json scene")
     for m in todo:
-        cam = _pycolmap_camera(m["K"], m["dist"], m["fisheye"], m["w"], m["h"])
+        cam = _pycolmap_camera(pycolmap, m["K"], m["dist"], m["fisheye"], m["w"], m["h"])
         try:
             und = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), cam)
         except Exception as e:

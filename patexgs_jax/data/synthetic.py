@@ -30,13 +30,17 @@ import sys
 import time
 import uuid
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._pycolmap import pycolmap
 from ..camera import Camera, look_at
+from .errors import pycolmap_module
 from .images import box_downsample, save_image
 from .synthetic_scene import Scene, camera_rays, make_scene, render_ground_truth, row_matmul
+
+if TYPE_CHECKING:
+    import pycolmap
 
 __all__ = [
     "FORMAT_VERSION",
@@ -151,6 +155,7 @@ def _sample_points(scene: Scene, cams: list, num_points: int, rng: np.random.Gen
 
 
 def _build_reconstruction(cams, names, xyz, colors_u8, tracks) -> pycolmap.Reconstruction:
+    pycolmap = pycolmap_module("Writing the embedded scene's COLMAP model")
     rec = pycolmap.Reconstruction()
     K = np.asarray(cams[0].K, np.float64)
     camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", float(K[0, 0]), cams[0].width, cams[0].height)
