@@ -53,7 +53,9 @@ SCHEMA = 1
 #: name -> (texture side or None, banks textured, render configuration). ``tex8-rgb`` and
 #: ``tex8-alpha`` texture one bank only, so each effect's cost is reported on its own;
 #: ``tex8-mip-dense`` looks textures up for every (pixel, splat) pair (``texture_pairs=1``), the
-#: renderer before lookups were limited to the pairs that can contribute.
+#: renderer before lookups were limited to the pairs that can contribute; ``tex8-mip-prefilter-dense``
+#: does so with the ``patexgs`` renderer (on a GPU, gathering the contributing pairs may cost more
+#: than looking every pair up).
 CONFIGS = {
     "2dgs": (None, (), RenderConfig(mip="none")),
     "tex8-rgb": (8, ("rgb",), RenderConfig(mip="none")),
@@ -64,19 +66,22 @@ CONFIGS = {
     "tex8-mip-dense": (8, ("rgb", "alpha"), RenderConfig(mip="nearest", texture_pairs=1.0)),
     "2dgs-prefilter": (None, (), RenderConfig(mip="none", coverage="prefilter")),
     "tex8-mip-prefilter": (8, ("rgb", "alpha"), RenderConfig(mip="nearest", coverage="prefilter")),
+    "tex8-mip-prefilter-dense": (8, ("rgb", "alpha"), RenderConfig(mip="nearest", coverage="prefilter",
+                                                                   texture_pairs=1.0)),
 }
 DEFAULT_CONFIGS = ("2dgs", "tex8", "tex8-mip", "tex8-mip-prefilter", "tex8-trilinear")
 
 
 #: Hand-counted FLOPs per (pixel, splat) pair (see the module docstring).
 FLOPS_PER_PAIR = {"2dgs": 70, "tex8-rgb": 124, "tex8-alpha": 101, "tex8": 155, "tex8-mip": 215,
-                  "tex8-trilinear": 305, "tex8-mip-dense": 215, "2dgs-prefilter": 68, "tex8-mip-prefilter": 213}
+                  "tex8-trilinear": 305, "tex8-mip-dense": 215, "2dgs-prefilter": 68, "tex8-mip-prefilter": 213,
+                  "tex8-mip-prefilter-dense": 213}
 
 
 def peak_gflops(n=2048, repeats=5) -> float:
     """Measured float32 matmul throughput of the default device, GFLOP/s."""
     a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
+    f = jax.jit(lambda x: jnp.matmul(x, x, precision=jax.lax.Precision.HIGHEST))  # float32, not TF32
     jax.block_until_ready(f(a))
     return 2.0 * n ** 3 / (timeit(lambda: f(a), repeats) / 1e3) / 1e9
 

@@ -4,11 +4,12 @@ Every benchmark JSON file is written by :func:`write_benchmark_json`, so each ca
 header (a figure without the commit and machine it was measured on cannot be compared later)::
 
     {"schema": int, "git": str | null, "date": "YYYY-MM-DDTHH:MM:SSZ", "machine": str,
-     "cpu": str, "cpus": int, "jax": str, "backend": str, "devices": int, ...extra,
+     "cpu": str, "cpus": int, "jax": str, "backend": str, "devices": int, "device": str, ...extra,
      "results": [...]}
 
-``git`` is the short commit hash, with ``-dirty`` when tracked files differ from it (the figures
-then measure uncommitted code), null outside a git checkout.
+``device`` is the first device's kind (e.g. "NVIDIA H100 80GB HBM3", or "cpu"). ``git`` is the
+short commit hash, with ``-dirty`` when tracked files differ from it (the figures then measure
+uncommitted code), null outside a git checkout.
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ def header(schema: int) -> dict:
     now = datetime.datetime.now(datetime.UTC).replace(microsecond=0)
     return dict(schema=schema, git=git_commit(), date=now.strftime("%Y-%m-%dT%H:%M:%SZ"),
                 machine=platform.platform(), cpu=_cpu_name(), cpus=os.cpu_count(), jax=jax.__version__,
-                backend=jax.default_backend(), devices=len(jax.devices()))
+                backend=jax.default_backend(), devices=len(jax.devices()),
+                device=str(getattr(jax.devices()[0], "device_kind", jax.default_backend())))
 
 
 def write_json(path, obj) -> Path:

@@ -268,8 +268,8 @@ def _downsample(D, X):
     if X.shape[1] <= _UNROLL_MAX:
         return _filter(D, X)
     if D.shape[0] == 1:
-        return jnp.einsum("ip,kpqc,jq->kijc", D[0], X, D[0])
-    return jnp.einsum("kip,kpqc,kjq->kijc", D, X, D)
+        return jnp.einsum("ip,kpqc,jq->kijc", D[0], X, D[0], precision=lax.Precision.HIGHEST)
+    return jnp.einsum("kip,kpqc,kjq->kijc", D, X, D, precision=lax.Precision.HIGHEST)
 
 
 def _pyramid(level0: jax.Array, n: jax.Array, b: int) -> list[jax.Array]:

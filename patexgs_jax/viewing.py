@@ -59,8 +59,15 @@ MODES = {"patexgs": "PATexGS (prefilter)", "literal": "literal Eqs. 11-13 (2DGS 
 #: order, not the image: within 1e-6). A trained model's view lists far more splats per tile than a
 #: training batch's random views, so a frame is almost all compositing, which smaller chunks over
 #: more tiles at once (the same 64k-pair block as the default 8 x 32) run faster
-#: (docs/performance.md has the A/B).
+#: (docs/performance.md has the A/B). A CPU's: on a GPU the device's own (:mod:`patexgs_jax.rendering.schedule`)
+#: advances every tile at once.
 FRAME_SCHEDULE = dict(tile_batch=16, chunk=16)
+
+
+def frame_schedule(backend: str | None = None) -> dict:
+    """The :class:`RenderConfig` fields of the viewer's frames on ``backend`` (default: JAX's):
+    :data:`FRAME_SCHEDULE` on a CPU, the renderer's device-chosen schedule elsewhere."""
+    return dict(FRAME_SCHEDULE) if (backend or jax.default_backend()) == "cpu" else {}
 #: Colours of mip levels 0, 1, 2, ... (the last one repeats for higher levels).
 LEVEL_COLOURS = np.array([[0.15, 0.35, 0.95], [0.1, 0.8, 0.9], [0.2, 0.85, 0.25], [0.95, 0.9, 0.15],
                           [0.98, 0.55, 0.1], [0.9, 0.15, 0.15]], np.float32)
@@ -348,7 +355,7 @@ class FrameRenderer:
     def renderer(self, mode: str) -> ViewRenderer:
         r = self._renderers.get(mode)
         if r is None:
-            config = dataclasses.replace(mode_config(self.base, mode), **FRAME_SCHEDULE)
+            config = dataclasses.replace(mode_config(self.base, mode), **frame_schedule())
             r = self._renderers[mode] = ViewRenderer(self.scene, config, headroom=self.headroom, reuse_textures=True)
         return r
 

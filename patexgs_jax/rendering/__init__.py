@@ -44,6 +44,7 @@ Structure: one stage a module
   above (alpha cap and cut, transmittance stop, the prefilter's support).
   :mod:`.projection`: per-splat quantities (C of them) and screen-space bounds, packed into one
   (C, F) array whose columns :data:`projection.COLS` lays out.
+  :mod:`.schedule`: how many tiles the compositor advances at once, chosen per device.
   :mod:`.binning`: depth-ordered per-tile lists, with one stable sort of (tile) keys over pairs
   generated in depth order; the tiles of a splat's screen box it cannot reach alpha 1/255 in are
   left out (``RenderConfig.tile_cull``).
@@ -95,6 +96,7 @@ from .config import (
     RenderOutput,
 )
 from .projection import alpha_peak, constant_textures, project
+from .schedule import resolve_tile_batch
 from .texture_lookup import meta_table
 
 __all__ = [
@@ -249,7 +251,9 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     ids_sorted, tile_start, binned = bin_projection(proj, ranges, tiles_x, num_tiles, capacity.pairs, config)
     ok = ranges[4]
 
-    st = Static(config=config, tiles_x=tiles_x, num_tiles=num_tiles, rgb=rgb_atlas is not None,
+    batch = resolve_tile_batch(config.tile_batch, num_tiles, tile_size=ts, chunk=config.chunk)
+    st = Static(config=dataclasses.replace(config, tile_batch=batch), tiles_x=tiles_x, num_tiles=num_tiles,
+                rgb=rgb_atlas is not None,
                 alpha=alpha_atlas is not None)
     # One-texel textures are folded into the colour and opacity (constant_textures): not looked up.
     rgb_has = alpha_has = None

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .config import RenderConfig
+from .schedule import resolve_tile_batch
 
 
 class Static(NamedTuple):
@@ -48,8 +49,11 @@ class Static(NamedTuple):
     def batch(self):
         """Tiles advanced together: at most ``config.tile_batch``, spread evenly over the fewest
         batches, so that small images do not repeat a tile to fill a batch (every lane of a batch
-        is computed, padding included: a one-tile image in a batch of 8 would do its work 8 times)."""
-        nb = -(-self.num_tiles // self.config.tile_batch)
+        is computed, padding included: a one-tile image in a batch of 8 would do its work 8 times).
+        A config that leaves ``tile_batch`` to the device takes :func:`.schedule.resolve_tile_batch`'s."""
+        cfg = self.config
+        limit = resolve_tile_batch(cfg.tile_batch, self.num_tiles, tile_size=cfg.tile_size, chunk=cfg.chunk)
+        nb = -(-self.num_tiles // limit)
         return -(-self.num_tiles // nb)
 
 

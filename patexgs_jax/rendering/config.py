@@ -54,7 +54,9 @@ class RenderConfig:
       chunk: splats evaluated together per tile step; a tile stops after the chunk in which all its
         pixels saturated (transmittance < 1e-4) or its list ended.
       tile_batch: at most this many tiles advanced together (sorted by list length, so they finish
-        at similar steps; fewer when that spreads the tiles more evenly over the batches).
+        at similar steps; fewer when that spreads the tiles more evenly over the batches). None
+        (default): chosen for the device when the render is traced (:mod:`.schedule`: 8 on a CPU;
+        on a GPU every tile of the image where memory allows).
       texture_pairs: texture lookups per pass, as a share of a chunk step's (tile, pixel, splat)
         pairs. Only the pairs that can reach alpha 1/255 are looked up, gathered into as many
         passes of this size as they need (a few percent to a few tens of percent of the pairs
@@ -77,7 +79,7 @@ class RenderConfig:
     near: float = 0.01
     tile_size: int = 16
     chunk: int = 32
-    tile_batch: int = 8
+    tile_batch: int | None = None
     texture_pairs: float = 1 / 32
     tile_cull: bool = True
 
@@ -97,8 +99,9 @@ class RenderConfig:
         if len(tuple(self.background)) != 3:
             raise ValueError("background must be an RGB triple.")
         object.__setattr__(self, "background", tuple(float(c) for c in self.background))
-        if self.tile_size < 1 or self.chunk < 1 or self.tile_batch < 1:
-            raise ValueError("tile_size, chunk and tile_batch must be positive.")
+        if self.tile_size < 1 or self.chunk < 1 or (self.tile_batch is not None and self.tile_batch < 1):
+            raise ValueError("tile_size, chunk and tile_batch must be positive (tile_batch None: chosen "
+                             "for the device).")
         if not self.near > 0:
             raise ValueError(f"near must be positive, got {self.near}.")
         if not 0 < self.texture_pairs <= 1:

@@ -93,6 +93,16 @@ class Footprint(NamedTuple):
 FOOTPRINT = Footprint()
 
 
+# Every product here states its precision: without it a GPU computes float32 matmuls in TF32
+# (about 10 mantissa bits), which moves splat centres and footprints by up to 1e-3 of a pixel.
+HIGHEST = lax.Precision.HIGHEST
+
+
+def _mm(a, b):
+    """(N, K) @ (K, M) in full float32 (or float64) precision."""
+    return jnp.matmul(a, b, precision=HIGHEST)
+
+
 def _cross(a, b):
     return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
                       a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
@@ -167,11 +177,11 @@ def image_map(scene: Scene, camera: Camera):
     Rc, tc = w2c[:3, :3], w2c[:3, 3]
     R = quat_to_rotmat(scene.quats)
     s = jnp.exp(scene.log_scales)
-    p = scene.means @ Rc.T + tc                        # (C, 3) camera-frame centre
-    tu = (R[:, :, 0] * s[:, :1]) @ Rc.T                # (C, 3) scaled tangent axes, camera frame
-    tv = (R[:, :, 1] * s[:, 1:]) @ Rc.T
-    nrm = R[:, :, 2] @ Rc.T
-    M = jnp.einsum("ij,cjk->cik", K, jnp.stack([tu, tv, p], axis=-1))
+    p = _mm(scene.means, Rc.T) + tc                    # (C, 3) camera-frame centre
+    tu = _mm(R[:, :, 0] * s[:, :1], Rc.T)              # (C, 3) scaled tangent axes, camera frame
+    tv = _mm(R[:, :, 1] * s[:, 1:], Rc.T)
+    nrm = _mm(R[:, :, 2], Rc.T)
+    M = jnp.einsum("ij,cjk->cik", K, jnp.stack([tu, tv, p], axis=-1), precision=HIGHEST)
     return M, p, nrm
 
 
@@ -218,7 +228,7 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
     dirs = safe_normalize(scene.means - cam_center)
     degree = scene.sh_degree
     basis = sh_basis(dirs, degree, active_sh_degree)
-    color = jnp.maximum(jnp.einsum("ck,ckj->cj", basis, scene.sh) + 0.5, 0.0)
+    color = jnp.maximum(jnp.einsum("ck,ckj->cj", basis, scene.sh, precision=HIGHEST) + 0.5, 0.0)
 
     normal = jnp.where((jnp.sum(nrm * p, axis=-1) > 0)[:, None], -nrm, nrm)
     opacity = jax.nn.sigmoid(scene.opacity_logits) * (scene.active > 0)
@@ -244,11 +254,12 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
         pf = lax.stop_gradient(conic)
         adj = jnp.stack([pf[:, 2], -pf[:, 1], -pf[:, 1], pf[:, 0]], axis=-1).reshape(-1, 2, 2)
         det_p = pf[:, 0] * pf[:, 2] - pf[:, 1] ** 2
-        Q = (r2[:, None, None] * jnp.einsum("cia,cab,cjb->cij", Ms[:, :, :2], adj, Ms[:, :, :2])
+        Q = (r2[:, None, None] * jnp.einsum("cia,cab,cjb->cij", Ms[:, :, :2], adj, Ms[:, :, :2],
+                                            precision=HIGHEST)
              - det_p[:, None, None] * Ms[:, :, None, 2] * Ms[:, None, :, 2])
     else:
         # Dual conic of the projected circle u^2 + v^2 = r2: M diag(r2, r2, -1) M^T.
-        Q = (r2[:, None, None] * jnp.einsum("cia,cja->cij", Ms[:, :, :2], Ms[:, :, :2])
+        Q = (r2[:, None, None] * jnp.einsum("cia,cja->cij", Ms[:, :, :2], Ms[:, :, :2], precision=HIGHEST)
              - Ms[:, :, None, 2] * Ms[:, None, :, 2])
     q22 = Q[:, 2, 2]
     bounded = q22 < 0

@@ -1,0 +1,115 @@
+"""experiments.device_check (scripts/gpu_check.sh): its stages' commands, the figures it reads from
+the benchmarks' own JSON files, the targets and the report. The script itself runs in
+tests/integration/test_benchmarks.py (quick sizes, on the CPU)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+import pytest
+
+from experiments import device_check as dc
+from locations import REPO
+
+BENCH = REPO / "benchmarks"
+
+
+def _rows(name):
+    return json.loads((BENCH / name).read_text())["results"]
+
+
+def _write(path, rows):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"schema": 1, "results": rows}))
+
+
+@pytest.fixture
+def stage_files(tmp_path):
+    """The stages' output files, made of rows the benchmarks wrote (this repository's CPU figures),
+    renamed to the configurations the device check runs."""
+    render = [dict(r) for r in _rows("render_50k_640x480.json") if r["config"] in ("2dgs", "tex8-mip")]
+    for r in render:
+        r["config"] = {"2dgs": "2dgs", "tex8-mip": "tex8-mip-prefilter"}[r["config"]]
+    _write(tmp_path / "render_50k.json", render)
+    train = [dict(r) for r in _rows("train_128x96.json") if r["config"] in ("2dgs", "tex8-mip")]
+    train = [dict(r, config="tex8-mip-prefilter") if r["config"] == "tex8-mip" else r for r in train]
+    train = [r for r in train if r["gaussians"] == train[0]["gaussians"]]
+    _write(tmp_path / "train.json", train)
+    viewer = [r for r in _rows("viewer_cpu.json") if r["model"] == "tiny" and r["width"] == 640]
+    _write(tmp_path / "viewer.json", viewer)
+    (tmp_path / "beer").mkdir()
+    (tmp_path / "beer" / "results.json").write_text(json.dumps({"results": {"beer": {
+        "2dgs": {"1": {"psnr": 24.1, "ssim": 0.86}, "train_seconds": 100.0, "num_gaussians": 5000},
+        "patexgs": {"1": {"psnr": 24.3, "ssim": 0.87}, "train_seconds": 150.0, "storage_mb": 2.1}}}}))
+    (tmp_path / "tests.xml").write_text('<testsuites><testsuite name="pytest" errors="0" failures="1" '
+                                        'skipped="2" tests="40"></testsuite></testsuites>')
+    return tmp_path, render, train, viewer
+
+
+def test_figures_are_read_from_the_benchmarks_files(stage_files):
+    out, render, train, viewer = stage_files
+    fig, tests = dc.collect(out)
+    by = {r["config"]: r for r in render}
+    assert fig["render_50k.2dgs.forward_ms"] == by["2dgs"]["forward_ms"]
+    tex = by["tex8-mip-prefilter"]
+    assert fig["render_50k.patexgs.forward_backward_over_2dgs"] == tex["forward_backward_over_2dgs"]
+    assert fig["render_50k.size"] == "50000 Gaussians, 640x480"
+    t = {r["config"]: r for r in train}
+    ratio = t["tex8-mip-prefilter"]["ms_per_step"] / t["2dgs"]["ms_per_step"]
+    assert fig["train.patexgs.over_2dgs"] == pytest.approx(ratio)
+    assert fig["viewer.tiny.fps"] == viewer[0]["fps"]
+    assert fig["beer.patexgs.psnr"] == 24.3 and fig["beer.2dgs.num_gaussians"] == 5000
+    assert tests == dict(passed=37, failed=1, errors=0, skipped=2)
+    assert not any(k.startswith("render_1m.") for k in fig)  # that stage wrote nothing: not measured
+
+
+def test_targets_and_report(stage_files):
+    out, *_ = stage_files
+    fig, tests = dc.collect(out)
+    targets = {t["name"]: t for t in dc.check_targets(fig, tests)}
+    assert len(targets) == len(dc.TARGETS) + 1
+    t = targets["2dgs fwd, 50k 640x480 (ms)"]
+    assert t["value"] == fig["render_50k.2dgs.forward_ms"] and t["met"] == (t["value"] <= 3.5)
+    assert targets["2dgs fwd+bwd, 1M 1920x1080 (ms)"]["met"] is None  # not measured
+    assert targets["viewer 640x480, tiny model (fps)"]["met"] is False  # a CPU's 2 fps
+    assert targets["renderer float32 tests on the device"]["met"] is False  # one failure
+    report = dict(device="cpu", backend="cpu", jax="x", git="abc", date="d", quick=False, figures=fig,
+                  tests=tests, targets=list(targets.values()),
+                  stages={"render": dict(rc=0, wall_s=1.0, limit_s=2.0, timed_out=False)})
+    md = dc.markdown(report)
+    assert "| 2dgs fwd, 50k 640x480 (ms) |" in md and "not measured" in md and "**no**" in md
+    path = out / "device_check.json"
+    path.write_text(json.dumps(report))
+    printed = subprocess.run([sys.executable, "-m", "experiments.device_check", "--report", str(path)],
+                             cwd=REPO, capture_output=True, text=True, check=True).stdout
+    assert printed == md
+
+
+def test_stage_commands(tmp_path):
+    args = argparse.Namespace(quick=False, beer=None, viewer_run=None)
+    render = dc.stage_commands("render", tmp_path, args)
+    assert [c[c.index("--sizes") + 1] for c in render] == ["640x480", "1920x1080"]
+    assert [c[c.index("--gaussians") + 1] for c in render] == ["50000", "1000000"]
+    train = dc.stage_commands("train", tmp_path, args)[0]
+    assert train[train.index("--sizes") + 1] == "1280x960"
+    assert "tex8-mip-prefilter" in train[train.index("--configs") + 1]
+    assert dc.stage_commands("beer", tmp_path, args) == []  # no capture given: skipped
+    args.beer = tmp_path
+    beer = dc.stage_commands("beer", tmp_path, args)[0]
+    assert beer[beer.index("--factor") + 1] == "1" and beer[beer.index("--methods") + 1] == "2dgs,patexgs"
+    tests = dc.stage_commands("tests", tmp_path, args)[0]
+    assert all(f in tests for f in dc.TEST_FILES)
+    with pytest.raises(ValueError, match="unknown stage"):
+        dc.stage_commands("nope", tmp_path, args)
+
+
+def test_bad_arguments_name_the_fix(tmp_path):
+    for argv, msg in ((["--out", str(tmp_path), "--stages", "render,nope"], "unknown stage"),
+                      (["--out", str(tmp_path), "--beer", str(tmp_path / "missing")], "no such folder"),
+                      ([], "--out DIR is required")):
+        p = subprocess.run([sys.executable, "-m", "experiments.device_check", *argv], cwd=REPO,
+                           capture_output=True, text=True)
+        assert p.returncode == 2 and msg in p.stderr
