@@ -818,10 +818,11 @@ def _run(code: str) -> subprocess.CompletedProcess:
 
 
 def test_pycolmap_pil_import_order_is_safe(tmp_path):
-    # Our modules import pycolmap; user code imports PIL afterwards and saves a PNG (the order that
-    # used to abort with 'free(): invalid pointer'), then uses zlib directly.
+    # Our modules import pycolmap (through patexgs_jax._pycolmap, where they need it); user code
+    # imports PIL afterwards and saves a PNG (the order that used to abort with 'free(): invalid
+    # pointer'), then uses zlib directly.
     r = _run(f"""
-        import patexgs_jax.data.colmap
+        import patexgs_jax._pycolmap
         import pycolmap
         from PIL import Image
         import numpy as np, zlib
@@ -837,7 +838,7 @@ def test_pycolmap_pil_import_order_is_safe(tmp_path):
         import pycolmap, warnings
         with warnings.catch_warnings(record=True) as w:
             warnings.simplefilter('always')
-            import patexgs_jax.data
+            import patexgs_jax._pycolmap
         print(any('imported before zlib' in str(x.message) for x in w))
         """)
     assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]
