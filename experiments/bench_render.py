@@ -44,7 +44,7 @@ import numpy as np
 
 from experiments.provenance import write_benchmark_json
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, rendering
-from patexgs_jax.rendering import binning, count_pairs, projection, render_jit
+from patexgs_jax.rendering import binning, count_pairs, projection, render_jit, schedule
 
 #: The layout of the --json file (experiments.provenance's header plus peak_gflops, timing, results).
 SCHEMA = 1
@@ -152,7 +152,10 @@ def prepare(name, n, width, height):
     for _ in range(2):
         jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
     recompiles = sum(rendering.TRACE_COUNTS.values()) - before
-    row = dict(config=name, gaussians=n, width=width, height=height, recompiles=recompiles,
+    tiles = -(-width // cfg.tile_size) * -(-height // cfg.tile_size)
+    batch = schedule.resolve_tile_batch(cfg.tile_batch, tiles, tile_size=cfg.tile_size, chunk=cfg.chunk)
+    row = dict(config=name, gaussians=n, width=width, height=height, tiles=tiles, tile_batch=batch,
+               recompiles=recompiles,
                flops_per_pair=FLOPS_PER_PAIR[name], binned_pairs=float(needed), max_tile=int(max_tile),
                compile_forward_s=compile_fwd, compile_backward_s=compile_bwd,
                temp_forward_mib=temp_fwd / 2**20, temp_backward_mib=temp_bwd / 2**20)

@@ -3,7 +3,7 @@ training-step and viewer benchmarks, and a real-capture study, within a time bud
 figures written as JSON (with provenance) and compared with the GPU targets.
 
     python -m experiments.device_check --out DIR [--budget-s 540] [--beer PATH] [--viewer-run RUN]
-                                       [--stages tests,render,train,viewer,beer] [--quick]
+                                       [--stages tests,render,train,viewer,beer,schedule] [--quick]
     python -m experiments.device_check --report DIR/device_check.json   # the Markdown tables again
 
 ``scripts/gpu_check.sh`` runs it on a GPU machine. Every stage is a subprocess with its own share of
@@ -12,7 +12,8 @@ others still run. ``--quick`` runs the same stages at toy sizes (a CPU can run i
 tests do, to keep the script working where no GPU is at hand).
 
 Output in DIR: each stage's JSON (``render_50k.json``, ``render_1m.json``, ``train.json``,
-``viewer.json``, ``beer/results.json``), its log (``<stage>.log``), and ``device_check.json``::
+``viewer.json``, ``beer/results.json``, ``schedule_<B>.json``: the 1M render with B tiles a batch),
+its log (``<stage>.log``), and ``device_check.json``::
 
     {header (experiments.provenance: commit, date, machine, backend, device kind), "budget_s", "quick",
      "stages": {name: {"rc", "wall_s", "timed_out", "limit_s"}},
@@ -40,7 +41,12 @@ SCHEMA = 1
 REPO = Path(__file__).resolve().parent.parent
 
 #: Stage -> share of the budget (of the time left when it starts, over the shares left).
-STAGES = {"tests": 1.0, "render": 1.4, "train": 1.0, "viewer": 0.6, "beer": 2.0}
+STAGES = {"tests": 1.0, "render": 1.4, "train": 1.0, "viewer": 0.6, "beer": 2.0, "schedule": 1.0}
+
+#: Tile batches the ``schedule`` stage tries at 1M Gaussians and 1920x1080 (8,160 tiles: 4 and 16
+#: batches), beside the device's own choice in the ``render`` stage: whether fewer, longer-listed
+#: batches pay where tiles' lists differ in length (a batch loops until its longest list is done).
+SCHEDULE_BATCHES = (2048, 512)
 
 #: The renderer's float32 tests that must pass on the accelerator at the CPU's tolerances.
 TEST_FILES = ("tests/unit/test_render.py", "tests/unit/test_device_path.py")
@@ -94,6 +100,11 @@ def stage_commands(stage: str, out: Path, args) -> list[list[str]]:
         cmd = py + ["experiments.bench_viewer", "--models", "tiny", "--sizes", s["viewer"], "--repeats", "5",
                     "--json", str(out / "viewer.json")]
         return [cmd + (["--run", str(args.viewer_run)] if args.viewer_run else [])]
+    if stage == "schedule":
+        n, size = s["render_1m"]
+        return [["env", f"PATEXGS_TILE_BATCH={tb if not args.quick else 1}", *py, "experiments.bench_render",
+                 "--gaussians", str(n), "--sizes", size, "--configs", configs, "--no-peak", "--repeats", "3",
+                 "--json", str(out / f"schedule_{tb}.json")] for tb in SCHEDULE_BATCHES]
     if stage == "beer":
         if not args.beer:
             return []
@@ -144,10 +155,17 @@ def collect(out: Path) -> tuple[dict, dict | None]:
         for r in _rows(out / f"{key}.json"):
             name = _CONFIG_NAMES.get(r["config"], r["config"])
             for f in ("forward_ms", "forward_backward_ms", "forward_over_2dgs", "forward_backward_over_2dgs",
-                      "compile_forward_s", "compile_backward_s", "temp_backward_mib", "binned_pairs"):
+                      "compile_forward_s", "compile_backward_s", "temp_backward_mib", "binned_pairs", "max_tile",
+                      "tile_batch"):
                 if f in r:
                     fig[f"{key}.{name}.{f}"] = r[f]
             fig[f"{key}.size"] = f"{r['gaussians']} Gaussians, {r['width']}x{r['height']}"
+    for tb in SCHEDULE_BATCHES:
+        for r in _rows(out / f"schedule_{tb}.json"):
+            name = _CONFIG_NAMES.get(r["config"], r["config"])
+            for f in ("forward_ms", "forward_backward_ms", "tile_batch"):
+                if f in r:
+                    fig[f"schedule_{tb}.{name}.{f}"] = r[f]
     train = {_CONFIG_NAMES.get(r["config"], r["config"]): r for r in _rows(out / "train.json")}
     for name, r in train.items():
         fig[f"train.{name}.ms_per_step"] = r["ms_per_step"]

@@ -44,6 +44,7 @@ def stage_files(tmp_path):
     (tmp_path / "beer" / "results.json").write_text(json.dumps({"results": {"beer": {
         "2dgs": {"1": {"psnr": 24.1, "ssim": 0.86}, "train_seconds": 100.0, "num_gaussians": 5000},
         "patexgs": {"1": {"psnr": 24.3, "ssim": 0.87}, "train_seconds": 150.0, "storage_mb": 2.1}}}}))
+    _write(tmp_path / "schedule_2048.json", [dict(r, tile_batch=2048) for r in render])
     (tmp_path / "tests.xml").write_text('<testsuites><testsuite name="pytest" errors="0" failures="1" '
                                         'skipped="2" tests="40"></testsuite></testsuites>')
     return tmp_path, render, train, viewer
@@ -64,6 +65,8 @@ def test_figures_are_read_from_the_benchmarks_files(stage_files):
     assert fig["beer.patexgs.psnr"] == 24.3 and fig["beer.2dgs.num_gaussians"] == 5000
     assert tests == dict(passed=37, failed=1, errors=0, skipped=2)
     assert not any(k.startswith("render_1m.") for k in fig)  # that stage wrote nothing: not measured
+    assert fig["schedule_2048.patexgs.forward_backward_ms"] == tex["forward_backward_ms"]
+    assert fig["schedule_2048.2dgs.tile_batch"] == 2048
 
 
 def test_targets_and_report(stage_files):
@@ -102,6 +105,9 @@ def test_stage_commands(tmp_path):
     assert beer[beer.index("--factor") + 1] == "1" and beer[beer.index("--methods") + 1] == "2dgs,patexgs"
     tests = dc.stage_commands("tests", tmp_path, args)[0]
     assert all(f in tests for f in dc.TEST_FILES)
+    sched = dc.stage_commands("schedule", tmp_path, args)
+    assert [c[1] for c in sched] == [f"PATEXGS_TILE_BATCH={b}" for b in dc.SCHEDULE_BATCHES]
+    assert all(c[c.index("--sizes") + 1] == "1920x1080" for c in sched)
     with pytest.raises(ValueError, match="unknown stage"):
         dc.stage_commands("nope", tmp_path, args)
 
