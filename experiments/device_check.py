@@ -5,6 +5,15 @@ figures written as JSON (with provenance) and compared with the GPU targets.
     python -m experiments.device_check --out DIR [--budget-s 540] [--beer PATH] [--viewer-run RUN]
                                        [--stages tests,render,train,viewer,beer,schedule] [--quick]
     python -m experiments.device_check --report DIR/device_check.json   # the Markdown tables again
+    python -m experiments.device_check --bundle .device [--beer ../shared/data/beer]
+
+``--bundle`` prepares, on a machine with pycolmap, what the check needs on one without it (GPU
+machines often lack pycolmap, and have no network): ``cache/`` (a ``PATEXGS_CACHE`` holding the
+embedded scene), ``viewer_run/`` (the tiny ``patexgs`` model bench_viewer draws) and, with
+``--beer``, ``beer/``: that capture undistorted at full size into a pinhole COLMAP scene, which loads
+without pycolmap. The device command then reads (``.device`` carried with the working tree)::
+
+    PATEXGS_CACHE=.device/cache BEER=.device/beer VIEWER_RUN=.device/viewer_run scripts/gpu_check.sh "$OUT"
 
 ``scripts/gpu_check.sh`` runs it on a GPU machine. Every stage is a subprocess with its own share of
 the budget (:data:`STAGES`); a stage that fails or runs out of time is recorded as such and the
@@ -236,6 +245,36 @@ def markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def bundle(out: Path, beer: Path | None) -> None:
+    """Prepares ``out`` (see the module docstring): the embedded scene, its tiny model, the capture."""
+    import shutil
+
+    out = out.resolve()
+    os.environ["PATEXGS_CACHE"] = str(out / "cache")
+    from patexgs_jax.data import load
+    from patexgs_jax.data.synthetic import ensure_default_scene
+    from patexgs_jax.training import preset_config, train
+
+    scene = ensure_default_scene(verbose=True)
+    if not (out / "viewer_run" / "summary.json").exists():
+        print("[device_check] training the tiny patexgs model for the viewer stage (minutes) ...", flush=True)
+        train(load(scene, verbose=False), preset_config("tiny", method="patexgs"), out / "viewer_run", resume=True,
+              verbose=False)
+    if beer is not None:
+        ds = load(beer, factor=1, verbose=True)  # undistorts into out/cache (pycolmap, here)
+        folders = sorted((out / "cache").glob(f"{Path(beer).resolve().name}-*/undistorted/*"))
+        if not folders:
+            raise SystemExit(f"{beer}: no undistorted copy was made (its cameras are pinhole already?): "
+                             f"pass --beer a capture with a distorted camera model, or carry it as it is.")
+        dst = out / "beer"
+        shutil.rmtree(dst, ignore_errors=True)
+        shutil.copytree(folders[-1] / "images", dst / "images")
+        shutil.copytree(folders[-1] / "sparse", dst / "sparse" / "0")
+        print(f"[device_check] {beer}: {len(ds.train_views) + len(ds.test_views)} views undistorted into {dst}")
+    size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+    print(f"[device_check] {out}: {size / 2**20:.1f} MiB (the device's working tree takes 64 MiB in all)")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, help="folder for the figures and logs")
@@ -246,7 +285,11 @@ def main(argv=None) -> int:
                     help="the tiny model's run folder for the viewer stage (default: bench_viewer trains it)")
     ap.add_argument("--quick", action="store_true", help="toy sizes: checks the script, not the device")
     ap.add_argument("--report", type=Path, default=None, help="print the Markdown of a device_check.json and stop")
+    ap.add_argument("--bundle", type=Path, default=None, help="prepare this folder for a machine without pycolmap")
     args = ap.parse_args(argv)
+    if args.bundle:
+        bundle(args.bundle, args.beer)
+        return 0
     if args.report:
         print(markdown(json.loads(args.report.read_text())), end="")
         return 0
