@@ -169,10 +169,10 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
                            "and points3D (.bin or .txt).")
     rec = read_model(sparse)
     point_ids, pts, cols = model_points(rec)  # before undistorting, which keeps the points as they are
-    reg = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    reg = sorted(rec.images.values(), key=lambda im: im.name)  # COLMAP writes registered images only
     if not reg:
-        raise DatasetError(f"The COLMAP model in {sparse} has no registered images ({len(rec.images)} images, "
-                           "none with a pose): the reconstruction failed; re-run COLMAP mapping.")
+        raise DatasetError(f"The COLMAP model in {sparse} has no registered images: the reconstruction failed; "
+                           "re-run COLMAP mapping.")
     factor, max_width = default_resolution(scene, factor)
     if factor < 1:
         raise DatasetError(f"factor must be a positive integer, got {factor}.")

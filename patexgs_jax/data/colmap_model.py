@@ -110,6 +110,8 @@ _MODELS_BY_NAME = {m.name: m for m in CAMERA_MODELS.values()}
 _SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}
 _SENSOR_TYPE_IDS = {v: k for k, v in _SENSOR_TYPES.items()}
 _CAMERA = 0
+# The pose of a rig's reference sensor in the rig (the identity; compared by identity, never composed).
+_REFERENCE = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,24 +128,19 @@ class ColmapCamera:
 
 @dataclass(frozen=True, eq=False)
 class ColmapImage:
-    """An image of the model.
+    """An image of the model (COLMAP's files hold the registered images only, so each has a pose).
 
-    ``cam_from_world``: (3, 4) float64 ``[R | t]`` world-to-camera, None where the image has no pose
-    (not registered). ``points2D``: (K, 2) float64 keypoint positions in pixels (COLMAP: the top-left
-    corner of the image at (0, 0), pixel centres at +0.5); ``point3D_ids``: (K,) int64, the 3D point
-    each keypoint observes, -1 for none.
+    ``cam_from_world``: (3, 4) float64 ``[R | t]`` world-to-camera. ``points2D``: (K, 2) float64
+    keypoint positions in pixels (COLMAP: the top-left corner of the image at (0, 0), pixel centres at
+    +0.5); ``point3D_ids``: (K,) int64, the 3D point each keypoint observes, -1 for none.
     """
 
     image_id: int
     name: str
     camera_id: int
-    cam_from_world: np.ndarray | None
+    cam_from_world: np.ndarray
     points2D: np.ndarray
     point3D_ids: np.ndarray
-
-    @property
-    def has_pose(self) -> bool:
-        return self.cam_from_world is not None
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,24 +263,25 @@ def _check_camera(path: Path, cam: ColmapCamera, cameras: dict) -> None:
 
 @dataclass
 class _RigsFrames:
-    """What rigs and frames say about image poses: ``sensor_from_rig[rig_id][(type, id)]`` (None: the
-    reference sensor; absent: a sensor without a known pose) and per frame its rig and
-    ``rig_from_world`` (None: not finite) and CAMERA data ids (= image ids)."""
+    """What rigs and frames say about image poses: ``sensor_from_rig[rig_id][(type, id)]`` (the
+    reference sensor: :data:`_REFERENCE`; None: a sensor whose pose in the rig is unknown) and per
+    frame its rig, ``rig_from_world`` (None: not finite) and ``(camera_id, image_id)`` of its CAMERA
+    data."""
 
     rigs_file: Path
     frames_file: Path
     sensor_from_rig: dict[int, dict[tuple[int, int], np.ndarray | None]]
     frames: dict[int, tuple[int, np.ndarray | None, list[tuple[int, int]]]]
 
-    def poses(self, images: dict[int, tuple[str, int]]) -> dict[int, np.ndarray | None]:
-        """``cam_from_world`` of each image ``{image_id: (name, camera_id)}``: None where its frame's
-        rig does not know the camera's pose in the rig.
+    def poses(self, images: dict[int, tuple[str, int]]) -> dict[int, np.ndarray]:
+        """``cam_from_world`` of each image ``{image_id: (name, camera_id)}``.
 
         Raises:
-          DatasetError: an image in no frame, a frame of an unknown rig or with a camera that is not
-          in its rig, a non-finite pose of a frame that holds images.
+          DatasetError: an image in no frame or in two, a frame of an unknown rig, a frame holding a
+          camera that its rig lacks or whose pose in the rig is unknown (COLMAP writes neither), a
+          non-finite pose of a frame.
         """
-        out: dict[int, np.ndarray | None] = {}
+        out: dict[int, np.ndarray] = {}
         for frame_id, (rig_id, rig_from_world, cams) in self.frames.items():
             rig = self.sensor_from_rig.get(rig_id)
             if rig is None:
@@ -301,11 +299,14 @@ class _RigsFrames:
                 if (_CAMERA, camera_id) not in rig:
                     _bad_model(self.frames_file, f"frame {frame_id} holds camera {camera_id}, which its rig "
                                f"{rig_id} does not have")
+                sensor = rig[(_CAMERA, camera_id)]
+                if sensor is None:
+                    _bad_model(self.frames_file, f"frame {frame_id} holds camera {camera_id}, whose pose in rig "
+                               f"{rig_id} is unknown ({self.rigs_file.name})")
                 if rig_from_world is None:
                     _non_finite(self.frames_file, f"image {image_id} ({images[image_id][0]}) has a non-finite pose "
                                 f"(its frame {frame_id})", "re-run COLMAP mapping or re-export the model")
-                sensor = rig[(_CAMERA, camera_id)]
-                out[image_id] = rig_from_world if sensor is None else _compose(sensor, rig_from_world)
+                out[image_id] = rig_from_world if sensor is _REFERENCE else _compose(sensor, rig_from_world)
         for image_id, (name, _) in images.items():
             if image_id not in out:
                 _bad_model(self.frames_file, f"image {image_id} ({name}) is in no frame")
@@ -332,9 +333,10 @@ def _read_rigs_frames_binary(folder: Path) -> _RigsFrames | None:
         rig_id, nsensors = r.unpack("<II", "a rig record")
         sensors: dict[tuple[int, int], np.ndarray | None] = {}
         if nsensors > 0:
-            sensors[r.unpack("<iI", f"the reference sensor of rig {rig_id}")] = None
+            sensors[r.unpack("<iI", f"the reference sensor of rig {rig_id}")] = _REFERENCE
         for _ in range(max(0, nsensors - 1)):
             stype, sid, has_pose = r.unpack("<iIB", f"a sensor of rig {rig_id}")
+            sensors[(stype, sid)] = None
             if has_pose:
                 pose = _pose(r.unpack("<7d", f"a sensor pose of rig {rig_id}"))
                 sensors[(stype, sid)] = _check_sensor_pose(r.path, rig_id, pose)
@@ -600,11 +602,12 @@ def _read_rigs_frames_text(folder: Path) -> _RigsFrames | None:
                 f.fail(lineno, f"rig {rig_id} declares {nsensors} sensors but lists fewer")
             key = (f.sensor(lineno, t[k]), f.ints(lineno, t[k + 1:k + 2])[0])
             if s == 0:
-                sensors[key] = None
+                sensors[key] = _REFERENCE
                 k += 2
                 continue
             (has_pose,) = f.ints(lineno, t[k + 2:k + 3])
             k += 3
+            sensors[key] = None
             if has_pose:
                 if len(t) < k + 7:
                     f.fail(lineno, f"a sensor pose of rig {rig_id} is cut short")
@@ -770,7 +773,7 @@ def model_points(model: ColmapModel):
 def write_binary_model(folder: Path, cameras, images, points: ColmapPoints) -> None:
     """Writes ``cameras.bin``, ``images.bin`` and ``points3D.bin`` into ``folder`` (the three-file
     layout, which every COLMAP version reads; COLMAP 3.12+ gives each camera a trivial rig and each
-    image a frame of its own). Every image must have a pose.
+    image a frame of its own).
 
     Args:
       cameras: :class:`ColmapCamera` s.
@@ -789,8 +792,6 @@ def write_binary_model(folder: Path, cameras, images, points: ColmapPoints) -> N
 
     out = [struct.pack("<Q", len(images))]
     for im in images:
-        if im.cam_from_world is None:
-            raise ValueError(f"image {im.image_id} ({im.name}) has no pose: COLMAP files hold posed images only.")
         pose = np.asarray(im.cam_from_world, np.float64)
         kp = np.zeros(len(im.points2D), _POINT2D)
         kp["xy"] = im.points2D

@@ -4,6 +4,7 @@ loading COLMAP and embedded scenes with pycolmap made unimportable."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import struct
 import subprocess
@@ -79,7 +80,7 @@ def assert_same_as_pycolmap(folder: Path) -> None:
     assert sorted(ours.images) == sorted(theirs.images)
     for iid, im in ours.images.items():
         other = theirs.images[iid]
-        assert (im.name, im.camera_id, im.has_pose) == (other.name, other.camera_id, other.has_pose)
+        assert (im.name, im.camera_id) == (other.name, other.camera_id) and other.has_pose
         np.testing.assert_allclose(im.cam_from_world, other.cam_from_world().matrix(), rtol=0, atol=1e-12)
         np.testing.assert_array_equal(im.points2D, np.array([p.xy for p in other.points2D]).reshape(-1, 2))
         np.testing.assert_array_equal(im.point3D_ids, [p.point3D_id if p.has_point3D() else -1
@@ -173,16 +174,16 @@ def test_quaternions():
 def test_rig_model_damage_is_a_clear_error(tmp_path):
     good = _rig_model(tmp_path / "good", text=True)
 
-    def damaged(name, edit):
+    def damaged(name, edit, fname="frames.txt"):
         folder = tmp_path / name
         shutil.copytree(good, folder)
-        f = folder / "frames.txt"
+        f = folder / fname
         f.write_text(edit(f.read_text()))
         return folder
 
     lines = (good / "frames.txt").read_text().splitlines(keepends=True)
     data_lines = [k for k, line in enumerate(lines) if not line.startswith("#")]
-    # Image 4 in no frame (the header's count fixed too, so that only the frames are inconsistent).
+    # Image 4 in no frame (the frame's data count fixed too, so that only the frames are inconsistent).
     no_frame = damaged("no_frame", lambda s: s.replace(" CAMERA 2 4", "").replace(
         lines[data_lines[1]].split()[9] + " CAMERA 1 3", "1 CAMERA 1 3"))
     with pytest.raises(DatasetError, match=r"frames.txt: image 4 \(f1_c2.png\) is in no frame"):
@@ -194,6 +195,10 @@ def test_rig_model_damage_is_a_clear_error(tmp_path):
         " ", 3)[3]))
     with pytest.raises(DatasetError, match=r"frames.txt: image 3 \(f1_c1.png\) has a non-finite pose"):
         read_model(nan_pose)
+    # Camera 2's pose in the rig unknown (COLMAP cannot write this: its images would have no pose).
+    unposed = damaged("unposed", lambda s: re.sub(r"CAMERA 2 1 .*", "CAMERA 2 0", s), "rigs.txt")
+    with pytest.raises(DatasetError, match="frames.txt: frame 1 holds camera 2, whose pose in rig 1 is unknown"):
+        read_model(unposed)
     (tmp_path / "no_rigs").mkdir()
     for f in good.iterdir():
         if f.name != "rigs.txt":
