@@ -408,6 +408,9 @@ class _Reader:
             self.fail(f"{len(self.buf) - self.off} unexpected trailing bytes")
 
 
+# Ids are kept as int64 (COLMAP's are unsigned; none comes near 2**63).
+_ID_LIMIT = 1 << 63
+
 # A keypoint in images.bin: x, y (float64), the id of its 3D point (uint64, all ones for none: -1 as int64).
 _POINT2D = np.dtype([("xy", "<f8", (2,)), ("point3D_id", "<i8")])
 
@@ -456,6 +459,8 @@ def _read_binary(folder: Path) -> ColmapModel:
     ids, xyz, rgb, error, lengths, tracks = [], [], [], [], [], []
     for _ in range(n):
         pid, x, y, z, cr, cg, cb, err, track_len = r.unpack("<Q3d3BdQ", "a 3D point record")
+        if pid >= _ID_LIMIT:
+            r.fail(f"implausible 3D point id {pid}")
         tracks.append(r.take(8 * track_len, f"the track of 3D point {pid}"))
         ids.append(pid)
         xyz.append((x, y, z))
@@ -488,8 +493,9 @@ def _images(path: Path, entries: dict, rigs_frames: _RigsFrames | None) -> dict[
 
 def _points(path: Path, ids, xyz, rgb, error, lengths, tracks) -> ColmapPoints:
     ids = np.asarray(ids, np.int64).reshape(-1)
-    if np.unique(ids).size != ids.size:
-        _bad_model(path, "a 3D point id is defined twice")
+    unique, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        _bad_model(path, f"3D point {unique[counts > 1][0]} is defined twice")
     order = np.argsort(ids, kind="stable")
     lengths = np.asarray(lengths, np.int64).reshape(-1)
     # Track rows of the points in id order: each point's rows, moved from where the file had them.
@@ -550,9 +556,12 @@ class _TextFile:
 
     def ints(self, lineno: int, tokens) -> list[int]:
         try:
-            return [int(t) for t in tokens]
+            out = [int(t) for t in tokens]
         except ValueError:
             self.fail(lineno, "an id or size is not an integer")
+        if any(not -_ID_LIMIT <= v < _ID_LIMIT for v in out):
+            self.fail(lineno, "an id or size is out of range")
+        return out
 
     def floats(self, lineno: int, tokens) -> list[float]:
         try:

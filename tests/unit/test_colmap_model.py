@@ -260,3 +260,30 @@ def test_loading_without_pycolmap(tmp_path):
     assert out[1:3] == [f"pinhole 3 {len(pinhole_bin['points'])}", f"pinhole 2 {len(pinhole_txt['points'])}"]
     assert out[3].startswith("distorted: Undistorting a COLMAP scene's images needs pycolmap")
     assert "pip install 'pycolmap" in out[3]
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])
+def test_damaged_files_are_a_dataset_error_or_read(tmp_path, text):
+    """Random byte damage in any model file (rigs and frames included) is a DatasetError naming the
+    file, or reads: never another exception (the reader runs in-process: it cannot hang or crash)."""
+    good = _rig_model(tmp_path / "good", text)
+    make_colmap_scene(tmp_path / "scene", models=("PINHOLE", "OPENCV"), n_images=3, n_points=6, text=text)
+    rng = np.random.default_rng(1 + text)
+    for source in (good, tmp_path / "scene" / "sparse" / "0"):
+        files = sorted(p.name for p in source.iterdir())
+        for k in range(150):
+            folder = tmp_path / "damaged"
+            shutil.rmtree(folder, ignore_errors=True)
+            shutil.copytree(source, folder)
+            f = folder / files[k % len(files)]
+            b = bytearray(f.read_bytes())
+            for _ in range(int(rng.integers(1, 4))):
+                pos = int(rng.integers(0, len(b)))
+                b[pos] = (b[pos] + int(rng.integers(1, 256))) % 256
+            if k % 5 == 4:
+                b = b[:int(rng.integers(0, len(b)))]
+            f.write_bytes(bytes(b))
+            try:
+                read_model(folder)
+            except DatasetError as e:
+                assert str(folder) in str(e), str(e)
