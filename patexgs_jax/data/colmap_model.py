@@ -413,6 +413,9 @@ _ID_LIMIT = 1 << 63
 
 # A keypoint in images.bin: x, y (float64), the id of its 3D point (uint64, all ones for none: -1 as int64).
 _POINT2D = np.dtype([("xy", "<f8", (2,)), ("point3D_id", "<i8")])
+# The fixed part of a 3D point in points3D.bin (then track_length (image id, keypoint index) uint32 pairs).
+_POINT3D = np.dtype([("id", "<u8"), ("xyz", "<f8", (3,)), ("rgb", "u1", (3,)), ("error", "<f8"),
+                     ("track_length", "<u8")])
 
 
 def _read_binary(folder: Path) -> ColmapModel:
@@ -454,23 +457,52 @@ def _read_binary(folder: Path) -> ColmapModel:
     r.finish()
     images = _images(folder / "images.bin", entries, rigs_frames)
 
-    r = _Reader(folder / "points3D.bin")
-    n = r.count("<Q", 51, "3D points")
-    ids, xyz, rgb, error, lengths, tracks = [], [], [], [], [], []
-    for _ in range(n):
-        pid, x, y, z, cr, cg, cb, err, track_len = r.unpack("<Q3d3BdQ", "a 3D point record")
-        if pid >= _ID_LIMIT:
-            r.fail(f"implausible 3D point id {pid}")
-        tracks.append(r.take(8 * track_len, f"the track of 3D point {pid}"))
-        ids.append(pid)
-        xyz.append((x, y, z))
-        rgb.append((cr, cg, cb))
-        error.append(err)
-        lengths.append(track_len)
-    r.finish()
-    track_rows = np.frombuffer(b"".join(tracks), "<u4").reshape(-1, 2).astype(np.int64)
-    points = _points(r.path, ids, xyz, rgb, error, lengths, track_rows)
+    points = _read_points_binary(_Reader(folder / "points3D.bin"))
     return ColmapModel(folder, ".bin", cameras, images, points)
+
+
+def _read_points_binary(r: _Reader) -> ColmapPoints:
+    """``points3D.bin``: a Python loop finds where each record starts (tracks make them variable in
+    size), numpy gathers the fields, as per-record unpacking took seconds for a few 100k points."""
+    n = r.count("<Q", _POINT3D.itemsize, "3D points")
+    buf, off, size = r.buf, r.off, len(r.buf)
+    track_length_at = struct.Struct("<Q").unpack_from
+    starts, lengths = [], []
+    for _ in range(n):
+        if off + _POINT3D.itemsize > size:
+            r.off = off
+            r.fail("file ends inside a 3D point record")
+        (track_len,) = track_length_at(buf, off + _POINT3D.itemsize - 8)
+        starts.append(off)
+        lengths.append(track_len)
+        off += _POINT3D.itemsize + 8 * track_len
+        if off > size:
+            r.off = starts[-1] + _POINT3D.itemsize
+            r.fail(f"file ends inside the track of 3D point {track_length_at(buf, starts[-1])[0]}")
+    r.off = off
+    r.finish()
+    raw = np.frombuffer(buf, np.uint8)
+    first = np.asarray(starts, np.int64)
+    rec = _gather(raw, first, _POINT3D.itemsize).view(_POINT3D).reshape(n)
+    too_large = np.nonzero(rec["id"] >= _ID_LIMIT)[0]
+    if too_large.size:
+        r.off = int(first[too_large[0]])
+        r.fail(f"implausible 3D point id {rec['id'][too_large[0]]}")
+    length = np.asarray(lengths, np.int64)
+    # Byte offset of each track element: its point's first element, then 8 bytes apart.
+    element = np.arange(int(length.sum())) - np.repeat(np.cumsum(length) - length, length)
+    at = np.repeat(first + _POINT3D.itemsize, length) + 8 * element
+    tracks = _gather(raw, at, 8).view("<u4").reshape(-1, 2).astype(np.int64)
+    return _points(r.path, rec["id"], rec["xyz"], rec["rgb"], rec["error"], length, tracks)
+
+
+def _gather(raw: np.ndarray, offsets: np.ndarray, nbytes: int, chunk: int = 1 << 16) -> np.ndarray:
+    """(len(offsets), nbytes) uint8: the ``nbytes`` bytes of ``raw`` from each offset (a chunk of
+    offsets at a time, so that the byte indices stay small)."""
+    out = np.empty((offsets.size, nbytes), np.uint8)
+    for k in range(0, offsets.size, chunk):
+        out[k:k + chunk] = raw[offsets[k:k + chunk, None] + np.arange(nbytes)]
+    return out
 
 
 def _images(path: Path, entries: dict, rigs_frames: _RigsFrames | None) -> dict[int, ColmapImage]:
