@@ -3,9 +3,9 @@
 The reader is ours (numpy and :mod:`struct`), so that a COLMAP scene loads without pycolmap. It walks
 every record and checks it as it goes: a truncated or padded binary file, a damaged text line, an
 unknown camera model, an image whose camera or frame is missing and a non-finite camera parameter or
-pose are :class:`DatasetError` naming the file and the record (byte offset or line number). pycolmap
-(4.2.1) hangs on some truncated binary files and silently accepts others, and reads NaN poses without
-complaint.
+pose are :class:`DatasetError` naming the file and the record (byte offset or line number). The
+undistortion hands a model to pycolmap only after this reader accepted it: pycolmap (4.2.1) hangs on
+some truncated binary files, silently accepts others and reads NaN poses without complaint.
 
 Conventions (COLMAP's): a pose ``cam_from_world`` maps world to camera coordinates, ``x_cam = R x + t``,
 stored as a unit quaternion ``(qw, qx, qy, qz)`` and a translation. Models written by COLMAP 3.12 and
@@ -462,8 +462,9 @@ def _read_binary(folder: Path) -> ColmapModel:
 
 
 def _read_points_binary(r: _Reader) -> ColmapPoints:
-    """``points3D.bin``: a Python loop finds where each record starts (tracks make them variable in
-    size), numpy gathers the fields, as per-record unpacking took seconds for a few 100k points."""
+    """``points3D.bin``: a light Python loop finds where each record starts (tracks make them vary in
+    size), then numpy gathers the fields of all records at once (unpacking each record in Python
+    would cost seconds for a few 100k points)."""
     n = r.count("<Q", _POINT3D.itemsize, "3D points")
     buf, off, size = r.buf, r.off, len(r.buf)
     track_length_at = struct.Struct("<Q").unpack_from
