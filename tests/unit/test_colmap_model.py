@@ -238,13 +238,22 @@ WITHOUT_PYCOLMAP = """
         data.load(sys.argv[4], test_every=0, verbose=False)
     except data.DatasetError as e:
         print("distorted:", e)
+    import importlib, pkgutil, patexgs_jax
+    needs = []  # the modules that cannot be imported without pycolmap
+    for m in pkgutil.walk_packages(patexgs_jax.__path__, "patexgs_jax."):
+        try:
+            importlib.import_module(m.name)
+        except ImportError:
+            needs.append(m.name)
+    print("needs pycolmap:", " ".join(sorted(needs)))
     assert sys.modules["pycolmap"] is None
 """
 
 
 def test_loading_without_pycolmap(tmp_path):
     """The embedded scene and undistorted (PINHOLE / SIMPLE_PINHOLE) COLMAP scenes load with pycolmap
-    unimportable; a distorted model fails with the install command."""
+    unimportable; a distorted model fails with the install command; of the package's modules, only
+    the SfM (prepare) and the one place that imports pycolmap need it."""
     pinhole_bin = make_colmap_scene(tmp_path / "bin", models=("PINHOLE", "SIMPLE_PINHOLE"), n_images=3)
     pinhole_txt = make_colmap_scene(tmp_path / "txt", models=("PINHOLE",), n_images=2, text=True)
     make_colmap_scene(tmp_path / "distorted", models=("OPENCV",), n_images=2)
@@ -260,6 +269,7 @@ def test_loading_without_pycolmap(tmp_path):
     assert out[1:3] == [f"pinhole 3 {len(pinhole_bin['points'])}", f"pinhole 2 {len(pinhole_txt['points'])}"]
     assert out[3].startswith("distorted: Undistorting a COLMAP scene's images needs pycolmap")
     assert "pip install 'pycolmap" in out[3]
+    assert out[4] == "needs pycolmap: patexgs_jax._pycolmap patexgs_jax.prepare"
 
 
 @pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])
