@@ -133,6 +133,45 @@ def test_embedded_scene_model_is_what_pycolmap_builds(tmp_path):
                                    rtol=0, atol=1e-6)
 
 
+def test_embedded_scene_loads_as_when_pycolmap_wrote_it(tmp_path):
+    """The embedded scene's model, rebuilt and written by pycolmap as the generator did before it had
+    its own writer, loads into the same dataset (poses to float32 rounding) and the same model."""
+    scene = synthetic.generate(tmp_path / "ours", **SMALL)
+    ours = read_model(scene / "sparse" / "0")
+    cams = synthetic.make_cameras(0, SMALL["num_views"], SMALL["width"], SMALL["height"])
+    rec = pycolmap.Reconstruction()
+    K = np.asarray(cams[0].K, np.float64)
+    camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", float(K[0, 0]), cams[0].width, cams[0].height)
+    camera.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    rec.add_camera_with_trivial_rig(camera)
+    for v, cam in enumerate(cams):
+        image = pycolmap.Image(name=f"img_{v:04d}.png", keypoints=ours.images[v + 1].points2D, camera_id=1,
+                               image_id=v + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.asarray(cam.world_to_camera, np.float64)[:3, :4]))
+    starts = np.cumsum(ours.points.track_length) - ours.points.track_length
+    for k in range(len(ours.points)):
+        rows = ours.points.tracks[starts[k]:starts[k] + ours.points.track_length[k]]
+        track = pycolmap.Track([pycolmap.TrackElement(int(i), int(j)) for i, j in rows])
+        assert rec.add_point3D(ours.points.xyz[k], track, ours.points.rgb[k]) == ours.points.ids[k]
+    rec.update_point_3d_errors()
+    theirs = tmp_path / "theirs"
+    shutil.copytree(scene, theirs)
+    shutil.rmtree(theirs / "sparse" / "0")
+    (theirs / "sparse" / "0").mkdir()
+    rec.write(str(theirs / "sparse" / "0"))
+    assert_same_as_pycolmap(theirs / "sparse" / "0")
+    again = read_model(theirs / "sparse" / "0")
+    np.testing.assert_allclose(again.points.error, ours.points.error, rtol=1e-9, atol=1e-12)
+    a, b = (data.load(p, test_every=0, verbose=False) for p in (scene, theirs))
+    assert [v.name for v in a.views] == [v.name for v in b.views]
+    for u, v in zip(a.views, b.views):
+        np.testing.assert_array_equal(np.asarray(u.camera.K), np.asarray(v.camera.K))
+        np.testing.assert_allclose(np.asarray(u.camera.world_to_camera), np.asarray(v.camera.world_to_camera),
+                                   rtol=0, atol=1e-7)
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.colors, b.colors)
+
+
 @pytest.mark.parametrize("source", ["built", "beer"])
 def test_writer_round_trip(tmp_path, source):
     if source == "beer":
