@@ -29,6 +29,7 @@ from .errors import DatasetError
 
 __all__ = [
     "CAMERA_MODELS",
+    "CAMERA_MODELS_BY_NAME",
     "CameraModel",
     "ColmapCamera",
     "ColmapImage",
@@ -104,7 +105,8 @@ CAMERA_MODELS: dict[int, CameraModel] = {m.model_id: m for m in (
     CameraModel(16, "EUCM", 6),
     CameraModel(17, "EQUIRECTANGULAR", 2, perspective=False),
 )}
-_MODELS_BY_NAME = {m.name: m for m in CAMERA_MODELS.values()}
+#: The same, by name.
+CAMERA_MODELS_BY_NAME: dict[str, CameraModel] = {m.name: m for m in CAMERA_MODELS.values()}
 
 # Sensor types of rigs and frames (binary: the int, text: the name); images are CAMERA data.
 _SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}
@@ -689,9 +691,9 @@ def _read_text(folder: Path) -> ColmapModel:
     cameras: dict[int, ColmapCamera] = {}
     f = _TextFile(folder / "cameras.txt")
     for lineno, t in f.records():
-        if len(t) < 4 or t[1] not in _MODELS_BY_NAME:
+        if len(t) < 4 or t[1] not in CAMERA_MODELS_BY_NAME:
             f.fail(lineno, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[] with one of COLMAP's models")
-        model = _MODELS_BY_NAME[t[1]]
+        model = CAMERA_MODELS_BY_NAME[t[1]]
         if len(t) != 4 + model.num_params:
             f.fail(lineno, f"model {t[1]} needs {model.num_params} parameters, found {len(t) - 4}")
         cam_id, width, height = f.ints(lineno, [t[0], t[2], t[3]])

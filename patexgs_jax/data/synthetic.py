@@ -35,7 +35,7 @@ import numpy as np
 
 from ..camera import Camera, look_at
 from .colmap_model import (
-    CAMERA_MODELS,
+    CAMERA_MODELS_BY_NAME,
     ColmapCamera,
     ColmapImage,
     ColmapPoints,
@@ -164,7 +164,7 @@ def _write_model(folder: Path, cams, names, xyz, colors_u8, tracks) -> None:
     with ``xyz[p]``, ``colors_u8[p]``, its track ``tracks[p]`` of (view, x, y) and its mean
     reprojection error in pixels."""
     K = np.asarray(cams[0].K, np.float64)
-    camera = ColmapCamera(1, CAMERA_MODELS[1], cams[0].width, cams[0].height,
+    camera = ColmapCamera(1, CAMERA_MODELS_BY_NAME["PINHOLE"], cams[0].width, cams[0].height,
                           np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
     keypoints: list[list[tuple[float, float]]] = [[] for _ in cams]
     observers: list[list[int]] = [[] for _ in cams]
