@@ -1,8 +1,10 @@
 """COLMAP scenes: ``sparse/0`` (or ``sparse/``) + ``images/`` (+ Mip-NeRF 360 ``images_2/4/8``).
 
-Models are found, checked and read by :mod:`.colmap_model` (``.bin`` or ``.txt``, with pycolmap).
-Distorted camera models are undistorted once with ``pycolmap.undistort_images`` into the cache folder
-(see :func:`~patexgs_jax.data.cache.resolve_cache_dir`), written atomically and reused afterwards.
+Models are found, checked and read by :mod:`.colmap_model` (``.bin`` or ``.txt``, our own reader:
+PINHOLE and SIMPLE_PINHOLE scenes load without pycolmap). Distorted camera models are undistorted once
+with ``pycolmap.undistort_images`` into the cache folder (see
+:func:`~patexgs_jax.data.cache.resolve_cache_dir`), written atomically and reused afterwards; only that
+step needs pycolmap.
 """
 
 from __future__ import annotations
@@ -166,11 +168,11 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         raise DatasetError(f"No COLMAP model in {scene}: expected sparse/0/ or sparse/ with cameras, images "
                            "and points3D (.bin or .txt).")
     rec = read_model(sparse)
-    point_ids, pts, cols = model_points(rec, sparse)  # before undistorting, which keeps the points as they are
-    reg = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    point_ids, pts, cols = model_points(rec)  # before undistorting, which keeps the points as they are
+    reg = sorted(rec.images.values(), key=lambda im: im.name)  # COLMAP writes registered images only
     if not reg:
-        raise DatasetError(f"The COLMAP model in {sparse} has no registered images ({len(rec.images)} images, "
-                           "none with a pose): the reconstruction failed; re-run COLMAP mapping.")
+        raise DatasetError(f"The COLMAP model in {sparse} has no registered images: the reconstruction failed; "
+                           "re-run COLMAP mapping.")
     factor, max_width = default_resolution(scene, factor)
     if factor < 1:
         raise DatasetError(f"factor must be a positive integer, got {factor}.")
@@ -209,7 +211,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
     if distorted:
         for m in distorted:
             cam = next(rec.cameras[im.camera_id] for im in kept if rec.cameras[im.camera_id].model.name == m)
-            if not cam.is_perspective():
+            if not cam.model.perspective:
                 raise DatasetError(f"Camera model {m} (in {sparse}) is not a perspective model and cannot be "
                                    "undistorted to a pinhole camera; convert the capture to perspective images "
                                    "(e.g. cube maps) and re-run COLMAP.")
@@ -250,7 +252,7 @@ def load_colmap(path, factor: int | None = None, test_every: int | None = 8, ski
         if w < 1 or h < 1:
             raise DatasetError(f"factor {factor} leaves no pixel of the {w_file}x{h_file} image {files[im.name]}.")
         w2c = np.eye(4)
-        w2c[:3, :] = im.cam_from_world().matrix()
+        w2c[:3, :] = im.cam_from_world
         records.append(dict(name=im.name, K=K, w2c=w2c, width=w, height=h, image_path=files[im.name],
                             load=image_loader(files[im.name], post, background)))
     records, ratio = fit_records_to_width(records, max_width, background, verbose)
@@ -300,7 +302,7 @@ def _undistort(scene, sparse, rec, kept, files, ratios, folder, cache_dir, disto
         src_model = sparse
         src_images = folder
         if rescale or renamed:
-            r2 = pycolmap.Reconstruction(rec)
+            r2 = pycolmap.Reconstruction(str(sparse))
             for cid, (w, h) in rescale.items():
                 cam = r2.cameras[cid]
                 cam.rescale(w, h)

@@ -160,7 +160,7 @@ def load_llff(path, factor: int | None = None, test_every: int | None = 8, skip_
     sparse = find_sparse_dir(scene)
     info = {"image_folder": str(folder), "skipped": skipped, "bounds": bounds}
     if sparse is not None:
-        ids, pts, cols = model_points(read_model(sparse), sparse)
+        ids, pts, cols = model_points(read_model(sparse))
         source = "sfm"
         info["sparse"] = str(sparse)
         if not ids.size:

@@ -6,8 +6,8 @@ layout::
     out_dir/
       images/img_0000.png ...      anti-aliased renders (supersampled), uint8 RGB
       images_2/img_0000.png ...    the same, box-downsampled by 2
-      sparse/0/{cameras,images,points3D}.bin   written by pycolmap: one PINHOLE camera, poses,
-                                               SfM-like 3D points with colours and tracks
+      sparse/0/{cameras,images,points3D}.bin   one PINHOLE camera, poses, SfM-like 3D points with
+                                               colours and tracks (written by .colmap_model)
       synthetic.json               generation parameters and format version (written last)
 
 The scene is :mod:`.synthetic_scene`'s analytic one (a tiled ground with a text-covered cube, a
@@ -30,17 +30,21 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..camera import Camera, look_at
-from .errors import pycolmap_module
+from .colmap_model import (
+    CAMERA_MODELS_BY_NAME,
+    ColmapCamera,
+    ColmapImage,
+    ColmapPoints,
+    quaternion_from_rotation,
+    rotation_from_quaternion,
+    write_binary_model,
+)
 from .images import box_downsample, save_image
 from .synthetic_scene import Scene, camera_rays, make_scene, render_ground_truth, row_matmul
-
-if TYPE_CHECKING:
-    import pycolmap
 
 __all__ = [
     "FORMAT_VERSION",
@@ -154,31 +158,41 @@ def _sample_points(scene: Scene, cams: list, num_points: int, rng: np.random.Gen
     return xyz[order], col[order], [tracks[p] for p in order]
 
 
-def _build_reconstruction(cams, names, xyz, colors_u8, tracks) -> pycolmap.Reconstruction:
-    pycolmap = pycolmap_module("Writing the embedded scene's COLMAP model")
-    rec = pycolmap.Reconstruction()
+def _write_model(folder: Path, cams, names, xyz, colors_u8, tracks) -> None:
+    """Writes the COLMAP model (binary) of the scene into ``folder``: one PINHOLE camera, image ``v + 1``
+    named ``names[v]`` with the pose of ``cams[v]`` and the keypoints of the tracks, 3D point ``p + 1``
+    with ``xyz[p]``, ``colors_u8[p]``, its track ``tracks[p]`` of (view, x, y) and its mean
+    reprojection error in pixels."""
     K = np.asarray(cams[0].K, np.float64)
-    camera = pycolmap.Camera.create_from_model_name(1, "PINHOLE", float(K[0, 0]), cams[0].width, cams[0].height)
-    camera.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-    rec.add_camera_with_trivial_rig(camera)
-    keypoints = [[] for _ in cams]
-    elements = []
-    for tr in tracks:
-        el = []
-        for v, x, y in tr:
-            el.append((v + 1, len(keypoints[v])))
-            keypoints[v].append((x, y))
-        elements.append(el)
-    for v, (cam, name) in enumerate(zip(cams, names)):
-        kp = np.asarray(keypoints[v], np.float64).reshape(-1, 2)
-        image = pycolmap.Image(name=name, keypoints=kp, camera_id=1, image_id=v + 1)
+    camera = ColmapCamera(1, CAMERA_MODELS_BY_NAME["PINHOLE"], cams[0].width, cams[0].height,
+                          np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
+    keypoints: list[list[tuple[float, float]]] = [[] for _ in cams]
+    observers: list[list[int]] = [[] for _ in cams]
+    rows, error = [], []
+    # The poses as the file stores them (rotations through unit quaternions; the cameras' float32
+    # matrices are orthonormal to about 1e-7 only), so that the errors are those of the stored model.
+    w2cs = []
+    for cam in cams:
         w2c = np.asarray(cam.world_to_camera, np.float64)
-        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(w2c[:3, :4]))
-    for p in range(len(xyz)):
-        track = pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in elements[p]])
-        rec.add_point3D(xyz[p], track, colors_u8[p])
-    rec.update_point_3d_errors()
-    return rec
+        R = rotation_from_quaternion(quaternion_from_rotation(w2c[:3, :3]))
+        w2cs.append(np.concatenate([R, w2c[:3, 3:4]], axis=1))
+    for p, tr in enumerate(tracks):
+        residuals = []
+        for v, x, y in tr:
+            rows.append((v + 1, len(keypoints[v])))
+            keypoints[v].append((x, y))
+            observers[v].append(p + 1)
+            q = K @ (w2cs[v][:3, :3] @ xyz[p] + w2cs[v][:3, 3])
+            residuals.append(np.hypot(q[0] / q[2] - x, q[1] / q[2] - y))
+        error.append(np.mean(residuals))
+    images = [ColmapImage(v + 1, name, 1, w2cs[v], np.asarray(keypoints[v], np.float64).reshape(-1, 2),
+                          np.asarray(observers[v], np.int64))
+              for v, name in enumerate(names)]
+    points = ColmapPoints(ids=np.arange(1, len(xyz) + 1), xyz=np.asarray(xyz, np.float64),
+                          rgb=np.asarray(colors_u8, np.uint8), error=np.asarray(error, np.float64),
+                          track_length=np.array([len(tr) for tr in tracks], np.int64),
+                          tracks=np.asarray(rows, np.int64).reshape(-1, 2))
+    write_binary_model(folder, [camera], images, points)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -237,9 +251,8 @@ def _write_scene(tmp: Path, params: dict, verbose: bool) -> None:
     xyz, col, tracks = _sample_points(scene, cams, params["num_points"], rng)
     xyz = xyz + rng.normal(0.0, 0.003, xyz.shape)  # SfM-like triangulation noise (metres)
     col_u8 = np.clip(np.round(255.0 * col + rng.normal(0.0, 1.5, col.shape)), 0, 255).astype(np.uint8)
-    rec = _build_reconstruction(cams, names, xyz, col_u8, tracks)
     (tmp / "sparse/0").mkdir(parents=True)
-    rec.write(str(tmp / "sparse/0"))
+    _write_model(tmp / "sparse/0", cams, names, xyz, col_u8, tracks)
     meta = dict(params, images=names, num_points3D=len(xyz),
                 note="patexgs_jax synthetic scene (world z up, metres); see patexgs_jax/data/synthetic.py")
     (tmp / "synthetic.json").write_text(json.dumps(meta, indent=1) + "\n")

@@ -193,11 +193,11 @@ def test_reuse_and_refuse(tmp_path):
 def test_atomic_write(tmp_path, monkeypatch):
     calls = []
 
-    def failing_write(self, path):
-        calls.append(path)
+    def failing_write(folder, *args):
+        calls.append(folder)
         raise RuntimeError("simulated crash while writing the model")
 
-    monkeypatch.setattr(pycolmap.Reconstruction, "write", failing_write)
+    monkeypatch.setattr(synthetic, "write_binary_model", failing_write)
     out = tmp_path / "scene"
     with pytest.raises(RuntimeError, match="simulated crash"):
         synthetic.generate(out, seed=0, **SMALL)
