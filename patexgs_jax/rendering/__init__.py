@@ -253,8 +253,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
 
     batch = resolve_tile_batch(config.tile_batch, num_tiles, tile_size=ts, chunk=config.chunk)
     st = Static(config=dataclasses.replace(config, tile_batch=batch), tiles_x=tiles_x, num_tiles=num_tiles,
-                rgb=rgb_atlas is not None,
-                alpha=alpha_atlas is not None)
+                rgb=rgb_atlas is not None, alpha=alpha_atlas is not None)
     # One-texel textures are folded into the colour and opacity (constant_textures): not looked up.
     rgb_has = alpha_has = None
     if rgb_atlas is not None:

@@ -8,15 +8,15 @@ the device:
     costs little. :data:`CPU_TILE_BATCH` (8) is the measured best on a 2-core machine
     (docs/performance.md).
   * On a GPU (or TPU), every loop iteration is a kernel launch and a synchronisation: small
-    batches leave most of the device idle (8 tiles a batch was 9-21x slower on an H100 than every
-    tile at once). There B is as large as memory allows: every tile of the image when the batch's
-    working memory fits :data:`MEMORY_SHARE` of the device's memory, else the largest batch that fits.
+    batches leave most of the device idle (docs/performance.md has the A/B on an H100). There B is
+    as large as memory allows: every tile of the image when the batch's working memory fits
+    :data:`MEMORY_SHARE` of the device's memory, else the largest batch that fits.
 
 Memory bound: a batch's forward and backward keep about :data:`PAIR_BYTES` bytes per (tile, pixel,
 chunk slot) of working memory, so a batch needs ``B * tile_size**2 * chunk * PAIR_BYTES`` bytes.
 :data:`PAIR_BYTES` is above the largest slope measured (XLA's memory analysis of the compiled
-forward and backward, trilinear mipmaps with the prefilter, the heaviest configuration: 94 bytes;
-tests/integration/test_device_schedule.py measures it again).
+forward and backward of trilinear mipmaps with the prefilter, the heaviest configuration, in
+docs/performance.md; tests/integration/test_device_schedule.py measures it again).
 
 ``RenderConfig(tile_batch=N)`` fixes B; the environment variable ``PATEXGS_TILE_BATCH`` sets it
 for every render whose config leaves it to the device (None, the default).
@@ -28,8 +28,8 @@ import os
 
 import jax
 
-__all__ = ["CPU_TILE_BATCH", "DEFAULT_DEVICE_MEMORY", "MEMORY_SHARE", "PAIR_BYTES", "choose_tile_batch",
-           "device_memory", "resolve_tile_batch"]
+__all__ = ["CPU_TILE_BATCH", "DEFAULT_DEVICE_MEMORY", "ENV_TILE_BATCH", "MEMORY_SHARE", "PAIR_BYTES",
+           "choose_tile_batch", "device_memory", "resolve_tile_batch"]
 
 #: Tiles a batch on a CPU.
 CPU_TILE_BATCH = 8
