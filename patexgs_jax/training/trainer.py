@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import datetime
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -39,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import buckets, compiled, progress
+from .. import buckets, compiled, interrupt, progress
 from .. import checkpoint as ckpt
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
@@ -51,7 +53,7 @@ from .config import TrainConfig, config_dict
 from .step import STEP_TRACES, batch_step, single_view_step
 from .strategies import Densification, TextureStage, TrainState
 
-__all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
+__all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "rgba_texels"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
@@ -61,6 +63,44 @@ _MAP_CHECK_EVERY = 25
 
 #: Jitted steps (capacities) kept for one scene layout.
 _MAX_STEP_FNS = 4
+
+#: A textured step's cost in 2DGS steps, for the time estimate made before the texture stage is
+#: measured (2.5-4x on a 2-core CPU, docs/performance.md).
+TEXTURED_STEP_COST = 3.0
+
+#: Runs estimated to take longer than this many seconds say so at the start, with the flags that
+#: shorten them.
+LONG_RUN_SECONDS = 3600.0
+
+
+def format_seconds(seconds: float) -> str:
+    """``"2 h 05 min"``, ``"14 min"``, ``"40 s"``."""
+    seconds = max(0.0, float(seconds))
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    minutes = int(round(seconds / 60))
+    if minutes < 60:
+        return f"{minutes} min"
+    return f"{minutes // 60} h {minutes % 60:02d} min"
+
+
+def rgba_texels(scene: Scene) -> int:
+    """RGBA texels of a scene's active Gaussians: ``sum_i max(rgb side_i, alpha side_i)^2``, the
+    count the texture-stage lines give (the RGB and alpha textures share their sides once Eq. 7 has
+    allocated them; during the warm-up the 5x5 alpha textures set it). 0 without textures."""
+    sides = [np.asarray(bank.size, np.int64) for bank in (scene.rgb, scene.alpha) if bank is not None]
+    if not sides:
+        return 0
+    side = np.maximum.reduce(sides) * (np.asarray(scene.active) > 0)
+    return int(np.sum(side * side))
+
+
+def device_description() -> str:
+    """The devices a run uses, e.g. ``"cpu (2 cores)"`` or ``"1 x NVIDIA H100 80GB HBM3"``."""
+    devices = jax.devices()
+    if devices[0].platform == "cpu":
+        return f"cpu ({os.cpu_count()} cores)"
+    return f"{len(devices)} x {devices[0].device_kind}"
 
 
 def _layout(scene: Scene) -> tuple:
@@ -138,6 +178,11 @@ class Trainer:
         # program per size bucket; released when the layout changes (see _compiled_step).
         self._jit_cache = {}
         self._jit_layout = None
+        self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
+        self.t_start = time.perf_counter()
+        # Durations of steps that compiled nothing, per stage, for the time estimate (see _measure).
+        self._clean_steps: dict[int, list[float]] = {1: [], 2: []}
+        self.estimated = False
 
     @property
     def render_cfg(self) -> RenderConfig:
@@ -200,8 +245,23 @@ class Trainer:
         if self.main:
             path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
             ckpt.save_checkpoint(path, tree, dict(config=config_dict(self.cfg), step=self.step), keep=2)
+        self.note_saved(self.step)
         if several:  # the others wait until it is written (a study reads it next)
             parallel.check_same(f"the checkpoint of step {self.step} being written", [self.step])
+
+    def note_saved(self, step: int) -> None:
+        """Records that the checkpoint of ``step`` (written or loaded) holds the run's work."""
+        self.saved_step = step
+        if self.out is not None:
+            interrupt.set_saved(f"the checkpoint of step {step} in {self.out / 'checkpoints'}")
+
+    def save_on_stop(self) -> None:
+        """On a stop signal between steps: a checkpoint, unless the newest is at most
+        ``checkpoint_on_stop`` steps old or the run is in a non-finite streak (the last good one stays)."""
+        if self.out is None or self.bad_streak or self.step - self.saved_step <= self.cfg.checkpoint_on_stop:
+            return
+        interrupt.set_phase(f"writing the checkpoint of step {self.step}")
+        self.save()
 
     def save_stage1(self):
         """At the end of the 2DGS stage of a run that goes on: a checkpoint (a restart point) and a
@@ -239,8 +299,19 @@ class Trainer:
         if key not in self._jit_cache:
             while len(self._jit_cache) >= _MAX_STEP_FNS:
                 self._jit_cache.pop(next(iter(self._jit_cache)))
-            self._jit_cache[key] = make()
+            # (the jitted step, the size buckets it has been called with: a new one compiles)
+            self._jit_cache[key] = (make(), set())
         return self._jit_cache[key]
+
+    def stage_name(self, step: int | None = None) -> str:
+        """``"2DGS"`` or ``"textured"``: which step ``step`` (default: the current one) runs."""
+        step = self.step if step is None else step
+        return "2DGS" if step < self.cfg.iters_2dgs or self.spec.textures is None else "textured"
+
+    def announce_compile(self, what: str) -> None:
+        """Marks the phase as a compile (the heartbeat then says how long it has taken)."""
+        interrupt.set_phase(f"compiling the {self.stage_name()} step for {what}")
+        interrupt.set_step(self.step, self.cfg.total_steps)
 
     def step_fn(self) -> Callable[..., Any]:
         """The training step as ``fn(scene, opt_state, stats, camera, image, active_sh, w_normal)``
@@ -249,7 +320,7 @@ class Trainer:
         if self.cfg.batch_size > 1:
             return self._batch_step_fn()
         cfg, render_cfg, capacity = self.cfg, self.render_cfg, self.capacity
-        fn = self._compiled_step((render_cfg, capacity), lambda: jax.jit(
+        fn, buckets_seen = self._compiled_step((render_cfg, capacity), lambda: jax.jit(
             lambda sc, st, stats, cam, img, hw, sh, wn: single_view_step(
                 sc, st, stats, cam, img, hw, sh, wn, optimizer=self.optimizer, render_config=render_cfg,
                 capacity=capacity, lambda_dssim=cfg.lambda_dssim, lambda_dist=cfg.lambda_dist),
@@ -257,6 +328,9 @@ class Trainer:
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
             cam = buckets.padded_camera(camera, render_cfg.tile_size)
+            if (cam.height, cam.width) not in buckets_seen:  # this call compiles (see _compiled_step)
+                buckets_seen.add((cam.height, cam.width))
+                self.announce_compile(f"{cam.width}x{cam.height} px")
             img = buckets.pad_image(image, cam.height, cam.width)
             hw = np.array([camera.height, camera.width], np.int32)
             return fn(scene, opt_state, stats, cam, img, hw, active_sh, w_normal)
@@ -275,12 +349,19 @@ class Trainer:
         from .. import parallel
 
         mesh, render_cfg, capacity, cfg = self.data_mesh(), self.render_cfg, self.capacity, self.cfg
-        fn = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
+        jitted, seen = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
             lambda sc, st, stats, cams, imgs, sh, wn: batch_step(
                 sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
                 render_config=render_cfg, capacity=capacity, lambda_dssim=cfg.lambda_dssim,
                 lambda_dist=cfg.lambda_dist),
             out_shardings=parallel.replicated(mesh), donate_argnums=(0, 1, 2)))
+
+        def fn(*args):
+            if not seen:  # the first call compiles
+                seen.add(())
+                self.announce_compile(f"batches of {cfg.batch_size} views")
+            return jitted(*args)
+
         if jax.process_count() == 1:
             return fn
 
@@ -323,7 +404,12 @@ class Trainer:
             self.capacity = cap
 
     def log(self, record):
+        """Appends ``record`` to ``log.jsonl`` with its wall-clock time (UTC, ISO 8601) and the
+        seconds since this process started the run."""
         if self.log_path is not None and self.main:
+            now = datetime.datetime.now(datetime.UTC)
+            record = dict(record, time=now.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+                          elapsed_s=round(time.perf_counter() - self.t_start, 3))
             with open(self.log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
@@ -360,12 +446,47 @@ class Trainer:
 
     # -- main loop -------------------------------------------------------------------------------
     def run(self):
+        """Trains to ``cfg.total_steps``. On a stop signal (:mod:`patexgs_jax.interrupt`) it stops
+        between two steps, writes a checkpoint if the newest is too old (:meth:`save_on_stop`) and
+        raises :class:`~patexgs_jax.interrupt.Interrupted`."""
         bar = progress.bar(self.cfg.total_steps, f"train {self.cfg.method}", initial=self.step,
                            show=self.verbose and self.main)
         try:
             self._run(bar)
+        except interrupt.Interrupted:
+            self.save_on_stop()
+            raise
         finally:
             bar.close()
+
+    def _measure(self, step: int, seconds: float) -> None:
+        """Records the duration of a step that compiled nothing; after the first few, says once how
+        long the run will take, and when that is over :data:`LONG_RUN_SECONDS`, how to shorten it."""
+        stage = 1 if self.stage_name(step) == "2DGS" else 2
+        times = self._clean_steps[stage]
+        times.append(seconds)
+        if self.estimated or not (len(times) >= 10 or (len(times) >= 2 and sum(times) >= 20.0)):
+            return
+        self.estimated = True
+        cfg = self.cfg
+        per = float(np.median(times))
+        per1, per2 = (per, per * TEXTURED_STEP_COST) if stage == 1 else (per, per)
+        n1 = cfg.iters_2dgs
+        n2 = cfg.total_steps - n1
+        guess = "" if stage == 2 or n2 == 0 or self.spec.textures is None else (
+            f", a textured step taken as {TEXTURED_STEP_COST:g}x that")
+        if self.spec.textures is None:
+            per2 = per1
+        left = (max(0, n1 - self.step) * per1 + min(n2, cfg.total_steps - max(self.step, n1)) * per2)
+        whole = n1 * per1 + n2 * per2
+        self.say(f"estimated time: {format_seconds(left)} for the {cfg.total_steps - self.step} steps left "
+                 f"({1e3 * per:.0f} ms a {self.stage_name(step)} step{guess}), plus compiles and the evaluation")
+        if whole > LONG_RUN_SECONDS:
+            h, w = self.train_views[0].camera.height, self.train_views[0].camera.width
+            self.say(f"note: this run takes about {format_seconds(whole)} on {device_description()} "
+                     f"({cfg.iters_2dgs} + {n2} steps on {w}x{h} px images); --preset cpu "
+                     "(1,000 + 400 steps) or a larger --factor (half the width and height: about a quarter "
+                     "of the time a step) bring it down. Going on.")
 
     def before_step(self, step):
         """Host-side work before the step that starts at ``step``: the stage-1 checkpoint, then the
@@ -416,6 +537,9 @@ class Trainer:
         compiled_last = True
         while self.step < total:
             step = self.step
+            interrupt.check()  # between steps: the state is whole (a stop writes it, see run())
+            interrupt.set_phase(f"training the {self.stage_name(step)} stage")
+            interrupt.set_step(step, total)
             # Mappings grow only when something compiles (a new bucket, capacity or layout); reading
             # /proc/self/maps costs milliseconds, so look after compiles and every few steps.
             if compiled_last or step % _MAP_CHECK_EVERY == 0:
@@ -441,6 +565,7 @@ class Trainer:
                 if sum(STEP_TRACES.values()) > traces:
                     self.recompiles += 1
                     compiled_last = True
+                    interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"])):
                     old = self.capacity
                     self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25,
@@ -462,7 +587,10 @@ class Trainer:
                         "The last good checkpoint is kept in the output directory.")
             else:
                 self.bad_streak = 0
-                self.t_train += time.perf_counter() - t0
+                seconds = time.perf_counter() - t0
+                self.t_train += seconds
+                if not compiled_last:
+                    self._measure(step, seconds)
                 window.append((float(m["loss"]), float(m["psnr"])))
             self.step += 1
             bar.update(1)
@@ -474,7 +602,7 @@ class Trainer:
                     return float(np.mean([w[k] for w in window])) if window else float("nan")
 
                 rec = dict(step=self.step, loss=mean(0), psnr=mean(1), gaussians=self.scene.num_active(),
-                           texels=sum(self.scene.texel_count().values()),
+                           rgba_texels=rgba_texels(self.scene), texels=sum(self.scene.texel_count().values()),
                            ms_per_step=1e3 * (now - t_last) / cfg.log_every, recompiles=self.recompiles,
                            skipped=self.skipped)
                 t_last = now
@@ -482,7 +610,7 @@ class Trainer:
                 self.log(rec)
                 bar.set_postfix(psnr=f"{rec['psnr']:.2f}", gaussians=rec["gaussians"], refresh=False)
                 self.say(f"step {rec['step']:6d}/{total}  loss {rec['loss']:.4f}  psnr {rec['psnr']:6.2f}  "
-                         f"gaussians {rec['gaussians']:7d}  texels {rec['texels']:8d}  "
+                         f"gaussians {rec['gaussians']:7d}  RGBA texels {rec['rgba_texels']:8d}  "
                          f"{rec['ms_per_step']:7.1f} ms/step")
             if (self.step % cfg.checkpoint_every == 0 or self.step == total) and self.bad_streak == 0:
                 self.save()  # (not during a non-finite streak: the last good checkpoint stays the newest)
