@@ -194,7 +194,7 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
         with progress.bar(len(views), "evaluate", unit="view", show=jax.process_index() == 0) as bar:
             for i, v in enumerate(views):
                 interrupt.check()  # a command line's stop signal (see patexgs_jax.interrupt)
-                interrupt.set_step(i, len(views))
+                interrupt.set_step(i, len(views), "view")
                 _evaluate_view(renderer, i, v, scales, acc, lpips, keep_images)
                 compiled.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
                 bar.update(1)

@@ -81,7 +81,7 @@ class _Status:
 
     phase: str | None = None
     since: float = 0.0  # time.monotonic() when the phase began
-    step: tuple[int, int] | None = None  # (step, total) within the phase
+    step: tuple[int, int, str] | None = None  # (done, total, unit) within the phase
     saved: str | None = None  # what holds the work so far, e.g. "the checkpoint of step 500 in DIR"
     resume: str | None = None  # the command that continues the work
     signum: int | None = None  # the first stop signal received
@@ -95,16 +95,20 @@ _status = _Status()
 _lock = threading.Lock()
 
 
-def set_phase(phase: str | None) -> None:
+def set_phase(phase: str | None) -> bool:
     """What the process does now (``"compiling the textured step"``); the heartbeat counts the
-    seconds from the first call with this text, so calling it again with the same text is free."""
-    if phase != _status.phase:
-        _status.phase, _status.since, _status.step = phase, time.monotonic(), None
+    seconds from the first call with this text, so calling it again with the same text is free.
+    Returns whether the phase changed (its progress is then unknown until :func:`set_step`)."""
+    if phase == _status.phase:
+        return False
+    _status.phase, _status.since, _status.step = phase, time.monotonic(), None
+    return True
 
 
-def set_step(step: int, total: int) -> None:
-    """The progress within the current phase (shown by the heartbeat and the stop line)."""
-    _status.step = (int(step), int(total))
+def set_step(done: int, total: int, unit: str = "step") -> None:
+    """The progress within the current phase, ``done`` of ``total`` ``unit``\\ s (shown by the
+    heartbeat and the stop line)."""
+    _status.step = (int(done), int(total), unit)
 
 
 def set_saved(what: str | None) -> None:
@@ -146,7 +150,8 @@ def _where() -> str:
     st = _status
     where = st.phase or "starting"
     if st.step is not None:
-        where += f" (step {st.step[0]} of {st.step[1]})"
+        done, total, unit = st.step
+        where += f" (step {done} of {total})" if unit == "step" else f" ({done} of {total} {unit}s done)"
     return where
 
 

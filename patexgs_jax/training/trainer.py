@@ -260,7 +260,6 @@ class Trainer:
         ``checkpoint_on_stop`` steps old or the run is in a non-finite streak (the last good one stays)."""
         if self.out is None or self.bad_streak or self.step - self.saved_step <= self.cfg.checkpoint_on_stop:
             return
-        interrupt.set_phase(f"writing the checkpoint of step {self.step}")
         self.save()
 
     def save_stage1(self):
@@ -396,6 +395,7 @@ class Trainer:
         return parallel.shard_batch((cams, np.stack([np.asarray(images[j], np.float32) for j in share])), mesh)
 
     def fit_capacity(self, camera):
+        interrupt.set_phase("counting the tile pairs of a view (the counter compiles once per size)")
         # Counted at the step's size bucket (the same tile grid: the same count), one program a bucket.
         camera = camera if self.cfg.batch_size > 1 else buckets.padded_camera(camera, self.render_cfg.tile_size)
         needed, _ = count_pairs(self.scene, camera, self.render_cfg)
@@ -538,8 +538,8 @@ class Trainer:
         while self.step < total:
             step = self.step
             interrupt.check()  # between steps: the state is whole (a stop writes it, see run())
-            interrupt.set_phase(f"training the {self.stage_name(step)} stage")
-            interrupt.set_step(step, total)
+            if interrupt.set_phase(f"training the {self.stage_name(step)} stage"):
+                interrupt.set_step(step, total)
             # Mappings grow only when something compiles (a new bucket, capacity or layout); reading
             # /proc/self/maps costs milliseconds, so look after compiles and every few steps.
             if compiled_last or step % _MAP_CHECK_EVERY == 0:
@@ -593,6 +593,7 @@ class Trainer:
                     self._measure(step, seconds)
                 window.append((float(m["loss"]), float(m["psnr"])))
             self.step += 1
+            interrupt.set_step(self.step, total)
             bar.update(1)
             self.after_step(step + 1)
             if self.step % cfg.log_every == 0 or self.step == total:
