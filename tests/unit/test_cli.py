@@ -89,3 +89,40 @@ def test_synthetic_and_zoom_ab_cli_bad_input(bad, capsys):
     _one_error_line(capsys, code, "cannot write", "pass OUT_DIR a folder you can write to")
     code = zoom_ab.main(["--study", bad["missing"]])
     _one_error_line(capsys, code, "no results.json in --study", "python -m experiments.mipnerf360 --out")
+
+
+def test_train_help_documents_method_and_out(capsys):
+    with pytest.raises(SystemExit):
+        train_cli.main(["-h"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--method METHOD what to train (default: patexgs)" in text
+    assert "--out OUT the run's folder" in text and "(no default: required)" in text
+    assert "--skip-unreadable" in text and "--checkpoint-on-stop STEPS" in text
+
+
+def test_corrupt_image_named_before_any_work_and_skippable(tmp_path, capsys):
+    """A truncated image (its header intact, so loading accepts it) is named, with the flag that
+    skips it, before anything compiles; the run leaves no folder behind; the flag drops its view."""
+    from data_builders import make_colmap_scene
+    from patexgs_jax.data import check_images, load
+
+    scene = make_colmap_scene(tmp_path / "scene", n_images=6)
+    bad = tmp_path / "scene" / "images" / scene["names"][2]
+    bad.write_bytes(bad.read_bytes()[: bad.stat().st_size // 2])
+    out = tmp_path / "out"
+    line = _one_error_line(capsys, train_cli.main(["--data", str(tmp_path / "scene"), "--out", str(out)]),
+                           "1 of 6 images cannot be used", str(bad), "pass --skip-unreadable")
+    assert "skip_missing" not in line
+    assert not out.exists()  # no empty checkpoints/ (nor --out) left by a run that never started
+    ds = check_images(load(tmp_path / "scene", factor=1, verbose=False), skip=True)
+    assert len(ds.views) == 5 and scene["names"][2] not in [v.name for v in ds.views]
+    assert ds.info["skipped"] == [scene["names"][2]]
+    assert "skipped 1 of 6 views" in capsys.readouterr().err
+
+
+def test_resume_command_and_flag_hint():
+    assert train_cli.resume_command("patexgs_jax.train", ["--data", "my scene", "--out", "r"]) == (
+        "python -m patexgs_jax.train --data 'my scene' --out r --resume")
+    assert train_cli.resume_command("patexgs_jax.train", ["--out", "r", "--resume"]).count("--resume") == 1
+    err = train_cli.skip_flag_hint(ValueError("x.png is missing; restore it, or load with skip_missing=True."))
+    assert str(err) == "x.png is missing; restore it, or pass --skip-unreadable."
