@@ -560,7 +560,7 @@ def test_textured_fixed_8(dataset):
 @pytest.mark.slow
 def test_real_capture_beer(tmp_path):
     if not (BEER / "sparse").is_dir():
-        pytest.skip(f"real capture not found at {BEER} (see shared/data/README.md)")
+        pytest.skip(f"real capture not found at {BEER} (set PATEXGS_REAL_DATA to the folder holding beer/)")
     ds = load(BEER, factor=16, cache_dir=tmp_path, verbose=False)
     assert "SIMPLE_RADIAL" in ds.info["undistorted_from"], ds.info
     # Undistortion gives per-image sizes (43..45 x 76..80 px here); every size is a new compile of the
