@@ -181,7 +181,7 @@ def _train(args) -> None:
     except DatasetError as e:
         raise skip_flag_hint(e) from None
     interrupt.check()
-    train(ds, cfg, args.out, resume=args.resume, end_distributed=True)
+    train(ds, cfg, args.out, resume=args.resume, end_distributed=True, preset=args.preset)
 
 
 if __name__ == "__main__":

@@ -77,11 +77,12 @@ def preset_name(config: TrainConfig) -> str | None:
     return None
 
 
-def start_line(dataset, config: TrainConfig, run: Trainer) -> str:
-    """What a run will do, in one line: method, images, views, schedule, Gaussian cap, device."""
+def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = None) -> str:
+    """What a run will do, in one line: method, images, views, preset, schedule, Gaussian cap,
+    device. ``preset``: the preset the config was made from (default: the one with its step counts)."""
     sizes = collections.Counter(f"{v.camera.width}x{v.camera.height}" for v in dataset.train_views)
     size = sizes.most_common(1)[0][0] + (f" (and {len(sizes) - 1} other sizes)" if len(sizes) > 1 else "")
-    preset = preset_name(config)
+    preset = preset or preset_name(config)
     steps = (f"{config.iters_2dgs} 2DGS steps" if run.spec.textures is None and not config.continue_2dgs
              else f"{config.iters_2dgs} + {config.total_steps - config.iters_2dgs} steps")
     cap = "no Gaussian cap" if config.max_gaussians is None else f"at most {config.max_gaussians:,} Gaussians"
@@ -94,7 +95,7 @@ def start_line(dataset, config: TrainConfig, run: Trainer) -> str:
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
           verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
           evaluate_everywhere: bool = False, end_distributed: bool = False,
-          check_memory: bool = True) -> TrainResult:
+          check_memory: bool = True, preset: str | None = None) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -120,6 +121,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         choice; nothing cross-process can follow).
       check_memory: before the first step, compare the step's estimated memory with the memory
         available (:func:`patexgs_jax.memory.check_training_memory`; CPU backend only).
+      preset: the name of the preset ``config`` was made from, for the start line.
     Returns:
       :class:`TrainResult`.
     Raises:
@@ -172,7 +174,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
 
         memory.check_training_memory(dataset, gaussians=max(run.scene.capacity, config.max_gaussians or 0),
                                      textured=run.spec.textures is not None)
-    run.say(start_line(dataset, config, run))
+    run.say(start_line(dataset, config, run, preset))
     run.run()
     interrupt.check()
     scene = run.scene

@@ -53,7 +53,8 @@ from .config import TrainConfig, config_dict
 from .step import STEP_TRACES, batch_step, single_view_step
 from .strategies import Densification, TextureStage, TrainState
 
-__all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "rgba_texels"]
+__all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "long_run_note",
+           "rgba_texels", "run_estimate"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
@@ -93,6 +94,28 @@ def rgba_texels(scene: Scene) -> int:
         return 0
     side = np.maximum.reduce(sides) * (np.asarray(scene.active) > 0)
     return int(np.sum(side * side))
+
+
+def run_estimate(cfg: TrainConfig, textured: bool, step: int, stage: int, per_step: float) -> tuple[float, float]:
+    """Seconds (left from ``step``, whole run) from ``per_step``, the measured seconds of a step of
+    ``stage`` (1: 2DGS, 2: textured); a textured step not yet measured counts as
+    :data:`TEXTURED_STEP_COST` 2DGS steps. Compiles and the evaluation are not included."""
+    per1 = per_step
+    per2 = per_step * TEXTURED_STEP_COST if (stage == 1 and textured) else per_step
+    n1, n2 = cfg.iters_2dgs, cfg.total_steps - cfg.iters_2dgs
+    left = max(0, n1 - step) * per1 + min(n2, cfg.total_steps - max(step, n1)) * per2
+    return left, n1 * per1 + n2 * per2
+
+
+def long_run_note(cfg: TrainConfig, seconds: float, width: int, height: int) -> str:
+    """The line that says a run is long and which flags shorten it."""
+    from .config import CPU_PRESET
+
+    cpu = f"{CPU_PRESET['iters_2dgs']:,} + {CPU_PRESET['iters_tex']:,} steps"
+    return (f"note: this run takes about {format_seconds(seconds)} on {device_description()} "
+            f"({cfg.iters_2dgs:,} + {cfg.total_steps - cfg.iters_2dgs:,} steps on {width}x{height} px images); "
+            f"--preset cpu ({cpu}) or a larger --factor (--factor 2 halves the width and height: about a "
+            "quarter of the time a step) bring it down. Going on.")
 
 
 def device_description() -> str:
@@ -468,25 +491,16 @@ class Trainer:
         if self.estimated or not (len(times) >= 10 or (len(times) >= 2 and sum(times) >= 20.0)):
             return
         self.estimated = True
-        cfg = self.cfg
         per = float(np.median(times))
-        per1, per2 = (per, per * TEXTURED_STEP_COST) if stage == 1 else (per, per)
-        n1 = cfg.iters_2dgs
-        n2 = cfg.total_steps - n1
-        guess = "" if stage == 2 or n2 == 0 or self.spec.textures is None else (
-            f", a textured step taken as {TEXTURED_STEP_COST:g}x that")
-        if self.spec.textures is None:
-            per2 = per1
-        left = (max(0, n1 - self.step) * per1 + min(n2, cfg.total_steps - max(self.step, n1)) * per2)
-        whole = n1 * per1 + n2 * per2
-        self.say(f"estimated time: {format_seconds(left)} for the {cfg.total_steps - self.step} steps left "
+        textured = self.spec.textures is not None
+        left, whole = run_estimate(self.cfg, textured, self.step, stage, per)
+        guess = (f", a textured step taken as {TEXTURED_STEP_COST:g}x that"
+                 if stage == 1 and textured and self.cfg.iters_tex else "")
+        self.say(f"estimated time: {format_seconds(left)} for the {self.cfg.total_steps - self.step} steps left "
                  f"({1e3 * per:.0f} ms a {self.stage_name(step)} step{guess}), plus compiles and the evaluation")
         if whole > LONG_RUN_SECONDS:
-            h, w = self.train_views[0].camera.height, self.train_views[0].camera.width
-            self.say(f"note: this run takes about {format_seconds(whole)} on {device_description()} "
-                     f"({cfg.iters_2dgs} + {n2} steps on {w}x{h} px images); --preset cpu "
-                     "(1,000 + 400 steps) or a larger --factor (half the width and height: about a quarter "
-                     "of the time a step) bring it down. Going on.")
+            camera = self.train_views[0].camera
+            self.say(long_run_note(self.cfg, whole, camera.width, camera.height))
 
     def before_step(self, step):
         """Host-side work before the step that starts at ``step``: the stage-1 checkpoint, then the

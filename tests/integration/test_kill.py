@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -314,6 +315,13 @@ def test_stop_signal_in_every_phase_then_resume_matches_an_uninterrupted_run(sce
     whole = subprocess.run([sys.executable, "-m", "patexgs_jax.train", "--data", str(scene_dir), "--out", str(ref),
                             *TRAIN_ARGS], capture_output=True, text=True, env=env, cwd=REPO, timeout=600)
     assert whole.returncode == 0, whole.stderr[-3000:]
+    said = whole.stdout.splitlines()
+    assert said[0].startswith("training 2dgs: 5 training and 1 test views of 48x32 px; preset tiny, 24 2DGS steps; "
+                              "at most 300 Gaussians; on cpu ("), said[0]
+    assert any(ln.startswith("estimated time: ") and " for the " in ln for ln in said), said
+    records = [json.loads(ln) for ln in (ref / "log.jsonl").read_text().splitlines()]
+    assert all(re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", r["time"]) for r in records)
+    assert all(0 < a["elapsed_s"] <= b["elapsed_s"] for a, b in zip(records, records[1:]))
     assert (out / "scene.ply").read_bytes() == (ref / "scene.ply").read_bytes()
     got, want = (json.loads((d / "summary.json").read_text()) for d in (out, ref))
     assert got["steps"] == want["steps"] == 24 and got["train_psnr"] == want["train_psnr"]

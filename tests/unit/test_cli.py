@@ -126,3 +126,21 @@ def test_resume_command_and_flag_hint():
     assert train_cli.resume_command("patexgs_jax.train", ["--out", "r", "--resume"]).count("--resume") == 1
     err = train_cli.skip_flag_hint(ValueError("x.png is missing; restore it, or load with skip_missing=True."))
     assert str(err) == "x.png is missing; restore it, or pass --skip-unreadable."
+
+
+def test_time_estimate_and_the_long_run_note():
+    from patexgs_jax.training import preset_config
+    from patexgs_jax.training.trainer import format_seconds, long_run_note, run_estimate
+
+    paper = preset_config("paper")  # 30,000 + 30,000 steps
+    left, whole = run_estimate(paper, True, 0, 1, 0.1)  # 0.1 s a 2DGS step, a textured step 3x that
+    assert whole == pytest.approx(30_000 * 0.1 + 30_000 * 0.3) and left == pytest.approx(whole)
+    left, _ = run_estimate(paper, True, 40_000, 2, 0.5)  # measured in the texture stage
+    assert left == pytest.approx(20_000 * 0.5)
+    left, whole = run_estimate(preset_config("tiny", method="2dgs"), False, 100, 1, 0.1)
+    assert whole == pytest.approx(60.0) and left == pytest.approx(50.0)
+    assert [format_seconds(s) for s in (40, 14 * 60, 2 * 3600 + 5 * 60)] == ["40 s", "14 min", "2 h 05 min"]
+    note = long_run_note(paper, 3 * 3600, 1600, 1200)
+    assert note.startswith("note: this run takes about 3 h 00 min on ")
+    assert "(30,000 + 30,000 steps on 1600x1200 px images)" in note
+    assert "--preset cpu (1,000 + 400 steps)" in note and "--factor" in note and note.endswith("Going on.")
