@@ -255,7 +255,8 @@ def _heartbeat(interval: float, done: threading.Event) -> None:
             continue
         now = time.monotonic()
         if now - progress.last_line() >= interval and now - st.since >= interval:
-            progress.say(f"{_where()}, {now - st.since:.0f} s so far")
+            with contextlib.suppress(Exception):  # (a closed stdout must not end the thread with a traceback)
+                progress.say(f"{_where()}, {now - st.since:.0f} s so far")
 
 
 @contextlib.contextmanager
@@ -296,3 +297,4 @@ def guard(resume: str | None = None) -> Iterator[None]:
         for t in threads:
             t.join(timeout=2.0)
         os.close(read_fd)
+        _status = _Status()  # library calls after the command line's body see no stop request

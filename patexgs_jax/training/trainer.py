@@ -280,8 +280,11 @@ class Trainer:
 
     def save_on_stop(self) -> None:
         """On a stop signal between steps: a checkpoint, unless the newest is at most
-        ``checkpoint_on_stop`` steps old or the run is in a non-finite streak (the last good one stays)."""
+        ``checkpoint_on_stop`` steps old, the run is in a non-finite streak (the last good one stays)
+        or it runs in several processes (the periodic checkpoints hold the work)."""
         if self.out is None or self.bad_streak or self.step - self.saved_step <= self.cfg.checkpoint_on_stop:
+            return
+        if jax.process_count() > 1:  # a save is collective, and the others may stop at another step
             return
         self.save()
 

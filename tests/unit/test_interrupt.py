@@ -107,3 +107,12 @@ def test_watchdog_ends_a_stuck_process_with_the_stop_line(tmp_path, sig, second)
     assert err.strip() == (f"stopped by {sig.name} while compiling the 2DGS step; nothing was saved yet; "
                            "continue with: python -m patexgs_jax.train --resume"), err
     assert "not reached" not in out and marker.exists()
+
+
+def test_no_stop_request_outlives_the_guard():
+    with interrupt.guard():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)
+        assert interrupt.requested() == signal.SIGTERM
+    assert interrupt.requested() is None
+    interrupt.check()  # library code after the command line's body (a test, the viewer) runs on
