@@ -376,7 +376,8 @@ class Study:
         interrupt.set_phase(f"loading scene {name}")
         ds = load(path, factor=self.cfg.factor)
         interrupt.set_phase(f"checking the {len(ds.views)} images of scene {name}")
-        ds = check_images(ds, skip_hint="remove their views from the scene")
+        ds = check_images(ds, skip_hint="remove their views from the scene", on_view=lambda n: (
+            interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))
         runs = self.out / "runs" / name
         budget = parse_budget(self.cfg.budget)
         max_g = None

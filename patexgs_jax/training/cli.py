@@ -177,10 +177,11 @@ def _train(args) -> None:
         ds = load(args.data, factor=args.factor, skip_missing=args.skip_unreadable)
         interrupt.set_phase(f"checking the {len(ds.views)} images")
         ds = check_images(ds, skip=args.skip_unreadable, skip_hint="pass --skip-unreadable",
-                          on_view=lambda n: (interrupt.check(), interrupt.set_step(n, len(ds.views), "image")))
+                          on_view=lambda n: (interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))
     except DatasetError as e:
         raise skip_flag_hint(e) from None
     interrupt.check()
+    interrupt.set_phase("setting up the run")
     train(ds, cfg, args.out, resume=args.resume, end_distributed=True, preset=args.preset)
 
 

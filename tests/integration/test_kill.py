@@ -224,8 +224,9 @@ STRETCH = textwrap.dedent("""
             print("EXPORTING", flush=True)
             time.sleep(30)
         export.export_ply = slow_export
-    sys.argv = ["patexgs_jax.train"] + sys.argv[1:]
-    runpy.run_module("patexgs_jax.train", run_name="__main__")
+    module = os.environ.get("STRETCH_MODULE", "patexgs_jax.train")
+    sys.argv = [module] + sys.argv[1:]
+    runpy.run_module(module, run_name="__main__")
 """)
 
 TRAIN_ARGS = ["--method", "2dgs", "--preset", "tiny", "--iters-2dgs", "24", "--log-every", "2",
@@ -316,8 +317,9 @@ def test_stop_signal_in_every_phase_then_resume_matches_an_uninterrupted_run(sce
                             *TRAIN_ARGS], capture_output=True, text=True, env=env, cwd=REPO, timeout=600)
     assert whole.returncode == 0, whole.stderr[-3000:]
     said = whole.stdout.splitlines()
-    assert said[0].startswith("training 2dgs: 5 training and 1 test views of 48x32 px; preset tiny, 24 2DGS steps; "
-                              "at most 300 Gaussians; on cpu ("), said[0]
+    start_line = "training 2dgs: 5 training and 1 test views of 48x32 px; preset tiny, 24 2DGS steps; at most 300 " \
+                 "Gaussians; on cpu ("
+    assert any(ln.startswith(start_line) for ln in said), said
     assert any(ln.startswith("estimated time: ") and " for the " in ln for ln in said), said
     records = [json.loads(ln) for ln in (ref / "log.jsonl").read_text().splitlines()]
     assert all(re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", r["time"]) for r in records)
@@ -325,3 +327,15 @@ def test_stop_signal_in_every_phase_then_resume_matches_an_uninterrupted_run(sce
     assert (out / "scene.ply").read_bytes() == (ref / "scene.ply").read_bytes()
     got, want = (json.loads((d / "summary.json").read_text()) for d in (out, ref))
     assert got["steps"] == want["steps"] == 24 and got["train_psnr"] == want["train_psnr"]
+
+
+def test_study_stops_cleanly_with_the_command_that_continues_it(scene_dir, tmp_path):
+    """`python -m experiments.mipnerf360` stopped while it checks a scene's images: one line, 130,
+    and the same command (a study continues where it stopped when run again)."""
+    args = ["--data", str(scene_dir), "--out", str(tmp_path / "study"), "--no-lpips", "--no-compile-cache"]
+    proc = start(STRETCH, args, dict(_stop_env(tmp_path / "cache"), STRETCH_PHASE="images",
+                                     STRETCH_MODULE="experiments.mipnerf360"), tmp_path)
+    lines, err, dt = _signal_on(proc, "DECODING", signal.SIGINT)
+    assert proc.returncode == 130 and "Traceback" not in err and dt < 10, err[-3000:]
+    assert err.strip() == ("stopped by SIGINT while checking the 6 images of scene scene (1 of 6 images done); "
+                           "nothing was saved yet; continue with: python -m experiments.mipnerf360 " + " ".join(args))
