@@ -54,7 +54,7 @@ from .step import STEP_TRACES, batch_step, single_view_step
 from .strategies import Densification, TextureStage, TrainState
 
 __all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "long_run_note",
-           "rgba_texels", "run_estimate"]
+           "rgba_texels", "run_estimate", "step_seconds"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
@@ -96,26 +96,45 @@ def rgba_texels(scene: Scene) -> int:
     return int(np.sum(side * side))
 
 
+def step_seconds(textured: bool, stage: int, per_step: float) -> tuple[float, float]:
+    """Seconds of a 2DGS step and of a stage-2 step from ``per_step``, the measured seconds of a step
+    of ``stage`` (1: 2DGS, 2: the second stage); a textured step not yet measured counts as
+    :data:`TEXTURED_STEP_COST` 2DGS steps (and a measured one as a 2DGS step, where it is the only
+    measure)."""
+    return per_step, (per_step * TEXTURED_STEP_COST if (stage == 1 and textured) else per_step)
+
+
 def run_estimate(cfg: TrainConfig, textured: bool, step: int, stage: int, per_step: float) -> tuple[float, float]:
-    """Seconds (left from ``step``, whole run) from ``per_step``, the measured seconds of a step of
-    ``stage`` (1: 2DGS, 2: textured); a textured step not yet measured counts as
-    :data:`TEXTURED_STEP_COST` 2DGS steps. Compiles and the evaluation are not included."""
-    per1 = per_step
-    per2 = per_step * TEXTURED_STEP_COST if (stage == 1 and textured) else per_step
+    """Seconds (left from ``step``, whole run) from ``per_step`` (see :func:`step_seconds`).
+    Compiles and the evaluation are not included."""
+    per1, per2 = step_seconds(textured, stage, per_step)
     n1, n2 = cfg.iters_2dgs, cfg.total_steps - cfg.iters_2dgs
     left = max(0, n1 - step) * per1 + min(n2, cfg.total_steps - max(step, n1)) * per2
     return left, n1 * per1 + n2 * per2
 
 
-def long_run_note(cfg: TrainConfig, seconds: float, width: int, height: int) -> str:
-    """The line that says a run is long and which flags shorten it."""
-    from .config import CPU_PRESET
+def long_run_note(cfg: TrainConfig, per_steps: tuple[float, float], width: int, height: int,
+                  factor: float) -> str:
+    """The line that says a run is long, and what ``--preset cpu`` and a ``--factor`` (the smallest
+    that brings the run under :data:`LONG_RUN_SECONDS`, a step's time taken to go with its pixels)
+    would take instead. ``per_steps``: :func:`step_seconds`; ``factor``: the images' downsampling."""
+    import math
 
-    cpu = f"{CPU_PRESET['iters_2dgs']:,} + {CPU_PRESET['iters_tex']:,} steps"
-    return (f"note: this run takes about {format_seconds(seconds)} on {device_description()} "
-            f"({cfg.iters_2dgs:,} + {cfg.total_steps - cfg.iters_2dgs:,} steps on {width}x{height} px images); "
-            f"--preset cpu ({cpu}) or a larger --factor (--factor 2 halves the width and height: about a "
-            "quarter of the time a step) bring it down. Going on.")
+    from .config import preset_config
+
+    per1, per2 = per_steps
+    n2 = cfg.total_steps - cfg.iters_2dgs
+    whole = cfg.iters_2dgs * per1 + n2 * per2
+    cpu_preset = preset_config("cpu")
+    cpu1, cpu2 = cpu_preset.iters_2dgs, cpu_preset.iters_tex
+    cpu = cpu1 * per1 + (cpu2 * per2 if n2 else 0.0)
+    new_factor = max(int(math.ceil(factor * math.sqrt(whole / LONG_RUN_SECONDS))), int(math.floor(factor)) + 1)
+    smaller = whole * (factor / new_factor) ** 2
+    return (f"note: this run takes about {format_seconds(whole)} on {device_description()} "
+            f"({cfg.iters_2dgs:,} + {n2:,} steps on {width}x{height} px images); --preset cpu "
+            f"({cpu1:,} + {cpu2:,} steps, about {format_seconds(cpu)}) or "
+            f"--factor {new_factor} (images {new_factor}x smaller a side than full size, about "
+            f"{format_seconds(smaller)}) brings it down. Going on.")
 
 
 def device_description() -> str:
@@ -503,7 +522,8 @@ class Trainer:
                  f"({1e3 * per:.0f} ms a {self.stage_name(step)} step{guess}), plus compiles and the evaluation")
         if whole > LONG_RUN_SECONDS:
             camera = self.train_views[0].camera
-            self.say(long_run_note(self.cfg, whole, camera.width, camera.height))
+            self.say(long_run_note(self.cfg, step_seconds(textured, stage, per), camera.width, camera.height,
+                                   float(getattr(self.ds, "factor", 1.0) or 1.0)))
 
     def before_step(self, step):
         """Host-side work before the step that starts at ``step``: the stage-1 checkpoint, then the

@@ -140,7 +140,12 @@ def test_time_estimate_and_the_long_run_note():
     left, whole = run_estimate(preset_config("tiny", method="2dgs"), False, 100, 1, 0.1)
     assert whole == pytest.approx(60.0) and left == pytest.approx(50.0)
     assert [format_seconds(s) for s in (40, 14 * 60, 2 * 3600 + 5 * 60)] == ["40 s", "14 min", "2 h 05 min"]
-    note = long_run_note(paper, 3 * 3600, 1600, 1200)
-    assert note.startswith("note: this run takes about 3 h 00 min on ")
+    note = long_run_note(paper, (0.1, 0.3), 1600, 1200, 1.0)  # 3000 s + 9000 s
+    assert note.startswith("note: this run takes about 3 h 20 min on ")
     assert "(30,000 + 30,000 steps on 1600x1200 px images)" in note
-    assert "--preset cpu (1,000 + 400 steps)" in note and "--factor" in note and note.endswith("Going on.")
+    # cpu: 1,000 x 0.1 + 400 x 0.3 s; factor 2: a quarter of 3 h 20 min
+    assert "--preset cpu (1,000 + 400 steps, about 4 min)" in note
+    assert "--factor 2 (images 2x smaller a side than full size, about 50 min)" in note
+    assert note.endswith("brings it down. Going on.")
+    assert "--factor 5 " in long_run_note(paper, (0.04, 0.1), 400, 300, 4.0)  # 70 min at 4: the next factor
+    assert "--factor 4 " in long_run_note(paper, (0.4, 1.2), 1600, 1200, 1.0)  # 13 h 20 min: 4 x 4 smaller
