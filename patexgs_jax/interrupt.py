@@ -165,7 +165,7 @@ def stop_line(signum: int) -> str:
     return f"stopped by {name} while {_where()}; {kept}{nxt}"
 
 
-def _end(signum: int, line: str | None = None) -> None:
+def _end(signum: int) -> None:
     """Prints the stop line, once (whichever thread comes first)."""
     with _lock:
         if _status.ended:
@@ -174,7 +174,7 @@ def _end(signum: int, line: str | None = None) -> None:
     with contextlib.suppress(Exception):
         sys.stdout.flush()
     with contextlib.suppress(Exception):
-        print(line or stop_line(signum), file=sys.stderr, flush=True)
+        print(stop_line(signum), file=sys.stderr, flush=True)
 
 
 def _forced_exit(signum: int) -> None:
@@ -228,6 +228,8 @@ def _watchdog(read_fd: int, grace: float, done: threading.Event) -> None:
             if _status.signum is None:  # the Python-level handler may not have run yet
                 _status.signum = sigs[0]
             deadline = time.monotonic() + grace
+            if len(sigs) > 1:  # two signals read at once: the second is a second signal
+                _forced_exit(_status.signum)
         if deadline is not None and not done.is_set():
             limit = deadline + (SAVE_GRACE if _status.stopping else 0.0)
             if time.monotonic() > limit:
