@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import json
 from pathlib import Path
@@ -18,7 +17,7 @@ from ..metrics import scene_storage
 from ..scene import Scene
 from .config import PRESETS, STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
 from .strategies import side_histogram
-from .trainer import STAGE1_DIR, Trainer, device_description, rgba_texels
+from .trainer import STAGE1_DIR, Trainer, device_description, rgba_texels, typical_size
 
 __all__ = ["STAGE2_FIELDS", "TrainResult", "load_stage1", "stage1_checkpoint", "train"]
 
@@ -80,15 +79,16 @@ def preset_name(config: TrainConfig) -> str | None:
 def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = None) -> str:
     """What a run will do, in one line: method, images, views, preset, schedule, Gaussian cap,
     device. ``preset``: the preset the config was made from (default: the one with its step counts)."""
-    sizes = collections.Counter(f"{v.camera.width}x{v.camera.height}" for v in dataset.train_views)
-    size = sizes.most_common(1)[0][0] + (f" (and {len(sizes) - 1} other sizes)" if len(sizes) > 1 else "")
+    n_sizes = len({(v.camera.width, v.camera.height) for v in dataset.train_views})
+    size = "{}x{} px".format(*typical_size(dataset.train_views)) + (
+        f" (and {n_sizes - 1} other size{'s' if n_sizes > 2 else ''})" if n_sizes > 1 else "")
     preset = preset or preset_name(config)
     steps = (f"{config.iters_2dgs} 2DGS steps" if run.spec.textures is None and not config.continue_2dgs
              else f"{config.iters_2dgs} + {config.total_steps - config.iters_2dgs} steps")
     cap = "no Gaussian cap" if config.max_gaussians is None else f"at most {config.max_gaussians:,} Gaussians"
     where = "" if run.step == 0 else f", from step {run.step}"
     return (f"training {config.method}: {len(dataset.train_views)} training and {len(dataset.test_views)} test "
-            f"views of {size} px; {'preset ' + preset + ', ' if preset else ''}{steps}{where}; {cap}; "
+            f"views of {size}; {'preset ' + preset + ', ' if preset else ''}{steps}{where}; {cap}; "
             f"on {device_description()}")
 
 

@@ -54,7 +54,7 @@ from .step import STEP_TRACES, batch_step, single_view_step
 from .strategies import Densification, TextureStage, TrainState
 
 __all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "long_run_note",
-           "rgba_texels", "run_estimate", "step_seconds"]
+           "rgba_texels", "run_estimate", "step_seconds", "typical_size"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
@@ -72,6 +72,9 @@ TEXTURED_STEP_COST = 3.0
 #: Runs estimated to take longer than this many seconds say so at the start, with the flags that
 #: shorten them.
 LONG_RUN_SECONDS = 3600.0
+
+#: The shortest image side (px) a ``--factor`` suggestion may leave.
+MIN_SUGGESTED_SIDE = 128
 
 
 def format_seconds(seconds: float) -> str:
@@ -130,11 +133,20 @@ def long_run_note(cfg: TrainConfig, per_steps: tuple[float, float], width: int, 
     cpu = cpu1 * per1 + (cpu2 * per2 if n2 else 0.0)
     new_factor = max(int(math.ceil(factor * math.sqrt(whole / LONG_RUN_SECONDS))), int(math.floor(factor)) + 1)
     smaller = whole * (factor / new_factor) ** 2
+    # Below about MIN_SUGGESTED_SIDE px a step's fixed costs dominate (and little of the scene is left).
+    short_side = min(width, height) * factor / new_factor
+    shrink = "" if short_side < MIN_SUGGESTED_SIDE else (
+        f" or --factor {new_factor} (images {new_factor}x smaller a side than full size, about "
+        f"{format_seconds(smaller)})")
     return (f"note: this run takes about {format_seconds(whole)} on {device_description()} "
             f"({cfg.iters_2dgs:,} + {n2:,} steps on {width}x{height} px images); --preset cpu "
-            f"({cpu1:,} + {cpu2:,} steps, about {format_seconds(cpu)}) or "
-            f"--factor {new_factor} (images {new_factor}x smaller a side than full size, about "
-            f"{format_seconds(smaller)}) brings it down. Going on.")
+            f"({cpu1:,} + {cpu2:,} steps, about {format_seconds(cpu)}){shrink} brings it down. Going on.")
+
+
+def typical_size(views) -> tuple[int, int]:
+    """The most common (width, height) of ``views``' cameras."""
+    sizes = collections.Counter((v.camera.width, v.camera.height) for v in views)
+    return sizes.most_common(1)[0][0]
 
 
 def device_description() -> str:
@@ -521,8 +533,8 @@ class Trainer:
         self.say(f"estimated time: {format_seconds(left)} for the {self.cfg.total_steps - self.step} steps left "
                  f"({1e3 * per:.0f} ms a {self.stage_name(step)} step{guess}), plus compiles and the evaluation")
         if whole > LONG_RUN_SECONDS:
-            camera = self.train_views[0].camera
-            self.say(long_run_note(self.cfg, step_seconds(textured, stage, per), camera.width, camera.height,
+            width, height = typical_size(self.train_views)
+            self.say(long_run_note(self.cfg, step_seconds(textured, stage, per), width, height,
                                    float(getattr(self.ds, "factor", 1.0) or 1.0)))
 
     def before_step(self, step):

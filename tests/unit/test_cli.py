@@ -149,3 +149,5 @@ def test_time_estimate_and_the_long_run_note():
     assert note.endswith("brings it down. Going on.")
     assert "--factor 5 " in long_run_note(paper, (0.04, 0.1), 400, 300, 4.0)  # 70 min at 4: the next factor
     assert "--factor 4 " in long_run_note(paper, (0.4, 1.2), 1600, 1200, 1.0)  # 13 h 20 min: 4 x 4 smaller
+    small = long_run_note(paper, (0.4, 1.2), 312, 175, 4.0)  # --factor 14 would leave 50 px: not offered
+    assert "--factor" not in small and small.endswith("(1,000 + 400 steps, about 15 min) brings it down. Going on.")
