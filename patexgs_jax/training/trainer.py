@@ -236,7 +236,7 @@ class Trainer:
         self.t_start = time.perf_counter()
         # Durations of steps that compiled nothing, per stage, for the time estimate (see _measure).
         self._clean_steps: dict[int, list[float]] = {1: [], 2: []}
-        self.estimated = False
+        self.estimated: set[int] = set()  # the stages whose steps gave an estimate
 
     @property
     def render_cfg(self) -> RenderConfig:
@@ -517,14 +517,16 @@ class Trainer:
             bar.close()
 
     def _measure(self, step: int, seconds: float) -> None:
-        """Records the duration of a step that compiled nothing; after the first few, says once how
-        long the run will take, and when that is over :data:`LONG_RUN_SECONDS`, how to shorten it."""
+        """Records the duration of a step that compiled nothing; after the first few steps of each
+        stage, says how long the rest of the run will take, and the first time, when the whole run
+        takes over :data:`LONG_RUN_SECONDS`, how to shorten it."""
         stage = 1 if self.stage_name(step) == "2DGS" else 2
         times = self._clean_steps[stage]
         times.append(seconds)
-        if self.estimated or not (len(times) >= 10 or (len(times) >= 2 and sum(times) >= 20.0)):
+        if stage in self.estimated or not (len(times) >= 10 or (len(times) >= 2 and sum(times) >= 20.0)):
             return
-        self.estimated = True
+        first = not self.estimated
+        self.estimated.add(stage)
         per = float(np.median(times))
         textured = self.spec.textures is not None
         left, whole = run_estimate(self.cfg, textured, self.step, stage, per)
@@ -532,7 +534,7 @@ class Trainer:
                  if stage == 1 and textured and self.cfg.iters_tex else "")
         self.say(f"estimated time: {format_seconds(left)} for the {self.cfg.total_steps - self.step} steps left "
                  f"({1e3 * per:.0f} ms a {self.stage_name(step)} step{guess}), plus compiles and the evaluation")
-        if whole > LONG_RUN_SECONDS:
+        if first and whole > LONG_RUN_SECONDS:
             width, height = typical_size(self.train_views)
             self.say(long_run_note(self.cfg, step_seconds(textured, stage, per), width, height,
                                    float(getattr(self.ds, "factor", 1.0) or 1.0)))

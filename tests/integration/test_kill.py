@@ -273,6 +273,18 @@ def _stopped(err: str, code: int, sig: int, where: str, kept: str) -> str:
     return command
 
 
+def test_stop_before_any_work_leaves_nothing_behind(scene_dir, tmp_path):
+    """Stopped while it decodes the images (before anything is compiled or written): one line with
+    the command that starts it again, 130, and no --out folder."""
+    out = tmp_path / "run"
+    args = ["--data", str(scene_dir), "--out", str(out), *TRAIN_ARGS]
+    proc = start(STRETCH, args, dict(_stop_env(tmp_path / "cache"), STRETCH_PHASE="images"), tmp_path)
+    lines, err, dt = _signal_on(proc, "DECODING", signal.SIGINT)
+    command = _stopped(err, 130, signal.SIGINT, "checking the 6 images (1 of 6 images done)", "nothing was saved yet")
+    assert command == "python -m patexgs_jax.train " + " ".join(args) + " --resume"
+    assert not out.exists() and dt < 10
+
+
 @pytest.mark.slow
 def test_stop_signal_in_every_phase_then_resume_matches_an_uninterrupted_run(scene_dir, tmp_path):
     out, ref = tmp_path / "run", tmp_path / "ref"
@@ -282,11 +294,6 @@ def test_stop_signal_in_every_phase_then_resume_matches_an_uninterrupted_run(sce
     def child(env_extra, cache_dir=cache, resume=False):
         return start(STRETCH, args + ["--resume"] * resume, dict(_stop_env(cache_dir), **env_extra), tmp_path)
 
-    # Decoding the images, before anything is compiled or written: nothing is left in --out.
-    lines, err, dt = _signal_on(child(dict(STRETCH_PHASE="images")), "DECODING", signal.SIGINT)
-    command = _stopped(err, 130, signal.SIGINT, "checking the 6 images", "nothing was saved yet")
-    assert command == "python -m patexgs_jax.train " + " ".join(args) + " --resume"
-    assert not out.exists() and dt < 10
     # Compiling the first step (a cold cache): the watchdog ends it without waiting for XLA.
     lines, err, dt = _signal_on(child({}, cache_dir=tmp_path / "cold_cache"), "compiling the 2DGS step",
                                 signal.SIGTERM)
