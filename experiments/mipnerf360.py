@@ -44,7 +44,9 @@ trained first if it is not there yet); ``--budget 5000`` caps at 5000. Labels th
 
 Interrupted studies resume: finished (scene, method) entries in ``results.json`` are kept and
 skipped, and an interrupted training run continues from its last checkpoint. Changing the
-protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is refused.
+protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is refused. Ctrl-C
+(SIGINT) or SIGTERM stops a study within seconds with one line (where, which checkpoint holds the
+work, the command that continues) and exit status 130 / 143 (see :mod:`patexgs_jax.interrupt`).
 
 ``results.json`` schema::
 
@@ -86,6 +88,7 @@ import functools
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import time
@@ -367,7 +370,14 @@ class Study:
         if not todo:
             self.say(f"[{name}] all of {', '.join(methods)} done; skipped")
             return
+        from patexgs_jax import interrupt
+        from patexgs_jax.data import check_images
+
+        interrupt.set_phase(f"loading scene {name}")
         ds = load(path, factor=self.cfg.factor)
+        interrupt.set_phase(f"checking the {len(ds.views)} images of scene {name}")
+        ds = check_images(ds, skip_hint="remove their views from the scene", on_view=lambda n: (
+            interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))
         runs = self.out / "runs" / name
         budget = parse_budget(self.cfg.budget)
         max_g = None
@@ -435,6 +445,9 @@ class Study:
             raise StudyError(f"scene {scene} has no test views (the protocol holds out every 8th image).")
         if self.cfg.test_views is not None:
             views = views[: self.cfg.test_views]
+        from patexgs_jax import interrupt
+
+        interrupt.set_phase(f"evaluating {key} on {scene}'s test views at every zoom-out scale")
         rc = cfg.render_config()
         t = time.perf_counter()
         # One renderer for the metrics and the timing: its programs (one per size bucket) serve both.
@@ -805,10 +818,24 @@ def main(argv=None) -> int:
     from patexgs_jax.checkpoint import CheckpointError
 
     parallel.add_cli_arguments(ap)
-    return parallel.run_cli(ap.parse_args(argv), _study_cli, user_errors=(CheckpointError,))
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = ap.parse_args(argv)
+    # A study continues where it stopped when run again: the same command resumes it.
+    args.resume_command = shlex.join(["python", "-m", "experiments.mipnerf360", *argv])
+    return parallel.run_cli(args, _study_cli, user_errors=(CheckpointError,))
 
 
 def _study_cli(args) -> int:
+    from patexgs_jax import interrupt
+
+    with interrupt.guard(resume=args.resume_command):
+        try:
+            return _study(args)
+        except interrupt.Interrupted as stop:
+            return interrupt.end_with_stop_line(stop.signum)
+
+
+def _study(args) -> int:
     import jax
 
     from patexgs_jax import checkpoint as ckpt

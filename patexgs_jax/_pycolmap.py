@@ -14,7 +14,9 @@
   when the signal arrives inside the C++ unwinder (e.g. an XLA compile error unwinding through
   JIT-compiled frames), turning a crash into a process that hangs at 100% CPU. The handlers in place
   before the import (Python's ``faulthandler`` or the default action) are restored, so a fatal
-  error crashes with Python's traceback instead.
+  error crashes with Python's traceback instead. glog takes SIGTERM too (printing a native stack
+  dump for an ordinary ``kill``); its handler before the import is restored as well, so a command
+  line's clean stop (:mod:`patexgs_jax.interrupt`) or the default action stays in place.
 
 Other modules use ``from patexgs_jax._pycolmap import pycolmap``.
 """
@@ -32,6 +34,8 @@ import PIL.Image  # noqa: F401  -- before pycolmap (it loads libz)
 
 FATAL_SIGNALS = tuple(getattr(signal, n) for n in ("SIGSEGV", "SIGBUS", "SIGFPE", "SIGILL", "SIGABRT")
                       if hasattr(signal, n))
+#: The signals whose handlers the import of pycolmap replaces (glog's failure-signal handler).
+GLOG_SIGNALS = FATAL_SIGNALS + (signal.SIGTERM,)
 
 
 class _SigAction(ctypes.Structure):
@@ -51,12 +55,12 @@ def _libc():
 
 
 def fatal_handlers() -> dict | None:
-    """The current C-level actions of :data:`FATAL_SIGNALS` (None where they cannot be read)."""
+    """The current C-level actions of :data:`GLOG_SIGNALS` (None where they cannot be read)."""
     libc = _libc()
     if libc is None:
         return None
     out = {}
-    for sig in FATAL_SIGNALS:
+    for sig in GLOG_SIGNALS:
         act = _SigAction()
         if libc.sigaction(int(sig), None, ctypes.byref(act)) != 0:
             return None

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import compiled, progress
+from . import compiled, interrupt, progress
 from .buckets import ViewRenderer
 from .camera import ZOOM_SCALES
 from .rendering import RenderConfig
@@ -193,6 +193,8 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
         renderer.prepare([v.camera if s == 1 else v.camera.scaled(s) for v in views for s in scales])
         with progress.bar(len(views), "evaluate", unit="view", show=jax.process_index() == 0) as bar:
             for i, v in enumerate(views):
+                interrupt.check()  # a command line's stop signal (see patexgs_jax.interrupt)
+                interrupt.set_step(i, len(views), "view")
                 _evaluate_view(renderer, i, v, scales, acc, lpips, keep_images)
                 compiled.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
                 bar.update(1)

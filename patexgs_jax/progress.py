@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 
 from tqdm import tqdm
 
-__all__ = ["ENV_VAR", "bar", "enabled", "say"]
+__all__ = ["ENV_VAR", "bar", "enabled", "last_line", "say"]
 
 #: ``1`` draws bars whatever stderr is, ``0`` never; unset: only on a terminal.
 ENV_VAR = "PATEXGS_PROGRESS"
+
+_last_line = time.monotonic()
 
 
 def enabled() -> bool:
@@ -41,8 +44,15 @@ def bar(total: int, desc: str, *, unit: str = "step", initial: int = 0, leave: b
 
 def say(msg: str) -> None:
     """``print(msg, flush=True)`` to stdout, written above the bars that are drawn (not through them)."""
+    global _last_line
+    _last_line = time.monotonic()
     if getattr(tqdm, "_instances", None):  # tqdm's registry of open bars; empty when none is drawn
         tqdm.write(msg, file=sys.stdout)
         sys.stdout.flush()
     else:
         print(msg, flush=True)
+
+
+def last_line() -> float:
+    """``time.monotonic()`` when :func:`say` last printed (the import's time before that)."""
+    return _last_line

@@ -14,4 +14,8 @@ from .training.cli import main
 __all__ = ["PRESETS", "TrainConfig", "TrainResult", "main", "preset_config", "train"]
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # Ctrl-C before the command line's own handler is installed (argument parsing)
+        print("stopped by SIGINT while starting; nothing was saved yet", file=sys.stderr)
+        sys.exit(130)

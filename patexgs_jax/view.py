@@ -29,7 +29,6 @@ import errno
 import io
 import math
 import os
-import signal
 import socket
 import sys
 import threading
@@ -39,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from . import compiled
+from . import compiled, interrupt
 from . import viewing as vw
 
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -471,11 +470,8 @@ def main(argv=None) -> int:
     print(f"viewer: open http://{shown}:{args.port} ({len(runs)} run{'s' if len(runs) > 1 else ''}; "
           "Ctrl-C to stop)", flush=True)
     done = threading.Event()
-    # Ctrl-C and SIGTERM end the viewer even when the process that started it ignores or blocks
-    # them (both are inherited: a test runner's worker, a job controller).
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: done.set())
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    # Ctrl-C and SIGTERM end the viewer even when the process that started it ignores or blocks them.
+    interrupt.handle_stop_signals(lambda *_: done.set())
     while not done.wait(0.5):
         pass
     viewer.stop(timeout=3.0)  # a frame still compiling is not waited for (see below)

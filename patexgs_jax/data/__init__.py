@@ -25,13 +25,21 @@ from .colmap import (
 from .colmap_model import find_sparse_dir, read_model
 from .dataset import Dataset, SceneNormalization, View, compute_normalization, split_indices, zoom_out_views
 from .errors import DatasetError, DatasetWarning
-from .images import DEFAULT_IMAGE_CACHE_BYTES, DEFAULT_IMAGE_CACHE_SIZE, ImageCache, box_downsample, read_image
+from .images import (
+    DEFAULT_IMAGE_CACHE_BYTES,
+    DEFAULT_IMAGE_CACHE_SIZE,
+    ImageCache,
+    box_downsample,
+    decode_problem,
+    read_image,
+)
 from .llff import load_llff
 from .nerf import find_transforms, load_nerf
 from .records import DEFAULT_NUM_RANDOM_POINTS
 
 __all__ = [
     "load",
+    "check_images",
     "detect_format",
     "photos_without_poses_hint",
     "load_colmap",
@@ -163,3 +171,48 @@ def load(path, factor: int | None = None, test_every: int | None = 8, skip_missi
                   image_cache_bytes=image_cache_bytes, background=background,
                   num_random_points=num_random_points, seed=seed, verbose=verbose)
     return _LOADERS[fmt](path, factor, test_every, skip_missing, **kwargs)
+
+
+def check_images(dataset: Dataset, skip: bool = False, skip_hint: str = "load with skip_missing=True",
+                 on_view=None) -> Dataset:
+    """Decodes every view's image file (see :func:`.images.decode_problem`) before any work uses them.
+
+    Args:
+      dataset: a loaded :class:`Dataset` (its images load lazily, so a corrupt file would otherwise
+        surface at its first use, after compiling and possibly hours of training).
+      skip: leave the views whose file cannot be decoded out (printing which) instead of raising.
+      skip_hint: how the caller turns ``skip`` on, for the error message.
+      on_view: called with the number of files checked so far, after each (progress).
+
+    Returns:
+      ``dataset``, or with ``skip`` and unreadable files a copy without their views.
+
+    Raises:
+      DatasetError: a file cannot be decoded (naming each, and the fix), or no training view is left.
+    """
+    import dataclasses
+    import sys
+
+    problems = {}
+    for i, view in enumerate(dataset.views):
+        if view.image_path is not None:
+            problem = decode_problem(view.image_path)
+            if problem is not None:
+                problems[id(view)] = f"{view.image_path} {problem}"
+        if on_view is not None:
+            on_view(i + 1)
+    if not problems:
+        return dataset
+    named = "; ".join(list(problems.values())[:3]) + (f"; and {len(problems) - 3} more" if len(problems) > 3 else "")
+    if not skip:
+        raise DatasetError(f"{len(problems)} of {len(dataset.views)} images cannot be used: {named}. Replace "
+                           f"them (re-export or re-copy), or {skip_hint} to leave those views out.")
+    train = tuple(v for v in dataset.train_views if id(v) not in problems)
+    test = tuple(v for v in dataset.test_views if id(v) not in problems)
+    if not train:
+        raise DatasetError(f"no training view is left after leaving out the unreadable images: {named}.")
+    print(f"[patexgs_jax] skipped {len(problems)} of {len(dataset.views)} views whose images cannot be used: "
+          f"{named}", file=sys.stderr, flush=True)
+    info = dict(dataset.info, skipped=list(dataset.info.get("skipped", [])) + [
+        v.name for v in dataset.views if id(v) in problems])
+    return dataclasses.replace(dataset, train_views=train, test_views=test, info=info)

@@ -24,6 +24,7 @@ __all__ = [
     "ImageCache",
     "area_resize",
     "box_downsample",
+    "decode_problem",
     "image_loader",
     "image_size",
     "list_images",
@@ -193,6 +194,25 @@ def probe_image(path) -> tuple[tuple[int, int] | None, str | None]:
             return (int(im.size[0]), int(im.size[1])), None
     except (PIL.UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         return None, f"is not a readable image ({type(e).__name__})"
+
+
+def decode_problem(path) -> str | None:
+    """Why the image file at ``path`` cannot be decoded (missing, corrupt or truncated), or None.
+
+    Decodes the whole file, which a header probe does not: a truncated JPEG has a valid header.
+    JPEGs decode at 1/8 of their size (libjpeg's DCT scaling still reads every entropy-coded byte,
+    so truncation and corrupt data are found) to keep the check of a large capture to seconds."""
+    path = Path(path)
+    if not path.is_file():
+        return "does not exist"
+    try:
+        with PIL.Image.open(path) as im:
+            if im.format == "JPEG":
+                im.draft("RGB", (max(1, im.size[0] // 8), max(1, im.size[1] // 8)))
+            im.load()
+    except (PIL.UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+        return f"cannot be decoded ({type(e).__name__}: {e})"
+    return None
 
 
 def image_loader(path, factor: int, background, size: tuple[int, int] | None = None):

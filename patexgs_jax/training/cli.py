@@ -1,7 +1,7 @@
 """Training: the 2DGS stage, then the PATexGS texture stage (or a baseline), with checkpoints.
 
-    python -m patexgs_jax.train --data PATH --method patexgs --out DIR [--factor F]
-        [--iters-2dgs N] [--iters-tex N] [--max-gaussians N] [--resume]
+    python -m patexgs_jax.train --data PATH --method patexgs --out DIR [--factor F] [--preset P]
+        [--iters-2dgs N] [--iters-tex N] [--max-gaussians N] [--resume] [--skip-unreadable]
         [--batch-size B [--devices D]] [--coordinator HOST:PORT --num-processes N --process-id I]
 
 ``--batch-size`` trains data-parallel over devices and, with the last three flags (or under SLURM
@@ -38,16 +38,33 @@ Robustness
   same result as an uninterrupted run; a step with a non-finite loss or gradient, or an overflowed
   tile capacity, is skipped, never applied; near the kernel's memory-map cap the run checkpoints
   and stops (resume with ``--resume``). The details: :mod:`patexgs_jax.training.trainer`.
+  Every image is decoded before anything compiles (``--skip-unreadable`` leaves out the views whose
+  file cannot be decoded). Ctrl-C (SIGINT) or SIGTERM stops the run within seconds, at any moment,
+  with one line: where it stopped, which checkpoint holds the work (one is written if the newest is
+  more than ``--checkpoint-on-stop`` steps old) and the command that continues it; exit status 130
+  (SIGINT) or 143 (SIGTERM). See :mod:`patexgs_jax.interrupt`.
+
+Output
+  A start line (images, views, schedule, Gaussian cap, device), a time estimate after the first
+  measured steps (with the flags that shorten a run of more than an hour), a progress line every
+  ``--log-every`` steps, and a line at least every 30 s in every phase (compiles included);
+  ``log.jsonl`` records carry their wall-clock time and the seconds since the start.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import re
+import shlex
 import sys
+from pathlib import Path
 
 import jax
 
 from .. import checkpoint as ckpt
+from .. import interrupt
 from .config import PRESETS, preset_config
 from .run import train
 
@@ -61,8 +78,10 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=None, help="scene folder (COLMAP, LLFF or transforms.json); "
                     "default: the embedded synthetic scene")
-    ap.add_argument("--method", default="patexgs")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--method", default="patexgs", help="what to train (default: patexgs); the methods are "
+                    "listed above")
+    ap.add_argument("--out", required=True, help="the run's folder: checkpoints/, log.jsonl, scene.ply (+ texture "
+                    "sidecar) and summary.json (no default: required)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
                     "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--preset", default="paper", choices=sorted(PRESETS),
@@ -82,27 +101,88 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", type=int, default=None,
                     help="devices the batch is split over (must divide --batch-size; default: as many as "
                          "divide it); on CPU this many CPU devices are created")
-    ap.add_argument("--resume", action="store_true")
+    ap.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
+    ap.add_argument("--skip-unreadable", action="store_true", help="leave out the views whose image file is "
+                    "missing or cannot be decoded (default: stop and name them)")
+    ap.add_argument("--checkpoint-on-stop", type=int, default=None, metavar="STEPS",
+                    help="on Ctrl-C / SIGTERM, write a checkpoint when the newest is more than STEPS steps old "
+                    "(default 10)")
     parallel.add_cli_arguments(ap)
-    return parallel.run_cli(ap.parse_args(argv), _train_cli, user_errors=(ckpt.CheckpointError,))
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = ap.parse_args(argv)
+    args.resume_command = resume_command("patexgs_jax.train", argv)
+    return parallel.run_cli(args, _train_cli, user_errors=(ckpt.CheckpointError,))
 
 
-def _train_cli(args) -> None:
-    from ..data import load
+def resume_command(module: str, argv: list[str]) -> str:
+    """The command line that continues a run started with ``argv``: the same, with ``--resume``."""
+    return shlex.join(["python", "-m", module, *argv] + ([] if "--resume" in argv else ["--resume"]))
 
-    if args.data is None:
-        from ..data.synthetic import ensure_default_scene
 
-        args.data = str(ensure_default_scene())
-    if jax.process_index() == 0:  # the process that writes; before the data is loaded
-        ckpt.check_output_dir(args.out)
+def skip_flag_hint(error: Exception, flag: str = "--skip-unreadable") -> Exception:
+    """A loader's error with its Python-API advice (``skip_missing=True``) given as the command-line
+    ``flag`` instead."""
+    text = re.sub(r"(load with |use )?skip_missing=True", f"pass {flag}", str(error))
+    return type(error)(text) if text != str(error) else error
+
+
+@contextlib.contextmanager
+def tidy_output_dir(out):
+    """Removes what a run that never got going leaves in ``out``: the folders it created, when they
+    are still empty at the end (a failed or stopped start leaves no empty checkpoints/ behind)."""
+    out = Path(out)
+    made = [d for d in (out, out / "checkpoints", out / "checkpoints" / "stage1") if not d.exists()]
+
+    def tidy():
+        for d in reversed(made):
+            with contextlib.suppress(OSError):  # (not empty: the run wrote something, keep it)
+                os.rmdir(d)
+
+    try:
+        with interrupt.cleanup_on_forced_exit(tidy):
+            yield
+    finally:
+        tidy()
+
+
+def _train_cli(args) -> int:
+    with interrupt.guard(resume=args.resume_command):
+        try:
+            with tidy_output_dir(args.out):
+                _train(args)
+        except interrupt.Interrupted as stop:
+            return interrupt.end_with_stop_line(stop.signum)
+    return 0
+
+
+def _train(args) -> None:
+    from ..data import DatasetError, check_images, load
+
+    interrupt.set_phase("checking the arguments")
     cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                         iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
                         texture_budget_mb=args.texture_budget_mb, seed=args.seed,
                         checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-                        batch_size=args.batch_size, devices=args.devices)
-    ds = load(args.data, factor=args.factor)
-    train(ds, cfg, args.out, resume=args.resume, end_distributed=True)
+                        checkpoint_on_stop=args.checkpoint_on_stop, batch_size=args.batch_size,
+                        devices=args.devices)
+    if args.data is None:
+        from ..data.synthetic import ensure_default_scene
+
+        interrupt.set_phase("making the embedded scene")
+        args.data = str(ensure_default_scene())
+    if jax.process_index() == 0:  # the process that writes; before the data is loaded
+        ckpt.check_output_dir(args.out)
+    interrupt.set_phase(f"loading {args.data}")
+    try:
+        ds = load(args.data, factor=args.factor, skip_missing=args.skip_unreadable)
+        interrupt.set_phase(f"checking the {len(ds.views)} images")
+        ds = check_images(ds, skip=args.skip_unreadable, skip_hint="pass --skip-unreadable",
+                          on_view=lambda n: (interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))
+    except DatasetError as e:
+        raise skip_flag_hint(e) from None
+    interrupt.check()
+    interrupt.set_phase("setting up the run")
+    train(ds, cfg, args.out, resume=args.resume, end_distributed=True, preset=args.preset)
 
 
 if __name__ == "__main__":

@@ -143,6 +143,8 @@ class TrainConfig:
       seed: seeds data order, initialisation and every random choice.
       checkpoint_every: steps between checkpoints (and one at the end of each stage and the run).
       log_every: steps between progress lines.
+      checkpoint_on_stop: on SIGINT / SIGTERM (:mod:`patexgs_jax.interrupt`) a checkpoint is written
+        when the newest is more than this many steps old (0: whenever a step was done since).
       max_bad_steps: consecutive non-finite steps that stop the run.
       init_opacity: opacity of initial Gaussians.
       batch_size: views per step (one Adam update from the mean of their gradients); 1 is the
@@ -179,6 +181,7 @@ class TrainConfig:
     seed: int = 0
     checkpoint_every: int = _field(2_000, stage2=True, runtime=True)
     log_every: int = _field(100, stage2=True, runtime=True)
+    checkpoint_on_stop: int = _field(10, stage2=True, runtime=True)
     max_bad_steps: int = _field(20, stage2=True)
     init_opacity: float = 0.1
     batch_size: int = 1
@@ -188,6 +191,8 @@ class TrainConfig:
         spec = Method.from_name(self.method)
         if self.batch_size < 1 or (self.devices is not None and self.devices < 1):
             raise ValueError(f"batch_size and devices must be >= 1, got {self.batch_size} and {self.devices}.")
+        if self.checkpoint_on_stop < 0:
+            raise ValueError(f"checkpoint_on_stop must be >= 0, got {self.checkpoint_on_stop}.")
         if self.checkpoint_every < 1 or self.log_every < 1:
             raise ValueError(f"checkpoint_every and log_every must be >= 1, got {self.checkpoint_every} and "
                              f"{self.log_every}.")

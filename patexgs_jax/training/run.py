@@ -11,13 +11,13 @@ import jax
 import numpy as np
 
 from .. import checkpoint as ckpt
-from .. import compiled
+from .. import compiled, interrupt
 from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
-from .config import STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
+from .config import PRESETS, STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
 from .strategies import side_histogram
-from .trainer import STAGE1_DIR, Trainer
+from .trainer import STAGE1_DIR, Trainer, device_description, rgba_texels, typical_size
 
 __all__ = ["STAGE2_FIELDS", "TrainResult", "load_stage1", "stage1_checkpoint", "train"]
 
@@ -67,10 +67,35 @@ def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
     run.say(f"stage 1 from {path} ({run.t_train:.0f} s of 2DGS training)")
 
 
+def preset_name(config: TrainConfig) -> str | None:
+    """The preset whose step counts ``config`` has, or None."""
+    for name, kw in PRESETS.items():
+        steps = tuple(kw.get(k, getattr(TrainConfig, k)) for k in ("iters_2dgs", "iters_tex"))
+        if steps == (config.iters_2dgs, config.iters_tex):
+            return name
+    return None
+
+
+def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = None) -> str:
+    """What a run will do, in one line: method, images, views, preset, schedule, Gaussian cap,
+    device. ``preset``: the preset the config was made from (default: the one with its step counts)."""
+    n_sizes = len({(v.camera.width, v.camera.height) for v in dataset.train_views})
+    size = "{}x{} px".format(*typical_size(dataset.train_views)) + (
+        f" (and {n_sizes - 1} other size{'s' if n_sizes > 2 else ''})" if n_sizes > 1 else "")
+    preset = preset or preset_name(config)
+    steps = (f"{config.iters_2dgs} 2DGS steps" if run.spec.textures is None and not config.continue_2dgs
+             else f"{config.iters_2dgs} + {config.total_steps - config.iters_2dgs} steps")
+    cap = "no Gaussian cap" if config.max_gaussians is None else f"at most {config.max_gaussians:,} Gaussians"
+    where = "" if run.step == 0 else f", from step {run.step}"
+    return (f"training {config.method}: {len(dataset.train_views)} training and {len(dataset.test_views)} test "
+            f"views of {size}; {'preset ' + preset + ', ' if preset else ''}{steps}{where}; {cap}; "
+            f"on {device_description()}")
+
+
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
           verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
           evaluate_everywhere: bool = False, end_distributed: bool = False,
-          check_memory: bool = True) -> TrainResult:
+          check_memory: bool = True, preset: str | None = None) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -96,6 +121,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         choice; nothing cross-process can follow).
       check_memory: before the first step, compare the step's estimated memory with the memory
         available (:func:`patexgs_jax.memory.check_training_memory`; CPU backend only).
+      preset: the name of the preset ``config`` was made from, for the start line.
     Returns:
       :class:`TrainResult`.
     Raises:
@@ -126,6 +152,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
             raise ValueError(f"checkpoint {latest} was written with a different configuration ({', '.join(differ)} "
                              "differ); resume with the same settings or choose a new output directory.")
         run.load_state(tree)
+        run.note_saved(run.step)
         run.say(f"resuming from {latest} at step {run.step}")
     else:
         if out is not None and not resume and ckpt.latest_checkpoint(out / "checkpoints") is not None:
@@ -147,12 +174,15 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
 
         memory.check_training_memory(dataset, gaussians=max(run.scene.capacity, config.max_gaussians or 0),
                                      textured=run.spec.textures is not None)
+    run.say(start_line(dataset, config, run, preset))
     run.run()
+    interrupt.check()
     scene = run.scene
     size = scene_storage(scene)
     summary: dict[str, Any] = dict(
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
+        rgba_texels=rgba_texels(scene),
         storage_mb=size["storage_mb"], recompiles=run.recompiles, skipped_steps=run.skipped,
         allocation=run.textures.allocation, growth_events=run.textures.growth_events,
         sides_final=None if scene.rgb is None else side_histogram(np.asarray(scene.rgb.size),
@@ -161,7 +191,10 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     if end_distributed and jax.process_count() > 1:
         jax.distributed.shutdown()  # the processes are done with each other (every one calls this)
     if main or evaluate_everywhere:
+        # (the final checkpoint holds the trained scene: a stop from here on loses no training)
+        interrupt.set_phase("evaluating the training views")
         train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
+        interrupt.set_phase("evaluating the test views")
         test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
     else:  # evaluation and outputs are process 0's
         train_eval = test_eval = dict(psnr=None, ssim=None)
@@ -170,6 +203,8 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     if out is not None and main:
         from ..export import export_ply
 
+        interrupt.check()
+        interrupt.set_phase(f"writing {out / 'scene.ply'}")
         export_ply(scene, out / "scene.ply")
         tmp = out / "summary.json.tmp"
         tmp.write_text(json.dumps(summary, indent=1))
@@ -177,6 +212,6 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     if verbose and main:
         print(f"done: train PSNR {summary['train_psnr']:.2f}, test PSNR "
               f"{summary['test_psnr'] if summary['test_psnr'] is None else round(summary['test_psnr'], 2)}, "
-              f"{summary['num_gaussians']} Gaussians, {summary['texels']} texels, "
+              f"{summary['num_gaussians']} Gaussians, {summary['rgba_texels']} RGBA texels, "
               f"{summary['storage_mb']:.2f} MB, {summary['train_seconds']:.0f} s", flush=True)
     return TrainResult(scene=scene, summary=summary, out_dir=out)

@@ -196,6 +196,7 @@ class TextureStage:
                          texels=adaptive.total_texels(sides, act))
             self.growth_events.append(event)
             self.log(dict(event="growth", **event))
-            self.say(f"[stage 2] Eq. 8-10 growth at step {step}: {event['grown']} Gaussians grew, "
+            grew = f"{event['grown']} Gaussian{'' if event['grown'] == 1 else 's'} grew"
+            self.say(f"[stage 2] Eq. 8-10 growth at step {step}: {grew}, "
                      f"+{event['texels_added']} RGBA texels ({event['texels']} in all)")
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(scene.capacity))

@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import datetime
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -39,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import buckets, compiled, progress
+from .. import buckets, compiled, interrupt, progress
 from .. import checkpoint as ckpt
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
@@ -51,7 +53,8 @@ from .config import TrainConfig, config_dict
 from .step import STEP_TRACES, batch_step, single_view_step
 from .strategies import Densification, TextureStage, TrainState
 
-__all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
+__all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "long_run_note",
+           "rgba_texels", "run_estimate", "step_seconds", "typical_size"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
@@ -61,6 +64,97 @@ _MAP_CHECK_EVERY = 25
 
 #: Jitted steps (capacities) kept for one scene layout.
 _MAX_STEP_FNS = 4
+
+#: A textured step's cost in 2DGS steps, for the time estimate made before the texture stage is
+#: measured (2.5-4x on a 2-core CPU, docs/performance.md).
+TEXTURED_STEP_COST = 3.0
+
+#: Runs estimated to take longer than this many seconds say so at the start, with the flags that
+#: shorten them.
+LONG_RUN_SECONDS = 3600.0
+
+#: The shortest image side (px) a ``--factor`` suggestion may leave.
+MIN_SUGGESTED_SIDE = 128
+
+
+def format_seconds(seconds: float) -> str:
+    """``"2 h 05 min"``, ``"14 min"``, ``"40 s"``."""
+    seconds = max(0.0, float(seconds))
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    minutes = int(round(seconds / 60))
+    if minutes < 60:
+        return f"{minutes} min"
+    return f"{minutes // 60} h {minutes % 60:02d} min"
+
+
+def rgba_texels(scene: Scene) -> int:
+    """RGBA texels of a scene's active Gaussians: ``sum_i max(rgb side_i, alpha side_i)^2``, the
+    count the texture-stage lines give (the RGB and alpha textures share their sides once Eq. 7 has
+    allocated them; during the warm-up the 5x5 alpha textures set it). 0 without textures."""
+    sides = [np.asarray(bank.size, np.int64) for bank in (scene.rgb, scene.alpha) if bank is not None]
+    if not sides:
+        return 0
+    side = np.maximum.reduce(sides) * (np.asarray(scene.active) > 0)
+    return int(np.sum(side * side))
+
+
+def step_seconds(textured: bool, stage: int, per_step: float) -> tuple[float, float]:
+    """Seconds of a 2DGS step and of a stage-2 step from ``per_step``, the measured seconds of a step
+    of ``stage`` (1: 2DGS, 2: the second stage); a textured step not yet measured counts as
+    :data:`TEXTURED_STEP_COST` 2DGS steps (and a measured one as a 2DGS step, where it is the only
+    measure)."""
+    return per_step, (per_step * TEXTURED_STEP_COST if (stage == 1 and textured) else per_step)
+
+
+def run_estimate(cfg: TrainConfig, textured: bool, step: int, stage: int, per_step: float) -> tuple[float, float]:
+    """Seconds (left from ``step``, whole run) from ``per_step`` (see :func:`step_seconds`).
+    Compiles and the evaluation are not included."""
+    per1, per2 = step_seconds(textured, stage, per_step)
+    n1, n2 = cfg.iters_2dgs, cfg.total_steps - cfg.iters_2dgs
+    left = max(0, n1 - step) * per1 + min(n2, cfg.total_steps - max(step, n1)) * per2
+    return left, n1 * per1 + n2 * per2
+
+
+def long_run_note(cfg: TrainConfig, per_steps: tuple[float, float], width: int, height: int,
+                  factor: float) -> str:
+    """The line that says a run is long, and what ``--preset cpu`` and a ``--factor`` (the smallest
+    that brings the run under :data:`LONG_RUN_SECONDS`, a step's time taken to go with its pixels)
+    would take instead. ``per_steps``: :func:`step_seconds`; ``factor``: the images' downsampling."""
+    import math
+
+    from .config import preset_config
+
+    per1, per2 = per_steps
+    n2 = cfg.total_steps - cfg.iters_2dgs
+    whole = cfg.iters_2dgs * per1 + n2 * per2
+    cpu_preset = preset_config("cpu")
+    cpu1, cpu2 = cpu_preset.iters_2dgs, cpu_preset.iters_tex
+    cpu = cpu1 * per1 + (cpu2 * per2 if n2 else 0.0)
+    new_factor = max(int(math.ceil(factor * math.sqrt(whole / LONG_RUN_SECONDS))), int(math.floor(factor)) + 1)
+    smaller = whole * (factor / new_factor) ** 2
+    # Below about MIN_SUGGESTED_SIDE px a step's fixed costs dominate (and little of the scene is left).
+    short_side = min(width, height) * factor / new_factor
+    shrink = "" if short_side < MIN_SUGGESTED_SIDE else (
+        f" or --factor {new_factor} (images {new_factor}x smaller a side than full size, about "
+        f"{format_seconds(smaller)})")
+    return (f"note: this run takes about {format_seconds(whole)} on {device_description()} "
+            f"({cfg.iters_2dgs:,} + {n2:,} steps on {width}x{height} px images); --preset cpu "
+            f"({cpu1:,} + {cpu2:,} steps, about {format_seconds(cpu)}){shrink} brings it down. Going on.")
+
+
+def typical_size(views) -> tuple[int, int]:
+    """The most common (width, height) of ``views``' cameras."""
+    sizes = collections.Counter((v.camera.width, v.camera.height) for v in views)
+    return sizes.most_common(1)[0][0]
+
+
+def device_description() -> str:
+    """The devices a run uses, e.g. ``"cpu (2 cores)"`` or ``"1 x NVIDIA H100 80GB HBM3"``."""
+    devices = jax.devices()
+    if devices[0].platform == "cpu":
+        return f"cpu ({os.cpu_count()} cores)"
+    return f"{len(devices)} x {devices[0].device_kind}"
 
 
 def _layout(scene: Scene) -> tuple:
@@ -138,6 +232,11 @@ class Trainer:
         # program per size bucket; released when the layout changes (see _compiled_step).
         self._jit_cache = {}
         self._jit_layout = None
+        self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
+        self.t_start = time.perf_counter()
+        # Durations of steps that compiled nothing, per stage, for the time estimate (see _measure).
+        self._clean_steps: dict[int, list[float]] = {1: [], 2: []}
+        self.estimated: set[int] = set()  # the stages whose steps gave an estimate
 
     @property
     def render_cfg(self) -> RenderConfig:
@@ -200,8 +299,25 @@ class Trainer:
         if self.main:
             path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
             ckpt.save_checkpoint(path, tree, dict(config=config_dict(self.cfg), step=self.step), keep=2)
+        self.note_saved(self.step)
         if several:  # the others wait until it is written (a study reads it next)
             parallel.check_same(f"the checkpoint of step {self.step} being written", [self.step])
+
+    def note_saved(self, step: int) -> None:
+        """Records that the checkpoint of ``step`` (written or loaded) holds the run's work."""
+        self.saved_step = step
+        if self.out is not None:
+            interrupt.set_saved(f"the checkpoint of step {step} in {self.out / 'checkpoints'}")
+
+    def save_on_stop(self) -> None:
+        """On a stop signal between steps: a checkpoint, unless the newest is at most
+        ``checkpoint_on_stop`` steps old, the run is in a non-finite streak (the last good one stays)
+        or it runs in several processes (the periodic checkpoints hold the work)."""
+        if self.out is None or self.bad_streak or self.step - self.saved_step <= self.cfg.checkpoint_on_stop:
+            return
+        if jax.process_count() > 1:  # a save is collective, and the others may stop at another step
+            return
+        self.save()
 
     def save_stage1(self):
         """At the end of the 2DGS stage of a run that goes on: a checkpoint (a restart point) and a
@@ -239,8 +355,19 @@ class Trainer:
         if key not in self._jit_cache:
             while len(self._jit_cache) >= _MAX_STEP_FNS:
                 self._jit_cache.pop(next(iter(self._jit_cache)))
-            self._jit_cache[key] = make()
+            # (the jitted step, the size buckets it has been called with: a new one compiles)
+            self._jit_cache[key] = (make(), set())
         return self._jit_cache[key]
+
+    def stage_name(self, step: int | None = None) -> str:
+        """``"2DGS"`` or ``"textured"``: which step ``step`` (default: the current one) runs."""
+        step = self.step if step is None else step
+        return "2DGS" if step < self.cfg.iters_2dgs or self.spec.textures is None else "textured"
+
+    def announce_compile(self, what: str) -> None:
+        """Marks the phase as a compile (the heartbeat then says how long it has taken)."""
+        interrupt.set_phase(f"compiling the {self.stage_name()} step for {what}")
+        interrupt.set_step(self.step, self.cfg.total_steps)
 
     def step_fn(self) -> Callable[..., Any]:
         """The training step as ``fn(scene, opt_state, stats, camera, image, active_sh, w_normal)``
@@ -249,7 +376,7 @@ class Trainer:
         if self.cfg.batch_size > 1:
             return self._batch_step_fn()
         cfg, render_cfg, capacity = self.cfg, self.render_cfg, self.capacity
-        fn = self._compiled_step((render_cfg, capacity), lambda: jax.jit(
+        fn, buckets_seen = self._compiled_step((render_cfg, capacity), lambda: jax.jit(
             lambda sc, st, stats, cam, img, hw, sh, wn: single_view_step(
                 sc, st, stats, cam, img, hw, sh, wn, optimizer=self.optimizer, render_config=render_cfg,
                 capacity=capacity, lambda_dssim=cfg.lambda_dssim, lambda_dist=cfg.lambda_dist),
@@ -257,6 +384,9 @@ class Trainer:
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
             cam = buckets.padded_camera(camera, render_cfg.tile_size)
+            if (cam.height, cam.width) not in buckets_seen:  # this call compiles (see _compiled_step)
+                buckets_seen.add((cam.height, cam.width))
+                self.announce_compile(f"{cam.width}x{cam.height} px")
             img = buckets.pad_image(image, cam.height, cam.width)
             hw = np.array([camera.height, camera.width], np.int32)
             return fn(scene, opt_state, stats, cam, img, hw, active_sh, w_normal)
@@ -275,12 +405,19 @@ class Trainer:
         from .. import parallel
 
         mesh, render_cfg, capacity, cfg = self.data_mesh(), self.render_cfg, self.capacity, self.cfg
-        fn = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
+        jitted, seen = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
             lambda sc, st, stats, cams, imgs, sh, wn: batch_step(
                 sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
                 render_config=render_cfg, capacity=capacity, lambda_dssim=cfg.lambda_dssim,
                 lambda_dist=cfg.lambda_dist),
             out_shardings=parallel.replicated(mesh), donate_argnums=(0, 1, 2)))
+
+        def fn(*args):
+            if not seen:  # the first call compiles
+                seen.add(())
+                self.announce_compile(f"batches of {cfg.batch_size} views")
+            return jitted(*args)
+
         if jax.process_count() == 1:
             return fn
 
@@ -315,6 +452,7 @@ class Trainer:
         return parallel.shard_batch((cams, np.stack([np.asarray(images[j], np.float32) for j in share])), mesh)
 
     def fit_capacity(self, camera):
+        interrupt.set_phase("counting the tile pairs of a view (the counter compiles once per size)")
         # Counted at the step's size bucket (the same tile grid: the same count), one program a bucket.
         camera = camera if self.cfg.batch_size > 1 else buckets.padded_camera(camera, self.render_cfg.tile_size)
         needed, _ = count_pairs(self.scene, camera, self.render_cfg)
@@ -323,7 +461,12 @@ class Trainer:
             self.capacity = cap
 
     def log(self, record):
+        """Appends ``record`` to ``log.jsonl`` with its wall-clock time (UTC, ISO 8601) and the
+        seconds since this process started the run."""
         if self.log_path is not None and self.main:
+            now = datetime.datetime.now(datetime.UTC)
+            record = dict(record, time=now.isoformat(timespec="milliseconds").replace("+00:00", "Z"),
+                          elapsed_s=round(time.perf_counter() - self.t_start, 3))
             with open(self.log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
@@ -360,12 +503,41 @@ class Trainer:
 
     # -- main loop -------------------------------------------------------------------------------
     def run(self):
+        """Trains to ``cfg.total_steps``. On a stop signal (:mod:`patexgs_jax.interrupt`) it stops
+        between two steps, writes a checkpoint if the newest is too old (:meth:`save_on_stop`) and
+        raises :class:`~patexgs_jax.interrupt.Interrupted`."""
         bar = progress.bar(self.cfg.total_steps, f"train {self.cfg.method}", initial=self.step,
                            show=self.verbose and self.main)
         try:
             self._run(bar)
+        except interrupt.Interrupted:
+            self.save_on_stop()
+            raise
         finally:
             bar.close()
+
+    def _measure(self, step: int, seconds: float) -> None:
+        """Records the duration of a step that compiled nothing; after the first few steps of each
+        stage, says how long the rest of the run will take, and the first time, when the whole run
+        takes over :data:`LONG_RUN_SECONDS`, how to shorten it."""
+        stage = 1 if self.stage_name(step) == "2DGS" else 2
+        times = self._clean_steps[stage]
+        times.append(seconds)
+        if stage in self.estimated or not (len(times) >= 10 or (len(times) >= 2 and sum(times) >= 20.0)):
+            return
+        first = not self.estimated
+        self.estimated.add(stage)
+        per = float(np.median(times))
+        textured = self.spec.textures is not None
+        left, whole = run_estimate(self.cfg, textured, self.step, stage, per)
+        guess = (f", a textured step taken as {TEXTURED_STEP_COST:g}x that"
+                 if stage == 1 and textured and self.cfg.iters_tex else "")
+        self.say(f"estimated time: {format_seconds(left)} for the {self.cfg.total_steps - self.step} steps left "
+                 f"({1e3 * per:.0f} ms a {self.stage_name(step)} step{guess}), plus compiles and the evaluation")
+        if first and whole > LONG_RUN_SECONDS:
+            width, height = typical_size(self.train_views)
+            self.say(long_run_note(self.cfg, step_seconds(textured, stage, per), width, height,
+                                   float(getattr(self.ds, "factor", 1.0) or 1.0)))
 
     def before_step(self, step):
         """Host-side work before the step that starts at ``step``: the stage-1 checkpoint, then the
@@ -416,6 +588,9 @@ class Trainer:
         compiled_last = True
         while self.step < total:
             step = self.step
+            interrupt.check()  # between steps: the state is whole (a stop writes it, see run())
+            if interrupt.set_phase(f"training the {self.stage_name(step)} stage"):
+                interrupt.set_step(step, total)
             # Mappings grow only when something compiles (a new bucket, capacity or layout); reading
             # /proc/self/maps costs milliseconds, so look after compiles and every few steps.
             if compiled_last or step % _MAP_CHECK_EVERY == 0:
@@ -441,6 +616,7 @@ class Trainer:
                 if sum(STEP_TRACES.values()) > traces:
                     self.recompiles += 1
                     compiled_last = True
+                    interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"])):
                     old = self.capacity
                     self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25,
@@ -462,9 +638,13 @@ class Trainer:
                         "The last good checkpoint is kept in the output directory.")
             else:
                 self.bad_streak = 0
-                self.t_train += time.perf_counter() - t0
+                seconds = time.perf_counter() - t0
+                self.t_train += seconds
+                if not compiled_last:
+                    self._measure(step, seconds)
                 window.append((float(m["loss"]), float(m["psnr"])))
             self.step += 1
+            interrupt.set_step(self.step, total)
             bar.update(1)
             self.after_step(step + 1)
             if self.step % cfg.log_every == 0 or self.step == total:
@@ -474,7 +654,7 @@ class Trainer:
                     return float(np.mean([w[k] for w in window])) if window else float("nan")
 
                 rec = dict(step=self.step, loss=mean(0), psnr=mean(1), gaussians=self.scene.num_active(),
-                           texels=sum(self.scene.texel_count().values()),
+                           rgba_texels=rgba_texels(self.scene), texels=sum(self.scene.texel_count().values()),
                            ms_per_step=1e3 * (now - t_last) / cfg.log_every, recompiles=self.recompiles,
                            skipped=self.skipped)
                 t_last = now
@@ -482,7 +662,7 @@ class Trainer:
                 self.log(rec)
                 bar.set_postfix(psnr=f"{rec['psnr']:.2f}", gaussians=rec["gaussians"], refresh=False)
                 self.say(f"step {rec['step']:6d}/{total}  loss {rec['loss']:.4f}  psnr {rec['psnr']:6.2f}  "
-                         f"gaussians {rec['gaussians']:7d}  texels {rec['texels']:8d}  "
+                         f"gaussians {rec['gaussians']:7d}  RGBA texels {rec['rgba_texels']:8d}  "
                          f"{rec['ms_per_step']:7.1f} ms/step")
             if (self.step % cfg.checkpoint_every == 0 or self.step == total) and self.bad_streak == 0:
                 self.save()  # (not during a non-finite streak: the last good checkpoint stays the newest)

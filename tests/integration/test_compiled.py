@@ -39,12 +39,13 @@ _HANDLER = textwrap.dedent("""
         _fields_ = [("handler", ctypes.c_void_p), ("mask", ctypes.c_ulong * 16), ("flags", ctypes.c_int),
                     ("restorer", ctypes.c_void_p)]
 
-    def handler():
+    def handler(sig=signal.SIGSEGV):
         a = Act()
-        assert ctypes.CDLL(None).sigaction(int(signal.SIGSEGV), None, ctypes.byref(a)) == 0
+        assert ctypes.CDLL(None).sigaction(int(sig), None, ctypes.byref(a)) == 0
         return a.handler
 
     before = handler()
+    before_term = handler(signal.SIGTERM)
     """)
 
 
@@ -59,6 +60,11 @@ def test_pycolmap_import_keeps_fatal_signal_handlers():
     assert r.returncode == 0 and r.stdout.strip() == "False", (r.stdout, r.stderr[-2000:])
     # ... the package's import keeps it.
     r = _python(_HANDLER + "import patexgs_jax.data.colmap, patexgs_jax.prepare\nprint(handler() == before)\n")
+    assert r.returncode == 0 and r.stdout.strip() == "True", (r.stdout, r.stderr[-2000:])
+    # SIGTERM too: glog's handler prints a native stack dump for a plain `kill` (the control first).
+    r = _python(_HANDLER + "import pycolmap\nprint(handler(signal.SIGTERM) == before_term)\n")
+    assert r.returncode == 0 and r.stdout.strip() == "False", (r.stdout, r.stderr[-2000:])
+    r = _python(_HANDLER + "import patexgs_jax.data.colmap\nprint(handler(signal.SIGTERM) == before_term)\n")
     assert r.returncode == 0 and r.stdout.strip() == "True", (r.stdout, r.stderr[-2000:])
 
 

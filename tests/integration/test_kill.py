@@ -1,5 +1,7 @@
 """Killing training with SIGKILL (issue 6): at random points and in the middle of a checkpoint
-write, a resumed run always finds a complete checkpoint and continues to the end.
+write, a resumed run always finds a complete checkpoint and continues to the end. Stopping it with
+SIGINT / SIGTERM in each phase: one line, exit status 130 / 143, and ``--resume`` reaches the result
+of an uninterrupted run.
 
 The runs are real subprocesses (``python -m patexgs_jax.train``-like script below) on a tiny
 synthetic scene; they share a persistent compilation cache, so only the first one compiles.
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -63,13 +66,13 @@ def scene_dir(tmp_path_factory):
                     num_points=300)
 
 
-def start(script: str, args, env_extra: dict, tmp: Path):
+def start(script: str, args, env_extra: dict, tmp: Path, **popen):
     path = tmp / "child.py"
     path.write_text(script)
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
                **env_extra)
     return subprocess.Popen([sys.executable, str(path), *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=REPO, **popen)
 
 
 def kill_when(proc, predicate, timeout=300.0) -> list[str]:
@@ -186,3 +189,160 @@ def test_sigkill_during_checkpoint_loop(tmp_path):
         assert tree["step"] == step and np.allclose(tree["a"] - tree["b"][2] / step, step, atol=1e-3)
         assert len(ckpt.list_checkpoints(d)) <= 3
         last = step
+
+
+# ------------------------------------------------------------------------------------------------
+# SIGINT / SIGTERM: the command line stops cleanly in every phase and --resume finishes the run.
+# ------------------------------------------------------------------------------------------------
+# Runs `python -m patexgs_jax.train` with one phase stretched (announced on stdout) so that a signal
+# lands inside it: decoding the images, evaluating the views (after each), writing scene.ply (longer
+# than the stop grace, so the watchdog ends it).
+STRETCH = textwrap.dedent("""
+    import os, runpy, signal, sys, time
+    if os.environ.get("IGNORE_SIGINT"):  # as inherited from a script that started the job with `&`
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    phase = os.environ.get("STRETCH_PHASE")
+    if phase == "images":
+        import patexgs_jax.data as data
+        real_decode = data.decode_problem
+        def decode(path):
+            print("DECODING", flush=True)
+            time.sleep(0.3)
+            return real_decode(path)
+        data.decode_problem = decode
+    elif phase == "evaluation":
+        import patexgs_jax.evaluation as evaluation
+        real_view = evaluation._evaluate_view
+        def view(*a, **k):
+            real_view(*a, **k)
+            print("EVALUATED", flush=True)
+            time.sleep(0.5)
+        evaluation._evaluate_view = view
+    elif phase == "export":
+        import patexgs_jax.export as export
+        def slow_export(*a, **k):
+            print("EXPORTING", flush=True)
+            time.sleep(30)
+        export.export_ply = slow_export
+    module = os.environ.get("STRETCH_MODULE", "patexgs_jax.train")
+    sys.argv = [module] + sys.argv[1:]
+    runpy.run_module(module, run_name="__main__")
+""")
+
+TRAIN_ARGS = ["--method", "2dgs", "--preset", "tiny", "--iters-2dgs", "24", "--log-every", "2",
+              "--max-gaussians", "300", "--checkpoint-on-stop", "0"]
+
+
+def _stop_env(cache: Path) -> dict:
+    return dict(JAX_COMPILATION_CACHE_DIR=str(cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                PATEXGS_HEARTBEAT="0.5", PATEXGS_STOP_GRACE="1")
+
+
+def _signal_on(proc, marker: str, sig: int, timeout: float = 300.0) -> tuple[list[str], str, float]:
+    """Sends ``sig`` once a stdout line contains ``marker``; returns the stdout lines, the stderr and
+    the seconds from the signal to the exit."""
+    lines, t0 = [], time.time()
+    try:
+        for line in proc.stdout:
+            lines.append(line.rstrip("\n"))
+            if marker in line:
+                sent = time.time()
+                proc.send_signal(sig)
+                rest, err = proc.communicate(timeout=60)
+                return lines + rest.splitlines(), err, time.time() - sent
+            assert time.time() - t0 < timeout, "child too slow"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    raise AssertionError(f"child exited ({proc.wait()}) before {marker!r}: {lines[-5:]}\n{proc.stderr.read()[-3000:]}")
+
+
+def _stopped(err: str, code: int, sig: int, where: str, kept: str) -> str:
+    """The stop's stderr holds one line (no traceback, no native stack dump) naming the signal, the
+    phase, what holds the work and the resume command; returns that command."""
+    assert code == 128 + sig, (code, err[-3000:])
+    assert "Traceback" not in err and "SIGTERM received" not in err and "*** " not in err, err[-3000:]
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err[-3000:]
+    line = lines[0]
+    assert line.startswith(f"stopped by {signal.Signals(sig).name} while {where}"), line
+    assert kept in line, (kept, line)
+    command = line.split("; continue with: ", 1)[1]
+    assert command.startswith("python -m patexgs_jax.train ") and command.endswith(" --resume"), line
+    return command
+
+
+def test_stop_before_any_work_leaves_nothing_behind(scene_dir, tmp_path):
+    """Stopped while it decodes the images (before anything is compiled or written): one line with
+    the command that starts it again, 130, and no --out folder."""
+    out = tmp_path / "run"
+    args = ["--data", str(scene_dir), "--out", str(out), *TRAIN_ARGS]
+    proc = start(STRETCH, args, dict(_stop_env(tmp_path / "cache"), STRETCH_PHASE="images"), tmp_path)
+    lines, err, dt = _signal_on(proc, "DECODING", signal.SIGINT)
+    command = _stopped(err, 130, signal.SIGINT, "checking the 6 images (1 of 6 images done)", "nothing was saved yet")
+    assert command == "python -m patexgs_jax.train " + " ".join(args) + " --resume"
+    assert not out.exists() and dt < 10
+
+
+@pytest.mark.slow
+def test_stop_signal_in_every_phase_then_resume_matches_an_uninterrupted_run(scene_dir, tmp_path):
+    out, ref = tmp_path / "run", tmp_path / "ref"
+    args = ["--data", str(scene_dir), "--out", str(out), *TRAIN_ARGS]
+    cache = tmp_path / "jax_cache"
+
+    def child(env_extra, cache_dir=cache, resume=False):
+        return start(STRETCH, args + ["--resume"] * resume, dict(_stop_env(cache_dir), **env_extra), tmp_path)
+
+    # Compiling the first step (a cold cache): the watchdog ends it without waiting for XLA.
+    lines, err, dt = _signal_on(child({}, cache_dir=tmp_path / "cold_cache"), "compiling the 2DGS step",
+                                signal.SIGTERM)
+    _stopped(err, 143, signal.SIGTERM, "compiling the 2DGS step", "nothing was saved yet")
+    assert not out.exists() and dt < 10
+    # Training, started with SIGINT ignored (a job started with `&` by a script): the stop writes a
+    # checkpoint of the step it stopped at.
+    lines, err, dt = _signal_on(child(dict(IGNORE_SIGINT="1")), "step      4/24", signal.SIGINT)
+    _stopped(err, 130, signal.SIGINT, "training the 2DGS stage (step", "the checkpoint of step")
+    step = assert_resumable(out)
+    assert 4 <= step < 24 and f"the checkpoint of step {step} in {out / 'checkpoints'}" in err
+    # Evaluating (after training: the final checkpoint holds the work), resumed.
+    lines, err, dt = _signal_on(child(dict(STRETCH_PHASE="evaluation"), resume=True), "EVALUATED", signal.SIGTERM)
+    assert f"resuming from {ckpt.checkpoint_path(out / 'checkpoints', step)} at step {step}" in lines
+    _stopped(err, 143, signal.SIGTERM, "evaluating the training views", "the checkpoint of step 24")
+    assert dt < 10
+    # Writing scene.ply (longer than the stop grace: the watchdog ends it).
+    lines, err, dt = _signal_on(child(dict(STRETCH_PHASE="export"), resume=True), "EXPORTING", signal.SIGINT)
+    command = _stopped(err, 130, signal.SIGINT, f"writing {out / 'scene.ply'}", "the checkpoint of step 24")
+    assert dt < 10
+    # The printed command finishes the run, as an uninterrupted run does.
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **_stop_env(cache),
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    done = subprocess.run([sys.executable, *command.split()[1:]], capture_output=True, text=True, env=env,
+                          cwd=REPO, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    whole = subprocess.run([sys.executable, "-m", "patexgs_jax.train", "--data", str(scene_dir), "--out", str(ref),
+                            *TRAIN_ARGS], capture_output=True, text=True, env=env, cwd=REPO, timeout=600)
+    assert whole.returncode == 0, whole.stderr[-3000:]
+    said = whole.stdout.splitlines()
+    start_line = "training 2dgs: 5 training and 1 test views of 48x32 px; preset tiny, 24 2DGS steps; at most 300 " \
+                 "Gaussians; on cpu ("
+    assert any(ln.startswith(start_line) for ln in said), said
+    assert any(ln.startswith("estimated time: ") and " for the " in ln for ln in said), said
+    records = [json.loads(ln) for ln in (ref / "log.jsonl").read_text().splitlines()]
+    assert all(re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z", r["time"]) for r in records)
+    assert all(0 < a["elapsed_s"] <= b["elapsed_s"] for a, b in zip(records, records[1:]))
+    assert (out / "scene.ply").read_bytes() == (ref / "scene.ply").read_bytes()
+    got, want = (json.loads((d / "summary.json").read_text()) for d in (out, ref))
+    assert got["steps"] == want["steps"] == 24 and got["train_psnr"] == want["train_psnr"]
+
+
+def test_study_stops_cleanly_with_the_command_that_continues_it(scene_dir, tmp_path):
+    """`python -m experiments.mipnerf360` stopped while it checks a scene's images: one line, 130,
+    and the same command (a study continues where it stopped when run again)."""
+    args = ["--data", str(scene_dir), "--out", str(tmp_path / "study"), "--no-lpips", "--no-compile-cache"]
+    proc = start(STRETCH, args, dict(_stop_env(tmp_path / "cache"), STRETCH_PHASE="images",
+                                     STRETCH_MODULE="experiments.mipnerf360"), tmp_path)
+    lines, err, dt = _signal_on(proc, "DECODING", signal.SIGINT)
+    assert proc.returncode == 130 and "Traceback" not in err and dt < 10, err[-3000:]
+    assert err.strip() == ("stopped by SIGINT while checking the 6 images of scene scene (1 of 6 images done); "
+                           "nothing was saved yet; continue with: python -m experiments.mipnerf360 " + " ".join(args))

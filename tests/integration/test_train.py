@@ -201,7 +201,11 @@ def test_both_stages_improve(run_p):
     np.testing.assert_array_equal(np.asarray(scene.rgb.size)[act], adaptive.side_of(sizes, 6)[act])
     assert np.all(np.asarray(scene.rgb.size)[act] >= 1) and np.all(np.asarray(scene.rgb.size)[~act] == 0)
     assert all_finite(scene)
-    log = [json.loads(line) for line in (run_p["out"] / "log.jsonl").read_text().splitlines()]
+    stamped = [json.loads(line) for line in (run_p["out"] / "log.jsonl").read_text().splitlines()]
+    # Every record carries its wall-clock time and the seconds since the run started, in order.
+    assert all(r["time"].endswith("Z") for r in stamped)
+    assert all(0 < a["elapsed_s"] <= b["elapsed_s"] for a, b in zip(stamped, stamped[1:]))
+    log = [{k: v for k, v in r.items() if k not in ("time", "elapsed_s")} for r in stamped]
     assert [r for r in log if r.get("event") == "allocation"] == [dict(event="allocation", **alloc)]
     # What the schedule did: the Eq. 7 sides, each growth event that grew textures, the final sides.
     assert sum(alloc["sides"].values()) == s["num_gaussians"]
@@ -218,6 +222,8 @@ def test_both_stages_improve(run_p):
     assert s["sides_final"] == {str(int(k)): int(v) for k, v in zip(*np.unique(np.asarray(scene.rgb.size)[act],
                                                                         return_counts=True))}
     assert log[-1]["step"] == 54 and log[-1]["texels"] == s["texels"]
+    # The progress lines count RGBA texels as the texture-stage lines do (RGB and alpha share sides).
+    assert log[-1]["rgba_texels"] == s["rgba_texels"] == texels
 
 
 # ------------------------------------------------------------------------------------------------
@@ -563,7 +569,7 @@ def test_textured_fixed_8(dataset):
 @pytest.mark.slow
 def test_real_capture_beer(tmp_path):
     if not (BEER / "sparse").is_dir():
-        pytest.skip(f"real capture not found at {BEER} (see shared/data/README.md)")
+        pytest.skip(f"real capture not found at {BEER} (set PATEXGS_REAL_DATA to the folder holding beer/)")
     ds = load(BEER, factor=16, cache_dir=tmp_path, verbose=False)
     assert "SIMPLE_RADIAL" in ds.info["undistorted_from"], ds.info
     # Undistortion gives per-image sizes (43..45 x 76..80 px here); every size is a new compile of the

@@ -89,3 +89,65 @@ def test_synthetic_and_zoom_ab_cli_bad_input(bad, capsys):
     _one_error_line(capsys, code, "cannot write", "pass OUT_DIR a folder you can write to")
     code = zoom_ab.main(["--study", bad["missing"]])
     _one_error_line(capsys, code, "no results.json in --study", "python -m experiments.mipnerf360 --out")
+
+
+def test_train_help_documents_method_and_out(capsys):
+    with pytest.raises(SystemExit):
+        train_cli.main(["-h"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--method METHOD what to train (default: patexgs)" in text
+    assert "--out OUT the run's folder" in text and "(no default: required)" in text
+    assert "--skip-unreadable" in text and "--checkpoint-on-stop STEPS" in text
+
+
+def test_corrupt_image_named_before_any_work_and_skippable(tmp_path, capsys):
+    """A truncated image (its header intact, so loading accepts it) is named, with the flag that
+    skips it, before anything compiles; the run leaves no folder behind; the flag drops its view."""
+    from data_builders import make_colmap_scene
+    from patexgs_jax.data import check_images, load
+
+    scene = make_colmap_scene(tmp_path / "scene", n_images=6)
+    bad = tmp_path / "scene" / "images" / scene["names"][2]
+    bad.write_bytes(bad.read_bytes()[: bad.stat().st_size // 2])
+    out = tmp_path / "out"
+    line = _one_error_line(capsys, train_cli.main(["--data", str(tmp_path / "scene"), "--out", str(out)]),
+                           "1 of 6 images cannot be used", str(bad), "pass --skip-unreadable")
+    assert "skip_missing" not in line
+    assert not out.exists()  # no empty checkpoints/ (nor --out) left by a run that never started
+    ds = check_images(load(tmp_path / "scene", factor=1, verbose=False), skip=True)
+    assert len(ds.views) == 5 and scene["names"][2] not in [v.name for v in ds.views]
+    assert ds.info["skipped"] == [scene["names"][2]]
+    assert "skipped 1 of 6 views" in capsys.readouterr().err
+
+
+def test_resume_command_and_flag_hint():
+    assert train_cli.resume_command("patexgs_jax.train", ["--data", "my scene", "--out", "r"]) == (
+        "python -m patexgs_jax.train --data 'my scene' --out r --resume")
+    assert train_cli.resume_command("patexgs_jax.train", ["--out", "r", "--resume"]).count("--resume") == 1
+    err = train_cli.skip_flag_hint(ValueError("x.png is missing; restore it, or load with skip_missing=True."))
+    assert str(err) == "x.png is missing; restore it, or pass --skip-unreadable."
+
+
+def test_time_estimate_and_the_long_run_note():
+    from patexgs_jax.training import preset_config
+    from patexgs_jax.training.trainer import format_seconds, long_run_note, run_estimate
+
+    paper = preset_config("paper")  # 30,000 + 30,000 steps
+    left, whole = run_estimate(paper, True, 0, 1, 0.1)  # 0.1 s a 2DGS step, a textured step 3x that
+    assert whole == pytest.approx(30_000 * 0.1 + 30_000 * 0.3) and left == pytest.approx(whole)
+    left, _ = run_estimate(paper, True, 40_000, 2, 0.5)  # measured in the texture stage
+    assert left == pytest.approx(20_000 * 0.5)
+    left, whole = run_estimate(preset_config("tiny", method="2dgs"), False, 100, 1, 0.1)
+    assert whole == pytest.approx(60.0) and left == pytest.approx(50.0)
+    assert [format_seconds(s) for s in (40, 14 * 60, 2 * 3600 + 5 * 60)] == ["40 s", "14 min", "2 h 05 min"]
+    note = long_run_note(paper, (0.1, 0.3), 1600, 1200, 1.0)  # 3000 s + 9000 s
+    assert note.startswith("note: this run takes about 3 h 20 min on ")
+    assert "(30,000 + 30,000 steps on 1600x1200 px images)" in note
+    # cpu: 1,000 x 0.1 + 400 x 0.3 s; factor 2: a quarter of 3 h 20 min
+    assert "--preset cpu (1,000 + 400 steps, about 4 min)" in note
+    assert "--factor 2 (images 2x smaller a side than full size, about 50 min)" in note
+    assert note.endswith("brings it down. Going on.")
+    assert "--factor 5 " in long_run_note(paper, (0.04, 0.1), 400, 300, 4.0)  # 70 min at 4: the next factor
+    assert "--factor 4 " in long_run_note(paper, (0.4, 1.2), 1600, 1200, 1.0)  # 13 h 20 min: 4 x 4 smaller
+    small = long_run_note(paper, (0.4, 1.2), 312, 175, 4.0)  # --factor 14 would leave 50 px: not offered
+    assert "--factor" not in small and small.endswith("(1,000 + 400 steps, about 15 min) brings it down. Going on.")

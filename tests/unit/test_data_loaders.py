@@ -845,14 +845,14 @@ def test_pycolmap_pil_import_order_is_safe(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------------
-# Real capture: ../shared/data/beer
+# Real capture: $PATEXGS_REAL_DATA/beer, else ../shared/data/beer (tests/locations.py)
 # ----------------------------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="session")
 def beer(tmp_path_factory):
     if not (BEER / "sparse" / "0").is_dir():
-        pytest.skip(f"real capture not found at {BEER} (clone the shared data beside the repository to run it)")
+        pytest.skip(f"real capture not found at {BEER} (set PATEXGS_REAL_DATA to the folder holding beer/)")
     cache = tmp_path_factory.mktemp("beer_cache")
     before = sorted(str(p.relative_to(BEER)) for p in BEER.rglob("*"))
     ds = data.load(BEER, factor=8, cache_dir=cache, verbose=False)
