@@ -260,6 +260,11 @@ def bundle(out: Path, beer: Path | None) -> None:
         print("[device_check] training the tiny patexgs model for the viewer stage (minutes) ...", flush=True)
         train(load(scene, verbose=False), preset_config("tiny", method="patexgs"), out / "viewer_run", resume=True,
               verbose=False)
+    # The viewer draws the newest checkpoint: the others would only fill the device's 64 MiB.
+    ckpts = out / "viewer_run" / "checkpoints"
+    shutil.rmtree(ckpts / "stage1", ignore_errors=True)
+    for old in sorted(ckpts.glob("*.ckpt"))[:-1]:
+        old.unlink()
     if beer is not None:
         ds = load(beer, factor=1, verbose=True)  # undistorts into out/cache (pycolmap, here)
         folders = sorted((out / "cache").glob(f"{Path(beer).resolve().name}-*/undistorted/*"))
@@ -270,6 +275,7 @@ def bundle(out: Path, beer: Path | None) -> None:
         shutil.rmtree(dst, ignore_errors=True)
         shutil.copytree(folders[-1] / "images", dst / "images")
         shutil.copytree(folders[-1] / "sparse", dst / "sparse" / "0")
+        shutil.rmtree(folders[-1].parent.parent)  # the cache's copy: carried once is enough
         print(f"[device_check] {beer}: {len(ds.train_views) + len(ds.test_views)} views undistorted into {dst}")
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     print(f"[device_check] {out}: {size / 2**20:.1f} MiB (the device's working tree takes 64 MiB in all)")
