@@ -135,7 +135,7 @@ def run_stage(stage: str, out: Path, args, limit_s: float) -> dict:
     with open(out / f"{stage}.log", "w") as log:
         for cmd in cmds:
             left = limit_s - (time.monotonic() - t0)
-            if left <= 5:
+            if left <= 1:
                 rec.update(timed_out=True, rc=rec["rc"] or 124)
                 break
             log.write(f"$ {' '.join(cmd)}\n")

@@ -119,3 +119,26 @@ def test_bad_arguments_name_the_fix(tmp_path):
         p = subprocess.run([sys.executable, "-m", "experiments.device_check", *argv], cwd=REPO,
                            capture_output=True, text=True)
         assert p.returncode == 2 and msg in p.stderr
+
+
+def test_stages_run_within_their_limits(stage_files, tmp_path, monkeypatch, capsys):
+    """The driver itself: a stage's command runs and its figures reach device_check.json; a stage
+    that outruns its share of the budget is stopped and recorded as timed out; the report is written."""
+    src, *_ = stage_files
+    out = tmp_path / "check"
+
+    def commands(stage, out_dir, args):
+        if stage == "render":
+            return [[sys.executable, "-c", f"import shutil; shutil.copy({str(src / 'render_50k.json')!r}, "
+                                           f"{str(out_dir / 'render_50k.json')!r})"]]
+        return [[sys.executable, "-c", "import time; time.sleep(60)"]]
+
+    monkeypatch.setattr(dc, "stage_commands", commands)
+    assert dc.main(["--out", str(out), "--stages", "render,train", "--budget-s", "4"]) == 1  # a stage failed
+    report = json.loads((out / "device_check.json").read_text())
+    assert report["stages"]["render"]["rc"] == 0 and not report["stages"]["render"]["timed_out"]
+    train = report["stages"]["train"]
+    assert train["timed_out"] and train["rc"] == 124 and train["wall_s"] < 5
+    assert report["figures"]["render_50k.2dgs.forward_ms"] > 0 and report["device"]
+    assert (out / "device_check.md").read_text() == dc.markdown(report)
+    assert "[device_check] train: rc 124" in capsys.readouterr().out
