@@ -8,8 +8,16 @@ import TrainConfig, train`` keeps working. The package attribute ``patexgs_jax.t
 
 import sys
 
-from .training import PRESETS, TrainConfig, TrainResult, preset_config, train
-from .training.cli import main
+_STARTING = "stopped by SIGINT while starting; nothing was saved yet"
+
+try:
+    from .training import PRESETS, TrainConfig, TrainResult, preset_config, train
+    from .training.cli import main
+except KeyboardInterrupt:  # Ctrl-C while the training modules load (seconds): one line, no traceback
+    if __name__ != "__main__":
+        raise
+    print(_STARTING, file=sys.stderr)
+    sys.exit(130)
 
 __all__ = ["PRESETS", "TrainConfig", "TrainResult", "main", "preset_config", "train"]
 
@@ -17,5 +25,5 @@ if __name__ == "__main__":
     try:
         sys.exit(main())
     except KeyboardInterrupt:  # Ctrl-C before the command line's own handler is installed (argument parsing)
-        print("stopped by SIGINT while starting; nothing was saved yet", file=sys.stderr)
+        print(_STARTING, file=sys.stderr)
         sys.exit(130)
