@@ -300,6 +300,8 @@ def main(argv=None):
                           f"{r['ms_per_step']:8.1f} ms/step, {r['ms_per_view']:8.1f} ms/view, "
                           f"compile {r['compile_s']:5.1f} s, steady recompiles {r['recompiles_steady']}",
                           flush=True)
+                    if args.json:  # after every case: a run cut short keeps what it measured
+                        write_benchmark_json(args.json, rows, SCHEMA, steps=args.steps)
     print()
     print("| config | Gaussians | size | batch | devices | ms/step | ms/view | compile s | recompiles |")
     print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
