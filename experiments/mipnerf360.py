@@ -701,21 +701,6 @@ def plot_sides(data: dict, path) -> Path | None:
 # ------------------------------------------------------------------------------------------------
 # Command line
 # ------------------------------------------------------------------------------------------------
-def _enable_compile_cache() -> None:
-    """A persistent XLA compilation cache under the project cache: repeated runs skip compiles."""
-    import jax
-
-    if jax.config.jax_compilation_cache_dir:
-        return
-    root = Path(os.environ.get("PATEXGS_CACHE") or Path.home() / ".cache" / "patexgs_jax")
-    try:
-        (root / "xla").mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return
-    jax.config.update("jax_compilation_cache_dir", str(root / "xla"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-
-
 def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders: int = 3, use_lpips: bool = True,
         lpips_net: str = "alex", verbose: bool = True, devices: int | None = None, **config) -> dict:
     """Runs the study (the command line in Python); returns the results dictionary.
@@ -796,7 +781,9 @@ def main(argv=None) -> int:
     ap.add_argument("--lpips-net", default="alex", choices=["alex", "vgg"],
                     help="LPIPS trunk: alex (AlexNet, default) or vgg (VGG16)")
     ap.add_argument("--no-lpips", action="store_true")
-    ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs")
+    ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs "
+                    "(default: kept in $PATEXGS_COMPILE_CACHE, else ~/.cache/patexgs_jax/xla; "
+                    "PATEXGS_COMPILE_CACHE=off turns it off everywhere)")
     ap.add_argument("--batch-size", type=int, default=None, help="views per training step (default 1); > 1 trains "
                     "data-parallel (part of the protocol)")
     ap.add_argument("--devices", type=int, default=None, help="devices the batch is split over (default: as many "
@@ -812,9 +799,10 @@ def _study_cli(args) -> int:
     import jax
 
     from patexgs_jax import checkpoint as ckpt
+    from patexgs_jax import compiled
 
     if not args.no_compile_cache:
-        _enable_compile_cache()
+        compiled.enable_compile_cache()
 
     def split(s):
         return None if s is None else [x.strip() for x in s.split(",") if x.strip()]

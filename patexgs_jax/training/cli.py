@@ -88,7 +88,10 @@ def main(argv=None) -> int:
 
 
 def _train_cli(args) -> None:
+    from .. import compiled
     from ..data import load
+
+    compiled.enable_compile_cache()
 
     if args.data is None:
         from ..data.synthetic import ensure_default_scene
