@@ -72,7 +72,7 @@ def enable_compile_cache(path=None) -> Path | None:
     ``jax_persistent_cache_min_compile_time_secs`` (1 s by default) to compile. A folder that
     cannot be created leaves the cache off (compiling still works).
     """
-    current = jax.config.jax_compilation_cache_dir
+    current = getattr(jax.config, "jax_compilation_cache_dir", None)
     if current:
         return Path(current)
     folder = compile_cache_dir() if path is None else Path(path)
