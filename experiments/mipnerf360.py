@@ -33,7 +33,8 @@ For each scene:
      Gaussian and texel counts, training time and the median render time of one test image.
   3. Results are written after every (scene, method): ``DIR/results.json``, ``DIR/tables.md``
      (the layouts of the paper's Tables 1-4 plus a cost table), ``DIR/plots/*.png`` and
-     ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views) and
+     ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views, the
+     zoomed-out ones enlarged by their factor with nearest neighbour, columns labelled) and
      ``DIR/renders/<scene>/compare.png`` (the first test view: ground truth | each method, at full
      size and at 1/8, the 1/8 row enlarged 8x with nearest-neighbour so its pixels show).
 
@@ -51,6 +52,7 @@ protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is r
     {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 2},
      "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
                 "train_config": {...}, "machine": str},
+     "elapsed_seconds": float (wall-clock time of the study, summed over the invocations that finished),
      "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
                "weights": str} | null,
      "results": {scene: {label: {
@@ -211,6 +213,28 @@ def _save_png(path: Path, image: np.ndarray) -> None:
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(np.asarray(image, np.float32), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+
+
+def labelled_pairs(pairs, names, enlarge: int = 1, gap: int = 4, head: int = 14) -> np.ndarray:
+    """One uint8 image: a header naming the two columns, then for each (render, ground truth) pair a
+    row ``ground truth | render``, each image enlarged ``enlarge`` times with nearest neighbour (so the
+    pixels of a zoomed-out render show at a size a person can see)."""
+    from PIL import Image, ImageDraw
+
+    cells = [[np.repeat(np.repeat(_to_uint8(x), enlarge, axis=0), enlarge, axis=1) for x in (gt, img)]
+             for img, gt in pairs]
+    h = max(c.shape[0] for row in cells for c in row)
+    w = max(c.shape[1] for row in cells for c in row)
+    canvas = np.full((head + len(cells) * (h + gap), 2 * w + gap, 3), 255, np.uint8)
+    for i, row in enumerate(cells):
+        for j, c in enumerate(row):
+            y, x = head + i * (h + gap), j * (w + gap)
+            canvas[y:y + c.shape[0], x:x + c.shape[1]] = c
+    image = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(image)
+    for j, name in enumerate(names):
+        draw.text((j * (w + gap) + 2, 1), name, fill=(0, 0, 0))
+    return np.asarray(image)
 
 
 def write_comparison(directory, keys, scales=(SCALES[0], SCALES[-1]), gap: int = 4) -> Path | None:
@@ -428,7 +452,7 @@ class Study:
 
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
         from patexgs_jax.buckets import ViewRenderer
-        from patexgs_jax.evaluation import evaluate_scales, render_ms, side_by_side
+        from patexgs_jax.evaluation import evaluate_scales, render_ms
 
         views = list(ds.test_views)
         if not views:
@@ -445,7 +469,10 @@ class Study:
         images = ev.pop("images", {}) if self.main else {}
         for s in (str(SCALES[0]), str(SCALES[-1])):
             if images.get(s):
-                _save_png(self.out / "renders" / scene / f"{key}_x{s}.png", side_by_side(images[s]))
+                zoom = int(s)
+                names = ("ground truth", key if zoom == 1 else f"{key} 1/{zoom} (x{zoom})")
+                _save_png(self.out / "renders" / scene / f"{key}_x{s}.png",
+                          labelled_pairs(images[s], names, enlarge=zoom))
                 first = self.out / "renders" / scene / "first"
                 _save_png(first / f"{key}_x{s}.png", _to_uint8(images[s][0][0]))
                 if not (first / f"ground-truth_x{s}.png").exists():  # the same for every method
@@ -750,6 +777,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
         study.bar = bar
         for name, path in found.items():
             study.run_scene(name, path, methods)
+    study.data["elapsed_seconds"] = study.data.get("elapsed_seconds", 0.0) + time.perf_counter() - t
     study.save()
     if verbose and study.main:
         print(f"\n{tables_markdown(study.data)}\nwritten to {study.out} ({time.perf_counter() - t:.0f} s)")
