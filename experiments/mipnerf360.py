@@ -32,7 +32,9 @@ For each scene:
      renderer's zoom-out coherence, apart from the fit), storage,
      Gaussian and texel counts, training time and the median render time of one test image.
   3. Results are written after every (scene, method): ``DIR/results.json``, ``DIR/tables.md``
-     (the layouts of the paper's Tables 1-4 plus a cost table), ``DIR/plots/*.png`` and
+     (the layouts of the paper's Tables 1 and 2 and a cost table; Table 3, the mipmap ablation, and
+     Table 4, adaptive allocation, when at least two of their rows were run, else a line saying
+     which methods make them), ``DIR/plots/*.png`` and
      ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views, the
      zoomed-out ones enlarged by their factor with nearest neighbour, columns labelled) and
      ``DIR/renders/<scene>/compare.png`` (the first test view: ground truth | each method, at full
@@ -542,7 +544,8 @@ def _lpips_note(record: dict | None) -> str:
 
 
 def tables_markdown(data: dict) -> str:
-    """The study's tables in Markdown: the layouts of the paper's Tables 1-4, plus a cost table.
+    """The study's tables in Markdown: the layouts of the paper's Tables 1 and 2, Tables 3 and 4 when at
+    least two of their rows were run (else a line naming the methods that make them), a cost table.
 
     Values are means over the scenes that have the entry (Table 1 also lists each scene).
     """
@@ -596,9 +599,14 @@ def tables_markdown(data: dict) -> str:
     out += ["alias PSNR: the render at 1/s against the same model's full-resolution render box-downsampled "
             "by s (the renderer's zoom-out coherence, apart from the fit).", ""]
     t3 = [(k, _row_name(k, _TABLE3)) for k in labels if k.partition("(")[0] in _TABLE3]
+    t4 = [(k, _row_name(k, _TABLE4)) for k in labels if k.partition("(")[0] in _TABLE4]
+    absent = [f"Table {n} ({what}) needs two of its rows; run e.g. `--methods {how}`"
+              for n, rows, what, how in ((3, t3, "mipmap ablation", ",".join(_TABLE3)),
+                                         (4, t4, "adaptive texture allocation", "table4")) if len(rows) < 2]
+    if absent:
+        out += ["Not in this study: " + "; ".join(absent) + ".", ""]
     if len(t3) >= 2:
         out += scale_table("## Table 3: mipmap ablation", t3)
-    t4 = [(k, _row_name(k, _TABLE4)) for k in labels if k.partition("(")[0] in _TABLE4]
     if len(t4) >= 2:
         head = " | ".join(f"{'Full' if sc == 1 else f'1/{sc}'} PSNR | SSIM | LPIPS" for sc in TABLE4_SCALES)
         out += ["## Table 4: adaptive texture allocation", "",
