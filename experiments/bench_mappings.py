@@ -214,9 +214,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     M = importlib.import_module("experiments.mipnerf360")
-    if not args.no_compile_cache:
-        M._enable_compile_cache()
     meter = Meter(args.interval, args.max_seconds)
+    if not args.no_compile_cache:
+        meter.compiled.enable_compile_cache()
     instrument(meter)
     maps = meter.compiled.memory_maps()
     limit = None if maps is None else maps[1]

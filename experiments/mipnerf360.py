@@ -32,8 +32,11 @@ For each scene:
      renderer's zoom-out coherence, apart from the fit), storage,
      Gaussian and texel counts, training time and the median render time of one test image.
   3. Results are written after every (scene, method): ``DIR/results.json``, ``DIR/tables.md``
-     (the layouts of the paper's Tables 1-4 plus a cost table), ``DIR/plots/*.png`` and
-     ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views) and
+     (the layouts of the paper's Tables 1 and 2 and a cost table; Table 3, the mipmap ablation, and
+     Table 4, adaptive allocation, when at least two of their rows were run, else a line saying
+     which methods make them), ``DIR/plots/*.png`` and
+     ``DIR/renders/<scene>/<label>_x<scale>.png`` (ground truth | render, a few test views, the
+     zoomed-out ones enlarged by their factor with nearest neighbour, columns labelled) and
      ``DIR/renders/<scene>/compare.png`` (the first test view: ground truth | each method, at full
      size and at 1/8, the 1/8 row enlarged 8x with nearest-neighbour so its pixels show).
 
@@ -53,6 +56,7 @@ work, the command that continues) and exit status 130 / 143 (see :mod:`patexgs_j
     {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 2},
      "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
                 "train_config": {...}, "machine": str},
+     "elapsed_seconds": float (wall-clock time of the study, summed over the invocations that finished),
      "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
                "weights": str} | null,
      "results": {scene: {label: {
@@ -214,6 +218,28 @@ def _save_png(path: Path, image: np.ndarray) -> None:
 
 def _to_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(np.asarray(image, np.float32), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
+
+
+def labelled_pairs(pairs, names, enlarge: int = 1, gap: int = 4, head: int = 14) -> np.ndarray:
+    """One uint8 image: a header naming the two columns, then for each (render, ground truth) pair a
+    row ``ground truth | render``, each image enlarged ``enlarge`` times with nearest neighbour (so the
+    pixels of a zoomed-out render show at a size a person can see)."""
+    from PIL import Image, ImageDraw
+
+    cells = [[np.repeat(np.repeat(_to_uint8(x), enlarge, axis=0), enlarge, axis=1) for x in (gt, img)]
+             for img, gt in pairs]
+    h = max(c.shape[0] for row in cells for c in row)
+    w = max(c.shape[1] for row in cells for c in row)
+    canvas = np.full((head + len(cells) * (h + gap), 2 * w + gap, 3), 255, np.uint8)
+    for i, row in enumerate(cells):
+        for j, c in enumerate(row):
+            y, x = head + i * (h + gap), j * (w + gap)
+            canvas[y:y + c.shape[0], x:x + c.shape[1]] = c
+    image = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(image)
+    for j, name in enumerate(names):
+        draw.text((j * (w + gap) + 2, 1), name, fill=(0, 0, 0))
+    return np.asarray(image)
 
 
 def write_comparison(directory, keys, scales=(SCALES[0], SCALES[-1]), gap: int = 4) -> Path | None:
@@ -438,7 +464,7 @@ class Study:
 
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
         from patexgs_jax.buckets import ViewRenderer
-        from patexgs_jax.evaluation import evaluate_scales, render_ms, side_by_side
+        from patexgs_jax.evaluation import evaluate_scales, render_ms
 
         views = list(ds.test_views)
         if not views:
@@ -458,7 +484,10 @@ class Study:
         images = ev.pop("images", {}) if self.main else {}
         for s in (str(SCALES[0]), str(SCALES[-1])):
             if images.get(s):
-                _save_png(self.out / "renders" / scene / f"{key}_x{s}.png", side_by_side(images[s]))
+                zoom = int(s)
+                names = ("ground truth", key if zoom == 1 else f"{key} 1/{zoom} (x{zoom})")
+                _save_png(self.out / "renders" / scene / f"{key}_x{s}.png",
+                          labelled_pairs(images[s], names, enlarge=zoom))
                 first = self.out / "renders" / scene / "first"
                 _save_png(first / f"{key}_x{s}.png", _to_uint8(images[s][0][0]))
                 if not (first / f"ground-truth_x{s}.png").exists():  # the same for every method
@@ -528,7 +557,8 @@ def _lpips_note(record: dict | None) -> str:
 
 
 def tables_markdown(data: dict) -> str:
-    """The study's tables in Markdown: the layouts of the paper's Tables 1-4, plus a cost table.
+    """The study's tables in Markdown: the layouts of the paper's Tables 1 and 2, Tables 3 and 4 when at
+    least two of their rows were run (else a line naming the methods that make them), a cost table.
 
     Values are means over the scenes that have the entry (Table 1 also lists each scene).
     """
@@ -582,9 +612,14 @@ def tables_markdown(data: dict) -> str:
     out += ["alias PSNR: the render at 1/s against the same model's full-resolution render box-downsampled "
             "by s (the renderer's zoom-out coherence, apart from the fit).", ""]
     t3 = [(k, _row_name(k, _TABLE3)) for k in labels if k.partition("(")[0] in _TABLE3]
+    t4 = [(k, _row_name(k, _TABLE4)) for k in labels if k.partition("(")[0] in _TABLE4]
+    absent = [f"Table {n} ({what}) needs two of its rows; run e.g. `--methods {how}`"
+              for n, rows, what, how in ((3, t3, "mipmap ablation", ",".join(_TABLE3)),
+                                         (4, t4, "adaptive texture allocation", "table4")) if len(rows) < 2]
+    if absent:
+        out += ["Not in this study: " + "; ".join(absent) + ".", ""]
     if len(t3) >= 2:
         out += scale_table("## Table 3: mipmap ablation", t3)
-    t4 = [(k, _row_name(k, _TABLE4)) for k in labels if k.partition("(")[0] in _TABLE4]
     if len(t4) >= 2:
         head = " | ".join(f"{'Full' if sc == 1 else f'1/{sc}'} PSNR | SSIM | LPIPS" for sc in TABLE4_SCALES)
         out += ["## Table 4: adaptive texture allocation", "",
@@ -714,21 +749,6 @@ def plot_sides(data: dict, path) -> Path | None:
 # ------------------------------------------------------------------------------------------------
 # Command line
 # ------------------------------------------------------------------------------------------------
-def _enable_compile_cache() -> None:
-    """A persistent XLA compilation cache under the project cache: repeated runs skip compiles."""
-    import jax
-
-    if jax.config.jax_compilation_cache_dir:
-        return
-    root = Path(os.environ.get("PATEXGS_CACHE") or Path.home() / ".cache" / "patexgs_jax")
-    try:
-        (root / "xla").mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return
-    jax.config.update("jax_compilation_cache_dir", str(root / "xla"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-
-
 def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders: int = 3, use_lpips: bool = True,
         lpips_net: str = "alex", verbose: bool = True, devices: int | None = None, **config) -> dict:
     """Runs the study (the command line in Python); returns the results dictionary.
@@ -778,6 +798,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
         study.bar = bar
         for name, path in found.items():
             study.run_scene(name, path, methods)
+    study.data["elapsed_seconds"] = study.data.get("elapsed_seconds", 0.0) + time.perf_counter() - t
     study.save()
     if verbose and study.main:
         print(f"\n{tables_markdown(study.data)}\nwritten to {study.out} ({time.perf_counter() - t:.0f} s)")
@@ -809,7 +830,9 @@ def main(argv=None) -> int:
     ap.add_argument("--lpips-net", default="alex", choices=["alex", "vgg"],
                     help="LPIPS trunk: alex (AlexNet, default) or vgg (VGG16)")
     ap.add_argument("--no-lpips", action="store_true")
-    ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs")
+    ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs "
+                    "(default: kept in $PATEXGS_COMPILE_CACHE, else ~/.cache/patexgs_jax/xla; "
+                    "PATEXGS_COMPILE_CACHE=off turns it off everywhere)")
     ap.add_argument("--batch-size", type=int, default=None, help="views per training step (default 1); > 1 trains "
                     "data-parallel (part of the protocol)")
     ap.add_argument("--devices", type=int, default=None, help="devices the batch is split over (default: as many "
@@ -839,9 +862,10 @@ def _study(args) -> int:
     import jax
 
     from patexgs_jax import checkpoint as ckpt
+    from patexgs_jax import compiled
 
     if not args.no_compile_cache:
-        _enable_compile_cache()
+        compiled.enable_compile_cache()
 
     def split(s):
         return None if s is None else [x.strip() for x in s.split(",") if x.strip()]

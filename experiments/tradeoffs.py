@@ -625,6 +625,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scales", type=_ints, default=SCALES)
     ap.add_argument("--render-views", type=int, default=8, help="test views timed per scale")
     ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--no-compile-cache", action="store_true", help="compile every program (default: compiled "
+                    "programs are kept between runs, see PATEXGS_COMPILE_CACHE); training times then include "
+                    "every compile")
     g = ap.add_argument_group("study")
     g.add_argument("--preset", default=None, help="tiny (default without --data), small or paper (default with --data)")
     g.add_argument("--knobs", default=",".join(KNOBS))
@@ -643,8 +646,12 @@ def main(argv=None) -> int:
     e.add_argument("--export", default=None, help="reduced PLY path (default OUT/scene_reduced.ply)")
     args = ap.parse_args(argv)
 
+    from patexgs_jax import compiled
     from patexgs_jax.checkpoint import CheckpointError, check_output_dir
     from patexgs_jax.data import load
+
+    if not args.no_compile_cache:
+        compiled.enable_compile_cache()
 
     # Mistakes in the arguments are named before any scene is made or loaded.
     if args.effects and args.run is None:

@@ -19,17 +19,71 @@ What keeps the count bounded:
 * a guard (:class:`MapGuard`): above ``release_share`` of the cap, all of JAX's compiled code is
   dropped (:func:`release_compiled_code`); above ``stop_share`` even so, training checkpoints and
   stops with :class:`MapLimitReached` instead of crashing in the next compile.
+
+Programs also outlive the process: the command lines turn on JAX's persistent compilation cache
+(:func:`enable_compile_cache`), so a second run, or a resumed one, loads the programs the first
+compiled (seconds to tens of seconds each on a CPU) instead of compiling them again.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import gc
+import os
+from pathlib import Path
 
 import jax
 
 #: The kernel's default ``vm.max_map_count``.
 DEFAULT_MAP_LIMIT = 65_530
+
+#: Environment variable naming the persistent compilation cache's folder; ``off`` (or ``0``, ``no``,
+#: ``none``, ``false``, empty) turns the cache off.
+COMPILE_CACHE_ENV = "PATEXGS_COMPILE_CACHE"
+_OFF = frozenset({"", "0", "off", "no", "none", "false"})
+
+
+def compile_cache_dir() -> Path | None:
+    """The folder of the persistent compilation cache the command lines use, or None when it is off.
+
+    ``$PATEXGS_COMPILE_CACHE`` if set (``off`` disables the cache), else ``$PATEXGS_CACHE/xla``
+    (the project's cache, shared with the synthetic scene and undistorted images), else
+    ``$XDG_CACHE_HOME/patexgs_jax/xla`` (``~/.cache/patexgs_jax/xla``): one per user, since a
+    program compiled by one checkout serves every other with the same JAX and XLA flags (JAX's
+    cache keys hold the program, the compile options and the versions).
+    """
+    value = os.environ.get(COMPILE_CACHE_ENV)
+    if value is not None:
+        return None if value.strip().lower() in _OFF else Path(value).expanduser()
+    root = os.environ.get("PATEXGS_CACHE")
+    if root:
+        return Path(root).expanduser() / "xla"
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "patexgs_jax" / "xla"
+
+
+def enable_compile_cache(path=None) -> Path | None:
+    """Turns on JAX's persistent compilation cache in ``path`` (default :func:`compile_cache_dir`);
+    returns the folder in use, or None when the cache stays off.
+
+    A folder already configured (``JAX_COMPILATION_CACHE_DIR`` or ``jax.config``) is kept, so a
+    user's own cache and the test suite's win. JAX decides at the first compile whether a cache is
+    used, so call this before anything compiles. JAX stores only programs that took at least
+    ``jax_persistent_cache_min_compile_time_secs`` (1 s by default) to compile. A folder that
+    cannot be created leaves the cache off (compiling still works).
+    """
+    current = getattr(jax.config, "jax_compilation_cache_dir", None)
+    if current:
+        return Path(current)
+    folder = compile_cache_dir() if path is None else Path(path)
+    if folder is None:
+        return None
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    return folder
 
 
 class MapLimitReached(OSError):

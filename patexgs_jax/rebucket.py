@@ -14,11 +14,17 @@ Re-bucketing (:func:`resize_textures`)
   bank's neutral value (RGB offset 0, alpha multiplier 1: rendering is unchanged) with zero
   moments; a texture disappearing (n -> 0) frees its slot.
 
-  Slots are stable: a Gaussian whose bucket does not change keeps its slot (if its side is
-  unchanged its whole slot, padding included, is copied bit-exactly); a Gaussian changing bucket
-  takes the lowest free slot of its new bucket after all departures are freed. Bucket capacities
-  are powers of two that only grow (by doubling) and buckets are never removed, so the set of
-  shapes the jitted step sees stays small; :class:`ResizeInfo` says when they changed.
+  Capacities (the layout). Bucket capacities are static shapes of the jitted training step, so a
+  change recompiles it (seconds to a minute on a CPU). While every bucket still holds its textures,
+  capacities are kept and slots are stable: a Gaussian whose bucket does not change keeps its slot
+  (if its side is unchanged its whole slot, padding included, is copied bit-exactly) and one
+  changing bucket takes the lowest free slot of its new bucket after all departures are freed. When
+  some bucket overflows (or a bank or bucket appears), the step recompiles anyway, so every bucket
+  is sized afresh: the power of two at or above its count plus ``headroom`` (a share of the count,
+  at least ``min_spare`` slots), never above the scene's capacity; buckets that emptied shrink and
+  stayers beyond the new capacity move to free slots (a copy). A growth event moves a few Gaussians
+  a bucket up, so with headroom most events fit the layout they find and compile nothing. Buckets
+  are never removed. :class:`ResizeInfo` says when the shapes changed.
 
 Everything here is host-side numpy between jitted steps; every function is pure. Which sizes to
 give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
@@ -186,6 +192,13 @@ def _check_sizes(sizes, C: int, name: str, max_size: int) -> np.ndarray:
     return out
 
 
+def _check_headroom(min_capacity, headroom, min_spare) -> None:
+    if int(min_capacity) < 1:
+        raise ValueError(f"min_capacity must be >= 1, got {min_capacity}.")
+    if not float(headroom) >= 0 or int(min_spare) < 0:
+        raise ValueError(f"headroom and min_spare must be >= 0, got {headroom} and {min_spare}.")
+
+
 def _bank_indices(bank: TextureBank):
     size = np.asarray(bank.size).astype(np.int64)
     bucket = np.asarray(bank.bucket).astype(np.int64)
@@ -193,7 +206,18 @@ def _bank_indices(bank: TextureBank):
     return size, bucket, slot
 
 
-def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int) -> _BankPlan:
+def _capacity(count: int, headroom: float, min_spare: int, min_capacity: int, limit: int) -> int:
+    """A bucket's capacity when the layout is made afresh: a power of two holding ``count`` plus
+    ``max(headroom * count, min_spare)`` spare slots (at least ``min_capacity``), at most ``limit``
+    (a power of two at or above the scene's capacity: a bucket never holds more Gaussians)."""
+    if count == 0:
+        return 0
+    spare = max(int(np.ceil(headroom * count)), int(min_spare))
+    return max(min(_next_pow2(max(count + spare, min_capacity)), limit), _next_pow2(count))
+
+
+def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: float = 0.0,
+          min_spare: int = 0) -> _BankPlan:
     old_size, old_bucket, old_slot = _bank_indices(bank)
     C = old_size.shape[0]
     # ceil(log2 n) = bit_length(n - 1) = frexp(n - 1) exponent; -1 for no texture.
@@ -201,24 +225,22 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int) -> _BankPl
     new_bucket = new_bucket.astype(np.int64)
     nb = max([bank.num_buckets] + [int(b) + 1 for b in new_bucket if b >= 0])
     old_caps = list(bank.capacities) + [0] * (nb - bank.num_buckets)
-    stay = (new_size > 0) & (new_bucket == old_bucket)
+    counts = np.bincount(new_bucket[new_bucket >= 0], minlength=nb)
+    if all(int(c) <= cap for c, cap in zip(counts, old_caps)):
+        caps = old_caps
+    else:  # the shapes change anyway: every bucket sized afresh (see the module docstring)
+        caps = [_capacity(int(c), headroom, min_spare, min_capacity, _next_pow2(C)) for c in counts]
+    cap_of = np.asarray(list(caps) + [0], np.int64)[np.maximum(old_bucket, 0)]  # (C,) the old bucket's new capacity
+    stay = (new_size > 0) & (new_bucket == old_bucket) & (old_slot < cap_of)
     new_slot = np.zeros(C, np.int64)
     new_slot[stay] = old_slot[stay]
-    caps = []
     for b in range(nb):
         staying = np.flatnonzero(stay & (new_bucket == b))
         arriving = np.flatnonzero(~stay & (new_bucket == b))
-        count = staying.size + arriving.size
-        cap = old_caps[b]
-        if count > cap:
-            cap = max(cap, _next_pow2(max(min_capacity, 1)))
-            while cap < count:
-                cap *= 2
-        used = np.zeros(cap, bool)
+        used = np.zeros(caps[b], bool)
         used[old_slot[staying]] = True
         free = np.flatnonzero(~used)
         new_slot[arriving] = free[: arriving.size]
-        caps.append(cap)
     return _BankPlan(old_size, new_size, old_bucket, old_slot, new_bucket, new_slot, tuple(caps),
                      bank.channels)
 
@@ -283,7 +305,7 @@ def _check_moment_bank(mbank, bank: TextureBank, name: str):
 
 
 def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capacity: int = 1,
-                    max_size: int = MAX_TEXTURE_SIZE):
+                    headroom: float = 0.0, min_spare: int = 0, max_size: int = MAX_TEXTURE_SIZE):
     """Changes texture sides, resampling texels and their Adam moments (see the module docstring).
 
     Args:
@@ -292,15 +314,17 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
         or None (e.g. for inference).
       rgb_sizes, alpha_sizes: (C,) integer new sides (0 = no texture, at most ``max_size``), or
         None to leave that bank unchanged.
-      min_capacity: a bucket that is created or grows gets at least this capacity (rounded up to a
-        power of two).
+      min_capacity: a bucket sized afresh (see the module docstring) gets at least this capacity
+        (rounded up to a power of two).
+      headroom, min_spare: a bucket sized afresh gets ``max(headroom * count, min_spare)`` free
+        slots beyond its count (then rounded up to a power of two), so that the next resizes that
+        move a few textures into it keep the layout (and the jitted step's program).
       max_size: largest side accepted.
     Returns:
       ``(scene, opt_state, ResizeInfo)``; opt_state is None if it was None.
     """
     C = scene.capacity
-    if int(min_capacity) < 1:
-        raise ValueError(f"min_capacity must be >= 1, got {min_capacity}.")
+    _check_headroom(min_capacity, headroom, min_spare)
     plans = {}
     for name, sizes in zip(_BANKS, (rgb_sizes, alpha_sizes)):
         if sizes is None:
@@ -308,7 +332,8 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
         bank = getattr(scene, name)
         if bank is None:
             raise ValueError(f"the scene has no {name!r} bank; create it with add_textures.")
-        plans[name] = _plan(bank, _check_sizes(sizes, C, f"{name}_sizes", int(max_size)), int(min_capacity))
+        plans[name] = _plan(bank, _check_sizes(sizes, C, f"{name}_sizes", int(max_size)), int(min_capacity),
+                            float(headroom), int(min_spare))
 
     if opt_state is not None:
         for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene):
@@ -346,7 +371,8 @@ def _info(old: Scene, new: Scene, plans) -> ResizeInfo:
 
 
 def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb_init=RGB_NEUTRAL,
-                 alpha_init=ALPHA_NEUTRAL, *, min_capacity: int = 1, max_size: int = MAX_TEXTURE_SIZE):
+                 alpha_init=ALPHA_NEUTRAL, *, min_capacity: int = 1, headroom: float = 0.0, min_spare: int = 0,
+                 max_size: int = MAX_TEXTURE_SIZE):
     """Creates texture banks a scene does not have yet (e.g. the stage-2 init: 1x1 RGB, 5x5 alpha).
 
     Args:
@@ -359,12 +385,13 @@ def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb
         that bank as it is (absent or present).
       rgb_init: value of every new RGB texel (scalar or (3,)); default 0 (neutral).
       alpha_init: value of every new alpha texel (scalar); default 1 (neutral).
-      min_capacity, max_size: as in :func:`resize_textures`.
+      min_capacity, headroom, min_spare, max_size: as in :func:`resize_textures`.
     Returns:
       ``(scene, opt_state, ResizeInfo)``: existing leaves and their moments and the step count are
       kept unchanged; the new bank's moments are zero.
     """
     C = scene.capacity
+    _check_headroom(min_capacity, headroom, min_spare)
     kw, plans = {}, {}
     for name, sizes, init, ch in (("rgb", rgb_sizes, rgb_init, 3), ("alpha", alpha_sizes, alpha_init, 1)):
         if sizes is None:
@@ -375,7 +402,7 @@ def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb
         if init.shape not in ((), (ch,)) or not np.all(np.isfinite(init)):
             raise ValueError(f"{name}_init must be a finite scalar or shape ({ch},), got {init.shape}.")
         plan = _plan(_empty_bank(C, ch), _check_sizes(sizes, C, f"{name}_sizes", int(max_size)),
-                     int(min_capacity))
+                     int(min_capacity), float(headroom), int(min_spare))
         buckets = _apply_plan(plan, [], init.astype(np.float32))  # every texture is new: init
         kw[name] = _bank_from_plan(plan, buckets, with_indices=True)
         plans[name] = plan

@@ -440,6 +440,7 @@ def main(argv=None) -> int:
     ap.add_argument("--settle", type=float, default=0.2, help="seconds at rest before the full-size frame")
     ap.add_argument("--verbose", action="store_true", help="log every frame sent")
     args = ap.parse_args(argv)
+    compiled.enable_compile_cache()
     try:
         if args.max_side < 16 or args.preview < 1 or args.settle < 0:
             raise vw.ViewerError("--max-side must be at least 16, --preview at least 1 and --settle >= 0.")

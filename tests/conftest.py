@@ -42,6 +42,9 @@ if not _XLA_CACHE or not os.path.isdir(_XLA_CACHE):
     atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
 jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+# The command lines turn on a per-user cache (patexgs_jax.compiled.enable_compile_cache); the ones
+# the tests start, in this process or in subprocesses, use the session's instead, never ~/.cache.
+os.environ["PATEXGS_COMPILE_CACHE"] = _XLA_CACHE
 
 settings.register_profile("default", deadline=None, max_examples=10, derandomize=False)
 settings.register_profile("ci", deadline=None, max_examples=10, derandomize=True)

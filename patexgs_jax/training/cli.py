@@ -156,8 +156,10 @@ def _train_cli(args) -> int:
 
 
 def _train(args) -> None:
+    from .. import compiled
     from ..data import DatasetError, check_images, load
 
+    compiled.enable_compile_cache()
     interrupt.set_phase("checking the arguments")
     cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                         iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,

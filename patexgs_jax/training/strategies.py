@@ -24,7 +24,16 @@ from ..rendering import RenderConfig
 from ..scene import Scene
 from .config import TrainConfig
 
-__all__ = ["Densification", "TextureStage", "TrainState", "growth_schedule", "growth_steps", "side_histogram"]
+__all__ = ["Densification", "TEXTURE_HEADROOM", "TEXTURE_MIN_SPARE", "TextureStage", "TrainState", "growth_schedule",
+           "growth_steps", "side_histogram"]
+
+#: Free slots (a share of the count, a least number) a texture bucket gets when the layout is made
+#: (the texture stage's start, the Eq. 7 allocation, a growth event that overflows a bucket):
+#: ``max(headroom * count, min_spare)``, then rounded up to a power of two
+#: (:func:`patexgs_jax.rebucket.resize_textures`). An Eqs. 8-10 event grows a few dozen textures by
+#: one texel a side, so most events fit and recompile nothing; spare slots cost their texels in the
+#: atlas and the optimiser's update (docs/performance.md).
+TEXTURE_HEADROOM, TEXTURE_MIN_SPARE = 0.25, 16
 
 
 class TrainState(NamedTuple):
@@ -130,11 +139,13 @@ class TextureStage:
             n = self.spec.size
             assert n is not None  # every "fixed" method has a size (Method.from_name)
             sizes = np.where(act, n, 0)
-            scene, opt_state, _ = add_textures(scene, opt_state, self.optimizer, sizes, sizes)
+            scene, opt_state, _ = add_textures(scene, opt_state, self.optimizer, sizes, sizes,
+                                               headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
             self.say(f"[stage 2] every Gaussian gets a {n}x{n} RGBA texture")
         else:
             scene, opt_state, _ = add_textures(scene, opt_state, self.optimizer, np.where(act, 1, 0),
-                                                     np.where(act, 5, 0))
+                                               np.where(act, 5, 0), headroom=TEXTURE_HEADROOM,
+                                               min_spare=TEXTURE_MIN_SPARE)
             self.say(f"[stage 2] 5x5 alpha + 1x1 RGB textures; warm-up {self.cfg.warmup_tex} steps")
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(state.scene.capacity))
 
@@ -164,7 +175,8 @@ class TextureStage:
                 sigma = cfg.sigma or adaptive.pixel_share_sigma(pixels, int(act.sum()))
             sides = adaptive.initial_texture_sizes(S, sigma, max_size=cfg.max_texture_size, active=act)
         self.state = adaptive.TextureScheduleState.create(sides)
-        scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides)
+        scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
+                                              min_spare=TEXTURE_MIN_SPARE)
         self.texel_budget = budget
         self.allocation = dict(step=step, sigma=None if sigma is None else float(sigma),
                                texels=adaptive.total_texels(sides, act), budget_texels=budget,
@@ -190,7 +202,8 @@ class TextureStage:
         self.state, sides, sel = self.state.step(grad, step, self.schedule, active=act,
                                                  texel_budget=self.texel_budget)
         if sel.any():
-            scene, opt_state, _ = resize_textures(scene, opt_state, sides, sides)
+            scene, opt_state, _ = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
+                                                  min_spare=TEXTURE_MIN_SPARE)
             event = dict(step=step, grown=int(np.sum(sides[act] > before[act])),
                          texels_added=adaptive.total_texels(sides, act) - adaptive.total_texels(before, act),
                          texels=adaptive.total_texels(sides, act))

@@ -18,8 +18,10 @@ Compiled programs (see :mod:`patexgs_jax.compiled`)
   A training view is padded to the renderer's tile grid (:mod:`patexgs_jax.buckets`; the loss is
   the view's own, the per-splat statistics the unpadded render's), so the step compiles once per
   distinct tile grid of the training images, not once per image size, and again only when the
-  tile capacity or the scene's shapes change (densification, texture growth); the programs of
-  earlier shapes are then released (and at most a few capacities kept per shapes). Near the
+  tile capacity or the scene's shapes change (densification; the texture stage's start and Eq. 7
+  allocation; a growth event only when it overflows a texture bucket's headroom, see
+  :mod:`patexgs_jax.rebucket`); the programs of earlier shapes are then released (and at most a
+  few capacities kept per shapes). Near the
   kernel's memory-map cap the run releases all compiled code and, if that is not enough,
   checkpoints and stops with :class:`patexgs_jax.compiled.MapLimitReached` (resume with
   ``resume=True``).
@@ -341,11 +343,12 @@ class Trainer:
 
     def _compiled_step(self, key, make):
         """The jitted step for ``key`` (render config, capacity, ...) and the scene's current layout,
-        made by ``make()`` when new. Scene layouts only grow within a run (more Gaussians, larger
-        texture buckets), so when the layout changes the steps of the old one are never called
-        again: they are dropped, with the renderer's and pair counter's programs of the old layout,
-        and their memory mappings returned (see :mod:`patexgs_jax.compiled`). Within a layout at most
-        :data:`_MAX_STEP_FNS` steps (capacities) are kept, the oldest dropped first."""
+        made by ``make()`` when new. A layout, once left, is rarely met again within a run (the
+        Gaussian capacity only grows; texture buckets are sized afresh when one overflows), so when
+        the layout changes the steps of the old one are dropped, with the renderer's and pair
+        counter's programs of the old layout, and their memory mappings returned (see
+        :mod:`patexgs_jax.compiled`). Within a layout at most :data:`_MAX_STEP_FNS` steps
+        (capacities) are kept, the oldest dropped first."""
         layout = _layout(self.scene)
         if self._jit_layout != layout:
             if self._jit_cache:

@@ -1,4 +1,5 @@
-"""The process-level safeguards: compiled code is released before the memory-map cap, and importing
+"""The process-level safeguards: compiled code is released before the memory-map cap, the persistent
+compilation cache of the command lines is where the environment says, and importing
 pycolmap leaves the fatal-signal handlers as they were."""
 
 from __future__ import annotations
@@ -73,3 +74,47 @@ def test_segfault_after_importing_the_loaders_crashes_with_a_python_traceback():
     r = _python(_HANDLER + "import patexgs_jax.data\nimport patexgs_jax.data.colmap\nctypes.string_at(0)\n")
     assert r.returncode == -11, (r.returncode, r.stderr[-2000:])
     assert "Fatal Python error: Segmentation fault" in r.stderr, r.stderr[-2000:]
+
+
+def test_compile_cache_folder_from_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv(compiled.COMPILE_CACHE_ENV, str(tmp_path / "mine"))
+    assert compiled.compile_cache_dir() == tmp_path / "mine"
+    for off in ("off", "0", "", "None"):
+        monkeypatch.setenv(compiled.COMPILE_CACHE_ENV, off)
+        assert compiled.compile_cache_dir() is None
+    monkeypatch.delenv(compiled.COMPILE_CACHE_ENV)
+    monkeypatch.setenv("PATEXGS_CACHE", str(tmp_path / "project"))
+    assert compiled.compile_cache_dir() == tmp_path / "project" / "xla"
+    monkeypatch.delenv("PATEXGS_CACHE")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert compiled.compile_cache_dir() == tmp_path / "xdg" / "patexgs_jax" / "xla"
+
+
+_CACHED_COMPILE = textwrap.dedent("""
+    import jax, jax.numpy as jnp
+    from patexgs_jax import compiled
+    print(compiled.enable_compile_cache())
+    jax.jit(lambda x: jnp.cumsum(jnp.sin(x)))(jnp.ones(8)).block_until_ready()
+    """)
+
+
+@pytest.mark.parametrize("setting", ["folder", "off"])
+def test_command_lines_keep_compiled_programs(tmp_path, setting):
+    """What the command lines call first: compiled programs are written to the per-user folder, or
+    nowhere with PATEXGS_COMPILE_CACHE=off; a folder JAX was already given wins."""
+    import os
+
+    folder = tmp_path / "cache"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
+    env.update(PATEXGS_COMPILE_CACHE=str(folder) if setting == "folder" else "off",
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    r = subprocess.run([sys.executable, "-c", _CACHED_COMPILE], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    if setting == "off":
+        assert r.stdout.strip() == "None" and not folder.exists()
+        return
+    assert r.stdout.strip() == str(folder)
+    assert any(folder.iterdir()), "nothing was written to the cache folder"
+    env.update(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "theirs"))
+    r = subprocess.run([sys.executable, "-c", _CACHED_COMPILE], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "theirs"), (r.stdout, r.stderr[-2000:])

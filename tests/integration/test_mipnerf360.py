@@ -84,6 +84,9 @@ def test_tables_plots_and_renders_are_written(study):
     (scene,) = data["results"]
     md = (out / "tables.md").read_text()
     assert "## Table 1" in md and "## Table 2" in md and "## Cost" in md
+    # Tables 3 and 4 need two of their rows each: the tables say so, and which methods make them.
+    assert "## Table 3" not in md and "## Table 4" not in md
+    assert "Not in this study: Table 3 (mipmap ablation)" in md and "`--methods table4`" in md
     for key in METHODS:
         row = next(line for line in md.splitlines() if line.startswith(f"| {key} |"))
         assert f"{data['results'][scene][key]['1']['psnr']:.2f}" in row
@@ -97,9 +100,12 @@ def test_tables_plots_and_renders_are_written(study):
     for key in METHODS:
         for s in (1, 8):
             im = Image.open(out / "renders" / scene / f"{key}_x{s}.png")
-            # one view, ground truth | gap | render: (H + gap) x (2 W + gap)
-            w, h = 64 // s, 48 // s
-            assert im.size == (2 * w + 4, h + 4)
+            # a header, then one view, ground truth | gap | render, enlarged s times: (14 + H + gap) x (2 W + gap)
+            assert im.size == (2 * 64 + 4, 14 + 48 + 4)
+            if s == 8:  # nearest neighbour: 8 x 8 blocks of the saved 1/8 render
+                px = np.asarray(im.convert("RGB"))[14:14 + 48, 64 + 4:]
+                small = np.asarray(Image.open(out / "renders" / scene / "first" / f"{key}_x8.png").convert("RGB"))
+                np.testing.assert_array_equal(px[4::8, 4::8], small)
     # ground truth | 2dgs | patexgs, at full size and at 1/8 enlarged to full size, under a header
     im = Image.open(out / "renders" / scene / "compare.png")
     assert im.size == (3 * 64 + 2 * 4, 14 + 2 * (48 + 4))

@@ -35,6 +35,7 @@ from patexgs_jax.densify import DensifyConfig
 from patexgs_jax.evaluation import evaluate
 from patexgs_jax.metrics import mb_to_texels
 from patexgs_jax.optim import adam_moments
+from patexgs_jax.training import strategies
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import STEP_TRACES
@@ -145,16 +146,21 @@ def run_p(dataset, tmp_path_factory):
     step's host-side work (densification, growth), pruned slots."""
     cfg = tiny_config()
     out = tmp_path_factory.mktemp("run_p")
-    rec = dict(keys=set(), problems=[], capacities=set(), pruned=0, checks=0)
+    rec = dict(keys=set(), problems=[], capacities=set(), pruned=0, checks=0, traced=[], resizes=[])
     init = init_scene(dataset.points, dataset.colors, cfg)
     rec["psnr_init"] = evaluate(init, dataset.train_views, cfg.render_config())["psnr"]
     orig_step_fn, orig_after, orig_start = Trainer.step_fn, Trainer.after_step, TextureStage.start
+    orig_resize = strategies.resize_textures
 
     def step_fn(self):
         rec["keys"].add((self.capacity, shape_key(self.scene, self.opt_state, self.stats)))
         return orig_step_fn(self)
 
     def after_step(self, step):
+        if sum(STEP_TRACES.values()) > rec.setdefault("seen", traces):  # the step just run traced
+            rec["traced"].append(step - 1)
+            rec["seen"] = sum(STEP_TRACES.values())
+        rec["step"] = step
         before = np.asarray(self.scene.active) > 0
         orig_after(self, step)
         after = np.asarray(self.scene.active) > 0
@@ -162,6 +168,11 @@ def run_p(dataset, tmp_path_factory):
         rec["capacities"].add(self.scene.capacity)
         rec["problems"] += [f"step {step}: {p}" for p in alignment_problems(self.scene, self.opt_state)]
         rec["checks"] += 1
+
+    def resize(*args, **kwargs):
+        out = orig_resize(*args, **kwargs)
+        rec["resizes"].append((rec["step"], out[2].shapes_changed))
+        return out
 
     def start_textures(self, state):
         rec["psnr_stage1"] = evaluate(state.scene, self.train_views, self.render_config)["psnr"]
@@ -172,6 +183,7 @@ def run_p(dataset, tmp_path_factory):
         mp.setattr(Trainer, "step_fn", step_fn)
         mp.setattr(Trainer, "after_step", after_step)
         mp.setattr(TextureStage, "start", start_textures)
+        mp.setattr(strategies, "resize_textures", resize)
         result = train(dataset, cfg, out, verbose=False)
     rec["traces"] = sum(STEP_TRACES.values()) - traces
     tree, meta = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
@@ -293,6 +305,11 @@ def test_recompiles_counted(run_p):
     # One trace per distinct (tile capacity, scene / optimiser / statistics shapes) the step saw:
     # at least 512 -> 1024 Gaussians, the texture banks' appearance, the allocation's buckets.
     assert s["recompiles"] == rec["traces"] == len(rec["keys"]) >= 4
+    # Growth events that fit the texture buckets' headroom keep the layout and compile nothing.
+    growth = [(step, changed) for step, changed in rec["resizes"] if step in growth_steps(run_p["cfg"])]
+    kept = [step for step, changed in growth if not changed]
+    assert kept, growth
+    assert not set(kept) & set(rec["traced"]), (kept, rec["traced"])
 
 
 def test_steady_state_has_one_trace(dataset):

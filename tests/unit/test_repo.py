@@ -1,4 +1,5 @@
-"""The README's set-up promises: CI runs exactly the README's test command."""
+"""The README's set-up promises: CI runs exactly the README's test command, and its headline figures
+are those of the benchmark file they were taken from."""
 
 
 from locations import REPO as ROOT
@@ -14,6 +15,17 @@ def test_readme_has_two_setup_commands():
     assert len(cmds) == 2, cmds
     assert "python -m experiments.mipnerf360" in cmds[0]
     assert "pytest" in cmds[1]
+
+
+def test_readme_headline_matches_its_benchmark_file():
+    """The main job's figures in the README's set-up section are `python -m experiments.headline
+    benchmarks/main_job_tiny.json`'s sentence: re-run the main job and --save a new file when they change."""
+    from experiments import headline
+
+    data = headline.load(ROOT / "benchmarks" / "main_job_tiny.json")
+    assert data["git"] and data["date"] and data["conditions"], "the benchmark file lacks its provenance"
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert headline.sentence(data) in readme, headline.sentence(data)
 
 
 def test_ci_runs_the_readme_test_command():

@@ -193,8 +193,14 @@ def test_resize_sequence_resamples_texels_and_moments(data, seed):
                 continue
             check_bank_layout(new_b)
             assert len(new_b.buckets) >= len(old_b.buckets)
-            for cb, ca in zip(old_b.capacities, new_b.capacities):
-                assert ca >= cb
+            # The layout is kept while every bucket holds its textures, else sized afresh.
+            counts = np.bincount([(int(n) - 1).bit_length() for n in req if n > 0], minlength=len(new_b.buckets))
+            relaid = new_b.capacities != old_b.capacities
+            fits = all(c <= cap for c, cap in zip(counts, old_b.capacities + (0,) * len(counts)))
+            assert relaid == (not fits)
+            if relaid:
+                assert new_b.capacities == tuple(0 if c == 0 else 1 << (max(int(c), min_cap) - 1).bit_length()
+                                                 for c in counts)
             for mtree in (getattr(mu1, name), getattr(nu1, name)):
                 assert tuple(x.shape for x in mtree.buckets) == tuple(x.shape for x in new_b.buckets)
                 for leaf in (mtree.bucket, mtree.slot, mtree.size):
@@ -215,9 +221,11 @@ def test_resize_sequence_resamples_texels_and_moments(data, seed):
                     if m == 0:
                         assert after is None
                     elif m == n:
-                        assert slot_of(new_b, i) == slot_of(old_b, i)  # stable slot, bit-exact block
-                        b, s, _ = slot_of(new_b, i)
-                        assert np.array_equal(np.asarray(t_new.buckets[b][s]), np.asarray(t_old.buckets[b][s]))
+                        if not relaid:
+                            assert slot_of(new_b, i) == slot_of(old_b, i)  # stable slot
+                        (b, s, _), (_, s_old, _) = slot_of(new_b, i), slot_of(old_b, i)
+                        # The block is copied bit-exactly, padding included.
+                        assert np.array_equal(np.asarray(t_new.buckets[b][s]), np.asarray(t_old.buckets[b][s_old]))
                     elif n == 0:
                         assert np.all(after == (NEUTRAL[name] if k == 0 else 0.0))
                     else:
@@ -264,20 +272,44 @@ def test_shrinking_keeps_the_mean(sides, seed):
             mean = interpolant_mean(tex)
 
 
-def test_slots_are_reused_and_capacity_doubles():
+def test_slots_are_reused_and_buckets_sized_afresh_on_overflow():
     scene = random_scene(0, 4, rgb_sizes=[2, 2, 0, 0], alpha_sizes=None)
     assert scene.rgb.capacities == (0, 2)
     # Swap: 0 leaves bucket 1, 2 arrives; capacity unchanged and the freed slot is reused.
     s1, _, info = resize_textures(scene, None, [0, 2, 2, 0], None)
     assert not info.shapes_changed and s1.rgb.capacities == (0, 2)
     assert int(s1.rgb.slot[1]) == int(scene.rgb.slot[1]) and int(s1.rgb.slot[2]) == int(scene.rgb.slot[0])
-    # Three in bucket 1: capacity doubles to 4; a new bucket 3 starts at min_capacity rounded up.
+    # Three in bucket 1: it grows to 4; a new bucket 3 starts at min_capacity rounded up.
     s2, _, info = resize_textures(s1, None, [2, 2, 2, 6], None, min_capacity=3)
     assert info.shapes_changed and s2.rgb.capacities == (0, 4, 0, 4)
-    # Shrinking everything never shrinks capacities or drops buckets.
+    # Shrinking everything that fits keeps the layout (no recompile) ...
     s3, _, info = resize_textures(s2, None, [0, 0, 0, 0], None)
     assert s3.rgb.capacities == (0, 4, 0, 4) and not info.shapes_changed
     assert info.texels_before["rgb"] == 4 * 3 + 36 and info.texels_after["rgb"] == 0
+    # ... and an overflow sizes every bucket afresh: emptied ones shrink, buckets are never removed.
+    s4, _, info = resize_textures(s2, None, [9, 0, 5, 6], None)
+    assert info.shapes_changed and s4.rgb.capacities == (0, 0, 0, 2, 1)
+    assert [s4.rgb.texture(i) is None for i in range(4)] == [False, True, False, False]
+    np.testing.assert_array_equal(s4.rgb.texture(3), s2.rgb.texture(3))
+
+
+def test_headroom_keeps_the_layout_through_small_moves():
+    """A bucket sized afresh gets max(headroom * count, min_spare) free slots (a power of two in
+    all, at most the scene's capacity), so the next few moves into it keep the shapes."""
+    sides = [1] * 20 + [2] * 12
+    scene = random_scene(0, 32, rgb_sizes=[0] * 32, alpha_sizes=None)
+    scene, _, info = resize_textures(scene, None, sides, None, headroom=0.5, min_spare=4)
+    assert scene.rgb.capacities == (32, 32)  # 20 + 10 -> 32; 12 + 6 -> 32 (the scene's capacity)
+    grown = list(sides)
+    for i in range(8):  # eight textures move from bucket 0 to bucket 1, one resize at a time
+        grown[i] = 2
+        scene, _, info = resize_textures(scene, None, grown, None, headroom=0.5, min_spare=4)
+        assert not info.shapes_changed
+    small = random_scene(0, 32, rgb_sizes=[0] * 32, alpha_sizes=None)
+    small, _, _ = resize_textures(small, None, [3] + [0] * 31, None, headroom=0.5, min_spare=4)
+    assert small.rgb.capacities == (0, 0, 8)  # 1 + max(0.5, 4) -> 8
+    with pytest.raises(ValueError, match="headroom"):
+        resize_textures(small, None, [3] + [0] * 31, None, headroom=-1)
 
 
 def test_resize_rejects_bad_inputs():

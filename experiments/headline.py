@@ -1,0 +1,135 @@
+"""The README's headline figures of the main job, regenerated from the run they come from.
+
+    python -m experiments.headline SOURCE [--save benchmarks/main_job_tiny.json --conditions TEXT]
+
+SOURCE is a main-job output folder (``python -m experiments.mipnerf360 --out DIR``: its
+``results.json``) or a benchmark file written by ``--save``. The command prints the README's
+headline sentence (time, test PSNR of 2DGS and PATexGS at full size and at 1/8, PATexGS's
+Gaussians, texels and storage) and a small table of the same figures. ``--save`` keeps the study's
+results with their provenance (commit, date, machine: :mod:`experiments.provenance`) and
+``--conditions``, a few words on how the machine was loaded and whether the compile cache was warm,
+as a file under ``benchmarks/``: the README quotes that file, and ``tests/unit/test_repo.py`` fails
+when the README's sentence no longer matches it.
+
+Benchmark file schema (``schema`` 1)::
+
+    {provenance header (experiments.provenance), "conditions": str, "elapsed_seconds": float | null,
+     "version": {...}, "config": {...}, "lpips": {...} | null, "results": {scene: {label: {...}}}}
+
+``version``, ``config``, ``lpips`` and ``results`` are the study's ``results.json``'s;
+``elapsed_seconds`` its wall-clock time (``results.json``'s own, summed over the invocations that
+wrote it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from experiments.provenance import header, write_json
+
+SCHEMA = 1
+#: The scene and methods of the main job (``python -m experiments.mipnerf360`` without ``--data``).
+SCENE = "synthetic-v1-seed0"
+BASELINE, METHOD = "2dgs", "patexgs"
+
+
+class HeadlineError(ValueError):
+    """The source holds no main-job results."""
+
+
+def load(source) -> dict:
+    """The study record of ``source``: a folder holding ``results.json``, a ``results.json``, or a
+    benchmark file written by :func:`save`."""
+    path = Path(source)
+    if path.is_dir():
+        path = path / "results.json"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise HeadlineError(f"cannot read {path}: {e}") from None
+    per = data.get("results", {}).get(SCENE, {})
+    missing = [k for k in (BASELINE, METHOD) if k not in per]
+    if missing:
+        raise HeadlineError(f"{path} has no {', '.join(missing)} results for the scene {SCENE}: is it the "
+                            "main job's (python -m experiments.mipnerf360 without --data)?")
+    return data
+
+
+def figures(data: dict) -> dict:
+    """The headline figures: ``psnr`` and ``psnr_8`` per method (full size and 1/8), PATexGS's
+    ``gaussians``, ``texels`` and ``storage_mb``, ``seconds`` (None when not recorded) and ``git``."""
+    per = data["results"][SCENE]
+    ours = per[METHOD]
+    return dict(psnr={k: per[k]["1"]["psnr"] for k in (BASELINE, METHOD)},
+                psnr_8={k: per[k]["8"]["psnr"] for k in (BASELINE, METHOD)},
+                gaussians=int(ours["num_gaussians"]), texels=int(ours["texels"]), storage_mb=ours["storage_mb"],
+                seconds=data.get("elapsed_seconds"), git=(data.get("version") or {}).get("git"))
+
+
+def duration(seconds: float | None) -> str:
+    """``7 min 17 s`` (``?`` when unknown)."""
+    if seconds is None:
+        return "?"
+    m, s = divmod(int(round(seconds)), 60)
+    return f"{m} min {s} s" if m else f"{s} s"
+
+
+def sentence(data: dict) -> str:
+    """The README's headline sentence (one line; the README may wrap it anywhere)."""
+    f = figures(data)
+    conditions = data.get("conditions")
+    where = f"At commit `{f['git']}`" + (f", {conditions}" if conditions else "")
+    return (f"{where}: {duration(f['seconds'])}; test PSNR {f['psnr'][BASELINE]:.2f} dB (2DGS) and "
+            f"{f['psnr'][METHOD]:.2f} dB (PATexGS, {f['gaussians']:,} Gaussians, {f['texels']:,} texels, "
+            f"{f['storage_mb']:.2f} MB) at full size, {f['psnr_8'][BASELINE]:.2f} / {f['psnr_8'][METHOD]:.2f} dB "
+            "at 1/8.")
+
+
+def table(data: dict) -> str:
+    """The same figures as a Markdown table."""
+    f = figures(data)
+    per = data["results"][SCENE]
+    lines = ["| method | PSNR full | PSNR 1/8 | Gaussians | texels | MB | train s |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for k in (BASELINE, METHOD):
+        e = per[k]
+        lines.append(f"| {k} | {f['psnr'][k]:.2f} | {f['psnr_8'][k]:.2f} | {int(e['num_gaussians']):,} | "
+                     f"{int(e['texels']):,} | {e['storage_mb']:.2f} | {e['train_seconds']:.0f} |")
+    return "\n".join(lines + [f"\nmain job: {duration(f['seconds'])} (commit {f['git']})"])
+
+
+def save(data: dict, path, conditions: str) -> Path:
+    """Writes the study's results with their provenance to ``path`` (see the module docstring)."""
+    keep = {k: data.get(k) for k in ("version", "config", "lpips", "results")}
+    return write_json(path, dict(header(SCHEMA), conditions=conditions, elapsed_seconds=data.get("elapsed_seconds"),
+                                 **keep))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.headline", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("source", help="a main-job output folder (results.json) or a benchmark file written by --save")
+    ap.add_argument("--save", default=None, help="write the results with their provenance to this JSON file")
+    ap.add_argument("--conditions", default="", help="with --save: how the machine was (load, compile cache), "
+                    "quoted in the sentence")
+    args = ap.parse_args(argv)
+    try:
+        data = load(args.source)
+    except HeadlineError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if args.save:
+        save(data, args.save, args.conditions)
+        data = load(args.save)
+        print(f"written to {args.save}")
+    print(sentence(data))
+    print()
+    print(table(data))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
