@@ -220,25 +220,36 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return (np.clip(np.asarray(image, np.float32), 0.0, 1.0) * 255 + 0.5).astype(np.uint8)
 
 
-def labelled_pairs(pairs, names, enlarge: int = 1, gap: int = 4, head: int = 14) -> np.ndarray:
-    """One uint8 image: a header naming the two columns, then for each (render, ground truth) pair a
-    row ``ground truth | render``, each image enlarged ``enlarge`` times with nearest neighbour (so the
-    pixels of a zoomed-out render show at a size a person can see)."""
+def _labelled_grid(rows, names, gap: int = 4, head: int = 14):
+    """A white canvas (PIL image) holding ``rows`` (lists of uint8 (h, w, 3) images, or None for an
+    empty cell) in a grid of equal cells, under a header naming each column, and its cell size
+    (h, w); None when no cell holds an image."""
     from PIL import Image, ImageDraw
 
-    cells = [[np.repeat(np.repeat(_to_uint8(x), enlarge, axis=0), enlarge, axis=1) for x in (gt, img)]
-             for img, gt in pairs]
-    h = max(c.shape[0] for row in cells for c in row)
-    w = max(c.shape[1] for row in cells for c in row)
-    canvas = np.full((head + len(cells) * (h + gap), 2 * w + gap, 3), 255, np.uint8)
-    for i, row in enumerate(cells):
-        for j, c in enumerate(row):
-            y, x = head + i * (h + gap), j * (w + gap)
-            canvas[y:y + c.shape[0], x:x + c.shape[1]] = c
+    shapes = [c.shape for r in rows for c in r if c is not None]
+    if not shapes:
+        return None
+    h, w = max(x[0] for x in shapes), max(x[1] for x in shapes)
+    canvas = np.full((head + len(rows) * (h + gap), len(names) * (w + gap) - gap, 3), 255, np.uint8)
+    for i, r in enumerate(rows):
+        for j, c in enumerate(r):
+            if c is not None:
+                y, x = head + i * (h + gap), j * (w + gap)
+                canvas[y:y + c.shape[0], x:x + c.shape[1]] = c
     image = Image.fromarray(canvas)
     draw = ImageDraw.Draw(image)
     for j, name in enumerate(names):
         draw.text((j * (w + gap) + 2, 1), name, fill=(0, 0, 0))
+    return image, (h, w)
+
+
+def labelled_pairs(pairs, names, enlarge: int = 1, gap: int = 4, head: int = 14) -> np.ndarray:
+    """One uint8 image: a header naming the two columns, then for each (render, ground truth) pair a
+    row ``ground truth | render``, each image enlarged ``enlarge`` times with nearest neighbour (so the
+    pixels of a zoomed-out render show at a size a person can see)."""
+    cells = [[np.repeat(np.repeat(_to_uint8(x), enlarge, axis=0), enlarge, axis=1) for x in (gt, img)]
+             for img, gt in pairs]
+    image, _ = _labelled_grid(cells, names, gap, head)
     return np.asarray(image)
 
 
@@ -262,21 +273,12 @@ def write_comparison(directory, keys, scales=(SCALES[0], SCALES[-1]), gap: int =
             else:
                 cells.append(None)
         rows.append(cells)
-    shapes = [c.shape for r in rows for c in r if c is not None]
-    if not shapes:
-        return None
-    h, w = max(x[0] for x in shapes), max(x[1] for x in shapes)
     head = 14
-    canvas = np.full((head + len(rows) * (h + gap), len(cols) * (w + gap) - gap, 3), 255, np.uint8)
-    for i, r in enumerate(rows):
-        for j, c in enumerate(r):
-            if c is not None:
-                y, x = head + i * (h + gap), j * (w + gap)
-                canvas[y:y + c.shape[0], x:x + c.shape[1]] = c
-    img = Image.fromarray(canvas)
+    grid = _labelled_grid(rows, cols, gap, head)
+    if grid is None:
+        return None
+    img, (h, _) = grid
     draw = ImageDraw.Draw(img)
-    for j, k in enumerate(cols):
-        draw.text((j * (w + gap) + 2, 1), k, fill=(0, 0, 0))
     for i, s in enumerate(scales):
         draw.text((2, head + i * (h + gap) + 2), "full" if s == 1 else f"1/{s} (x{s})", fill=(255, 255, 0))
     path = directory / "compare.png"
