@@ -1,7 +1,7 @@
 """The paper's protocol end to end: train, evaluate at zoom-out scales, tabulate, plot.
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
-        [--preset tiny|cpu|small|paper] [--factor F] [--out DIR] [--budget 10%|1%|N] [--renders K]
+        [--preset tiny|cpu|small|paper] [--factor F] [--out DIR] [--budgets 100%,10%,1%|N] [--renders K]
         [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
         [--coordinator HOST:PORT --num-processes N --process-id I]
 
@@ -43,11 +43,14 @@ For each scene:
 ``--budget 10%`` trains every method with at most 10% of the Gaussians the unbudgeted 2DGS run
 reached (the paper's "10% of the default optimized number of Gaussians"; the unbudgeted 2DGS run is
 trained first if it is not there yet); ``--budget 5000`` caps at 5000. Labels then read
-``method(10%)``, as in the paper's Table 1.
+``method(10%)``, as in the paper's Table 1. ``--budgets 100%,10%,1%`` (``--budget`` takes the same
+list) runs every method at each budget in one study, the unbudgeted 2DGS run shared, and
+``tables.md`` gains the budget rows of Table 1 (method x budget). Budgets can be added to a study
+later: entries are keyed by their label.
 
 Interrupted studies resume: finished (scene, method) entries in ``results.json`` are kept and
 skipped, and an interrupted training run continues from its last checkpoint. Changing the
-protocol (preset, factor, iterations, budget, seed) with the same ``--out`` is refused. Ctrl-C
+protocol (preset, factor, iterations, seed) with the same ``--out`` is refused. Ctrl-C
 (SIGINT) or SIGTERM stops a study within seconds with one line (where, which checkpoint holds the
 work, the command that continues) and exit status 130 / 143 (see :mod:`patexgs_jax.interrupt`).
 
@@ -55,7 +58,7 @@ work, the command that continues) and exit status 130 / 143 (see :mod:`patexgs_j
 
     {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 2},
      "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
-                "train_config": {...}, "machine": str},
+                "train_config": {...}, "machine": str},   # budget: "10%", "100%,10%,1%" or null
      "elapsed_seconds": float (wall-clock time of the study, summed over the invocations that finished),
      "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
                "weights": str} | null,
@@ -93,7 +96,6 @@ import json
 import os
 import platform
 import shlex
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -185,9 +187,36 @@ def parse_budget(text: str | None):
                          f"5000, got {text!r}.") from None
 
 
+def parse_budgets(text) -> list[str | None]:
+    """The budgets of ``--budgets 100%,10%,1%`` (a comma-separated string, a list, or None), each
+    checked by :func:`parse_budget`, in order: None stands for the unbudgeted run (``100%``)."""
+    if text is None:
+        return [None]
+    items = [x.strip() for x in (text.split(",") if isinstance(text, str) else text) if x is not None]
+    out: list[str | None] = []
+    for t in items or [""]:
+        b = None if parse_budget(t) is None else t
+        if b in out:
+            raise StudyError(f"--budgets lists a budget twice: {text!r}.")
+        out.append(b)
+    return out
+
+
+def join_budgets(budgets) -> str | None:
+    """The inverse of :func:`parse_budgets` (None: the unbudgeted run alone)."""
+    budgets = list(budgets)
+    return None if budgets == [None] else ",".join(b or "100%" for b in budgets)
+
+
 def label(method: str, budget: str | None) -> str:
     """The results key of a method: ``patexgs`` or, under a budget, ``patexgs(10%)``."""
     return method if parse_budget(budget) is None else f"{method}({budget.strip()})"
+
+
+def split_label(key: str) -> tuple[str, str | None]:
+    """``("patexgs", "10%")`` from ``patexgs(10%)``; ``("patexgs", None)`` from ``patexgs``."""
+    base, paren, rest = key.partition("(")
+    return (base, rest[:-1]) if paren and rest.endswith(")") else (key, None)
 
 
 def _version() -> dict:
@@ -195,11 +224,9 @@ def _version() -> dict:
 
     import jax
 
-    try:
-        git = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent,
-                             capture_output=True, text=True, timeout=10).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        git = None
+    from experiments.provenance import git_commit
+
+    git = git_commit()  # with -dirty when the code differs from the commit
     try:
         pkg = importlib.metadata.version("patexgs_jax")
     except importlib.metadata.PackageNotFoundError:
@@ -295,7 +322,7 @@ class StudyConfig:
 
     preset: str = "tiny"
     factor: int | None = None
-    budget: str | None = None
+    budget: str | None = None       # the Gaussian budgets, "10%" or "100%,10%,1%" (parse_budgets); None: 100%
     iters_2dgs: int | None = None
     iters_tex: int | None = None
     max_gaussians: int | None = None
@@ -346,14 +373,18 @@ class Study:
                 old = json.loads(self.path.read_text())
             except (OSError, json.JSONDecodeError) as e:
                 raise StudyError(f"{self.path} is unreadable ({e}); move it away or choose another --out.") from None
-            ours = {k: v for k, v in record.items() if k != "machine"}
-            theirs = {k: v for k, v in old.get("config", {}).items() if k != "machine"}
+            # Entries are keyed by method and budget (``patexgs(10%)``): a study may add budgets.
+            ours = {k: v for k, v in record.items() if k not in ("machine", "budget")}
+            theirs = {k: v for k, v in old.get("config", {}).items() if k not in ("machine", "budget")}
             if ours != theirs:
                 diff = sorted(k for k in set(ours) | set(theirs) if ours.get(k) != theirs.get(k))
                 raise StudyError(f"{self.path} holds results of a different protocol ({', '.join(diff)} differ); "
                                  "use the same settings to resume, or another --out.")
             self.data = old
             self.data["version"] = _version()
+            before = parse_budgets(old.get("config", {}).get("budget"))
+            self.data["config"]["budget"] = join_budgets(
+                before + [b for b in parse_budgets(config.budget) if b not in before])
         else:
             self.data = dict(version=_version(), config=record, results={})
         from patexgs_jax.evaluation import LPIPS
@@ -391,11 +422,14 @@ class Study:
 
     # -- one scene ---------------------------------------------------------------------------------
     def run_scene(self, name: str, path: Path, methods) -> None:
+        """Trains and evaluates ``methods`` on one scene at every budget of the study (unbudgeted
+        first where listed); the unbudgeted 2DGS run, which fraction budgets are taken of, is shared."""
         from patexgs_jax.data import load
-        from patexgs_jax.training import stage1_checkpoint, train
+        from patexgs_jax.training import train
 
-        todo = [m for m in methods if not self.done(name, label(m, self.cfg.budget))]
-        if not todo:
+        budgets = parse_budgets(self.cfg.budget)
+        todo = {b: [m for m in methods if not self.done(name, label(m, b))] for b in budgets}
+        if not any(todo.values()):
             self.say(f"[{name}] all of {', '.join(methods)} done; skipped")
             return
         from patexgs_jax import interrupt
@@ -407,28 +441,40 @@ class Study:
         ds = check_images(ds, skip_hint="remove their views from the scene", on_view=lambda n: (
             interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))
         runs = self.out / "runs" / name
-        budget = parse_budget(self.cfg.budget)
-        max_g = None
-        if budget is not None:
-            if budget[0] == "count":
-                max_g = budget[1]
-            else:
-                self.say(f"[{name}] unbudgeted 2DGS run, for the Gaussian count the budget is a fraction of")
-                ref = train(ds, self._train_config("2dgs"), runs / "2dgs", resume=True, verbose=self.verbose,
-                            evaluate_everywhere=True)
-                max_g = max(1, int(round(budget[1] * ref.summary["num_gaussians"])))
-            self.say(f"[{name}] budget {self.cfg.budget}: at most {max_g} Gaussians")
+        ref_count = None
+        for budget in budgets:
+            if not todo[budget]:
+                continue
+            spec = parse_budget(budget)
+            max_g = None
+            if spec is not None:
+                if spec[0] == "count":
+                    max_g = spec[1]
+                else:
+                    if ref_count is None:
+                        self.say(f"[{name}] unbudgeted 2DGS run, for the Gaussian count the budget is a fraction of")
+                        ref = train(ds, self._train_config("2dgs"), runs / "2dgs", resume=True,
+                                    verbose=self.verbose, evaluate_everywhere=True)
+                        ref_count = int(ref.summary["num_gaussians"])
+                    max_g = max(1, int(round(spec[1] * ref_count)))
+                self.say(f"[{name}] budget {budget}: at most {max_g} Gaussians")
+            self._run_budget(name, ds, runs, budget, max_g, todo[budget])
+
+    def _run_budget(self, name: str, ds, runs: Path, budget: str | None, max_g: int | None, todo) -> None:
+        """Stage 1 (2DGS) under the cap ``max_g``, shared by ``todo``; then each of them."""
+        from patexgs_jax.training import stage1_checkpoint, train
+
         s1_cfg = self._train_config("2dgs", max_g)
-        s1_dir = runs / label("2dgs", self.cfg.budget)
-        self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(todo)}")
+        s1_dir = runs / label("2dgs", budget)
+        self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(label(m, budget) for m in todo)}")
         s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True)
         for method in todo:
-            key = run_key = label(method, self.cfg.budget)
+            key = run_key = label(method, budget)
             if method == MATCHED:
-                method = self.matched_method(name)
+                method = self.matched_method(name, budget)
                 # Trained in that size's own folder: a study that also lists it trains it once.
-                run_key = label(method, self.cfg.budget)
-                self.say(f"[{name}] {key}: {method} (storage matched to {label('patexgs', self.cfg.budget)})")
+                run_key = label(method, budget)
+                self.say(f"[{name}] {key}: {method} (storage matched to {label('patexgs', budget)})")
             cfg = self._train_config(method, max_g)
             if method == "2dgs":
                 result = s1
@@ -452,9 +498,10 @@ class Study:
                      f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
                      f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
 
-    def matched_method(self, scene: str) -> str:
-        """``patexgs-fixed-N`` with N * N closest to the ``patexgs`` run's RGBA texels per Gaussian."""
-        ref = self.data["results"].get(scene, {}).get(label("patexgs", self.cfg.budget))
+    def matched_method(self, scene: str, budget: str | None = None) -> str:
+        """``patexgs-fixed-N`` with N * N closest to the ``patexgs`` run's RGBA texels per Gaussian
+        (the run under the same ``budget``)."""
+        ref = self.data["results"].get(scene, {}).get(label("patexgs", budget))
         if ref is None:
             raise StudyError(f"{MATCHED} matches the storage of the patexgs run: list patexgs before it in --methods.")
         per = ref["texels"] / 2 / max(ref["num_gaussians"], 1)  # texels counts the RGB and the alpha texels
@@ -635,6 +682,7 @@ def tables_markdown(data: dict) -> str:
         out += ["", "Rows named `+ mip` and the adaptive row differ only in their texture sizes (same warm-up, "
                 "mipmaps and prefiltered coverage); the Textured Gaussians rows render without mipmaps, with the "
                 "2DGS low-pass.", ""]
+    out += budget_table(results)
     out += ["## Cost: what the accuracy costs", "",
             "| method | PSNR | Gaussians | texels | storage MB | steps | train s | render ms |",
             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -647,6 +695,63 @@ def tables_markdown(data: dict) -> str:
     out += ["", "Every method trains the same number of steps: `2dgs` continues its stage for the texture "
             "stage's steps.", ""]
     return "\n".join(out)
+
+
+def _budget_order(budget: str | None) -> tuple[int, float]:
+    """Sorts budgets as the paper's Table 1: unbudgeted, then fractions from the largest, then counts."""
+    spec = parse_budget(budget)
+    if spec is None:
+        return (0, 0.0)
+    return (1, -spec[1]) if spec[0] == "fraction" else (2, -float(spec[1]))
+
+
+def budget_table(results: dict) -> list[str]:
+    """The budget rows of the paper's Table 1 (method x budget) as Markdown lines; none without a
+    budgeted entry. Means over the scenes that have the entry; ``vs 2dgs`` is the PSNR gain at full
+    size over the ``2dgs`` entry of the same budget (per scene, then the mean)."""
+    labels = _labels(results)
+    if not any(split_label(k)[1] is not None for k in labels):
+        return []
+    rows = sorted(labels, key=lambda k: _budget_order(split_label(k)[1]))  # stable: methods keep their order
+
+    def mean(key, field):
+        return _mean_over_scenes(results, key, field)
+
+    def gain(key):
+        method, budget = split_label(key)
+        base = label("2dgs", budget)
+        if method == "2dgs":
+            return None
+        diffs = []
+        for per in results.values():
+            if key in per and base in per:
+                a, b = per[key].get("1", {}).get("psnr"), per[base].get("1", {}).get("psnr")
+                if a is None or b is None:
+                    return None
+                diffs.append(a - b)
+        return float(np.mean(diffs)) if diffs else None
+
+    zoom = " | ".join(f"1/{s} PSNR | SSIM" for s in SCALES[1:])
+    out = ["## Table 1 budget rows: Gaussian budgets", "",
+           f"| method | budget | PSNR | vs 2dgs | SSIM | LPIPS | {zoom} | Gaussians | cap | storage MB | train s | "
+           "render ms |", "| --- | --- |" + " ---: |" * (4 + 2 * (len(SCALES) - 1) + 5)]
+    for key in rows:
+        method, budget = split_label(key)
+        g = gain(key)
+        cells = [_fmt(mean(key, lambda e: e.get("1", {}).get("psnr")), 2), "-" if g is None else f"{g:+.2f}",
+                 _fmt(mean(key, lambda e: e.get("1", {}).get("ssim")), 3),
+                 _fmt(mean(key, lambda e: e.get("1", {}).get("lpips")), 3)]
+        for sc in SCALES[1:]:
+            cells += [_fmt(mean(key, lambda e, sc=sc: e.get(str(sc), {}).get("psnr")), 2),
+                      _fmt(mean(key, lambda e, sc=sc: e.get(str(sc), {}).get("ssim")), 3)]
+        cells += [_fmt(mean(key, lambda e: e.get("num_gaussians")), 0),
+                  _fmt(mean(key, lambda e: e.get("max_gaussians")), 0),
+                  _fmt(mean(key, lambda e: e.get("storage_mb")), 2),
+                  _fmt(mean(key, lambda e: e.get("train_seconds")), 0),
+                  _fmt(mean(key, lambda e: e.get("render_ms")), 1)]
+        out.append(f"| {method} | {budget or '100%'} | " + " | ".join(cells) + " |")
+    return out + ["", "A budget of p% caps every method at p% of the Gaussians the unbudgeted 2DGS run reached "
+                  "(`cap`; the paper's Table 1); every method trains the same steps.", ""]
 
 
 def _pyplot():
@@ -788,13 +893,14 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
         config.setdefault("preset", "paper")
     if len(set(methods)) != len(methods):
         raise StudyError(f"--methods lists a method twice: {methods}.")
-    parse_budget(config.get("budget"))
+    budgets = parse_budgets(config.get("budget"))
+    config["budget"] = join_budgets(budgets)
     found = find_scenes(root, scenes)
     cfg = StudyConfig(**config)
     study = Study(out, cfg, renders=renders, use_lpips=use_lpips, lpips_net=lpips_net, verbose=verbose,
                   devices=devices)
     t = time.perf_counter()
-    entries = [(name, label(m, cfg.budget)) for name in found for m in methods]
+    entries = [(name, label(m, b)) for name in found for b in budgets for m in methods]
     with progress.bar(len(entries), "study", unit="run", initial=sum(study.done(*e) for e in entries),
                       leave=True, show=verbose and study.main) as bar:
         study.bar = bar
@@ -820,8 +926,9 @@ def main(argv=None) -> int:
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor; "
                     "other scenes: images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--out", default="runs/mipnerf360")
-    ap.add_argument("--budget", default=None, help="Gaussian budget: 10%%, 1%% (of the unbudgeted 2DGS count) or "
-                    "a count")
+    ap.add_argument("--budget", "--budgets", dest="budget", default=None,
+                    help="Gaussian budget(s): 10%%, 1%% (of the unbudgeted 2DGS count) or a count; several "
+                    "comma-separated (100%%,10%%,1%%) run in one study and share the unbudgeted 2DGS run")
     ap.add_argument("--iters-2dgs", type=int, default=None)
     ap.add_argument("--iters-tex", type=int, default=None,
                     help="texture-stage steps; the preset's warm-up and growth interval scale with it")

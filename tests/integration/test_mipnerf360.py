@@ -149,6 +149,40 @@ def test_changed_protocol_is_refused(study, synthetic_scene_dir):
                **dict(STUDY, iters_2dgs=13))
 
 
+@pytest.mark.slow
+def test_budgets_share_the_unbudgeted_run_and_respect_their_caps(study, synthetic_scene_dir, tmp_path):
+    """``--budgets 100%,10%,1%`` added to a finished study: the unbudgeted entries are kept, each budget
+    caps every method at its share of the unbudgeted 2DGS run's count, the textured run starts from
+    its own budget's stage 1, and tables.md has the budget rows of Table 1, method x budget."""
+    import shutil
+
+    out, data = study
+    copy = tmp_path / "study"
+    shutil.copytree(out, copy)
+    got = mn.run(str(synthetic_scene_dir), methods=METHODS, out=str(copy), renders=0, use_lpips=False, verbose=False,
+                 **dict(STUDY, budget="100%,10%,1%"))
+    (scene,) = got["results"]
+    entries = got["results"][scene]
+    assert list(entries) == METHODS + ["2dgs(10%)", "patexgs(10%)", "2dgs(1%)", "patexgs(1%)"]
+    assert {k: entries[k] for k in METHODS} == data["results"][scene]  # kept, not retrained
+    assert got["config"]["budget"] == "100%,10%,1%"
+    ref = entries["2dgs"]["num_gaussians"]
+    for b, f in (("10%", 0.1), ("1%", 0.01)):
+        for m in METHODS:
+            e = entries[f"{m}({b})"]
+            assert e["max_gaussians"] == max(1, round(f * ref)), (m, b, e["max_gaussians"], ref)
+            assert 0 < e["num_gaussians"] <= e["max_gaussians"] and e["steps"] == 20
+        summary = json.loads((copy / "runs" / scene / f"patexgs({b})" / "summary.json").read_text())
+        assert f"/2dgs({b})/checkpoints/stage1/" in summary["stage1_from"]
+    md = (copy / "tables.md").read_text().split("## Table 1 budget rows")[1].split("##")[0]
+    rows = [line.split(" | ")[:4] for line in md.splitlines() if line.startswith("| 2dgs |") or
+            line.startswith("| patexgs |")]
+    assert [r[:2] for r in rows] == [["| 2dgs", "100%"], ["| patexgs", "100%"], ["| 2dgs", "10%"],
+                                     ["| patexgs", "10%"], ["| 2dgs", "1%"], ["| patexgs", "1%"]]
+    gain = entries["patexgs(10%)"]["1"]["psnr"] - entries["2dgs(10%)"]["1"]["psnr"]
+    assert rows[3][2] == f"{entries['patexgs(10%)']['1']['psnr']:.2f}" and rows[3][3] == f"{gain:+.2f}"
+
+
 def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
     cfg = TrainConfig(method="patexgs", iters_2dgs=5, iters_tex=3, warmup_tex=1)
     other = TrainConfig(method="2dgs", iters_2dgs=5, lambda_normal=0.5)
@@ -248,6 +282,13 @@ def test_lpips_network_is_named_and_never_mixed(tmp_path, monkeypatch):
 def test_arguments_are_checked(tmp_path):
     assert mn.parse_budget("10%") == ("fraction", 0.1) and mn.parse_budget("5000") == ("count", 5000)
     assert mn.parse_budget(None) is None and mn.label("patexgs", "1%") == "patexgs(1%)"
+    assert mn.parse_budgets("100%, 10%,1%") == [None, "10%", "1%"] and mn.parse_budgets(None) == [None]
+    assert mn.join_budgets([None, "10%", "1%"]) == "100%,10%,1%" and mn.join_budgets([None]) is None
+    assert mn.split_label("patexgs(10%)") == ("patexgs", "10%") and mn.split_label("2dgs") == ("2dgs", None)
+    with pytest.raises(mn.StudyError, match="twice"):
+        mn.parse_budgets("10%,100%,10%")
+    with pytest.raises(mn.StudyError, match="--budget"):
+        mn.parse_budgets("10%,ten")
     for bad in ("0%", "150%", "-3", "ten"):
         with pytest.raises(mn.StudyError, match="--budget"):
             mn.parse_budget(bad)
