@@ -42,7 +42,8 @@ def test_results_schema_and_values(study):
     out, data = study
     on_disk = json.loads((out / "results.json").read_text())
     assert on_disk == json.loads(json.dumps(data))
-    assert set(on_disk) == {"version", "config", "lpips", "results"}
+    assert set(on_disk) == {"version", "config", "lpips", "results", "elapsed_seconds"}
+    assert on_disk["elapsed_seconds"] > 0  # the study's wall-clock time
     assert on_disk["lpips"] is None  # switched off: no network named
     assert on_disk["version"]["results_schema"] == mn.RESULTS_SCHEMA
     assert on_disk["config"]["preset"] == "tiny" and on_disk["config"]["iters_2dgs"] == 12
