@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from patexgs_jax import Camera, Scene, look_at
+from patexgs_jax.data.colmap_model import quaternion_from_rotation
 
 C = 2048            # slots: room for the "thousands of splats on one pixel" case; others use NTEX
 NTEX = 16           # slots that may carry textures (and that the ordinary cases use)
@@ -23,25 +24,6 @@ SH_C0 = 0.28209479177387814
 
 CASES = ("edge_on", "needle", "tiny_huge", "near_plane", "far", "coincident", "opacity_extremes",
          "tiny_quat", "focal", "clamp_textures", "mip_range")
-
-
-def quat_from_rotmat(R: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) of a proper rotation matrix (float64)."""
-    R = np.asarray(R, np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    return np.asarray(q)
 
 
 def frame_with_normal(n: np.ndarray, rng) -> np.ndarray:
@@ -94,7 +76,7 @@ def build(case: str, seed: int, knob: float):
             d = _unit(means[i] - eye)
             nrm = _unit(np.cross(d, rng.normal(size=3)))
             nrm = _unit(nrm + rng.uniform(-1e-7, 1e-7) * d)
-            quats[i] = quat_from_rotmat(frame_with_normal(nrm, rng))
+            quats[i] = quaternion_from_rotation(frame_with_normal(nrm, rng))
     elif case == "needle":
         s = 10.0 ** rng.uniform(-5, -3, k)
         scales[pick] = np.stack([s, s * 1e6], axis=1)[:, rng.permutation(2)]

@@ -322,13 +322,20 @@ def _check_sensor_pose(path: Path, rig_id: int, pose: np.ndarray | None) -> np.n
     return pose
 
 
+def _has_rigs_frames(folder: Path, ext: str) -> bool:
+    """Whether the model in ``folder`` has ``rigs`` and ``frames`` files (newer COLMAP); one without
+    the other is an error naming the missing file."""
+    present = [(folder / f"{name}{ext}").is_file() for name in ("rigs", "frames")]
+    if present == [True, False] or present == [False, True]:
+        have, missing = ("rigs", "frames") if present[0] else ("frames", "rigs")
+        raise DatasetError(f"The COLMAP model in {folder} has {have}{ext} but no {missing}{ext}: re-export the "
+                           "model (colmap model_converter) or re-copy it.")
+    return all(present)
+
+
 def _read_rigs_frames_binary(folder: Path) -> _RigsFrames | None:
-    if not (folder / "rigs.bin").is_file() and not (folder / "frames.bin").is_file():
+    if not _has_rigs_frames(folder, ".bin"):
         return None
-    for name in ("rigs.bin", "frames.bin"):
-        if not (folder / name).is_file():
-            raise DatasetError(f"The COLMAP model in {folder} has {'frames.bin' if name == 'rigs.bin' else 'rigs.bin'} "
-                               f"but no {name}: re-export the model (colmap model_converter) or re-copy it.")
     rigs: dict[int, dict[tuple[int, int], np.ndarray | None]] = {}
     r = _Reader(folder / "rigs.bin")
     for _ in range(r.count("<Q", 8, "rigs")):
@@ -627,12 +634,8 @@ class _TextFile:
 
 
 def _read_rigs_frames_text(folder: Path) -> _RigsFrames | None:
-    if not (folder / "rigs.txt").is_file() and not (folder / "frames.txt").is_file():
+    if not _has_rigs_frames(folder, ".txt"):
         return None
-    for name in ("rigs.txt", "frames.txt"):
-        if not (folder / name).is_file():
-            raise DatasetError(f"The COLMAP model in {folder} has {'frames.txt' if name == 'rigs.txt' else 'rigs.txt'} "
-                               f"but no {name}: re-export the model (colmap model_converter) or re-copy it.")
     rigs: dict[int, dict[tuple[int, int], np.ndarray | None]] = {}
     f = _TextFile(folder / "rigs.txt")
     for lineno, t in f.records():

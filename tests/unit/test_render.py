@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 import hard_scenes as hs
 from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, render, render_jit, rendering
+from patexgs_jax.data.colmap_model import quaternion_from_rotation
 from patexgs_jax.rendering import chunks
 from render_cases import (
     CAP,
@@ -211,7 +212,7 @@ def _far_walls_scene():
         normals.append(hs._unit(rng.normal(size=3)))
         scales.append(rng.uniform(0.05, 0.3, 2))
     n = len(means)
-    quats = [hs.quat_from_rotmat(hs.frame_with_normal(np.asarray(v, float), rng)) for v in normals]
+    quats = [quaternion_from_rotation(hs.frame_with_normal(np.asarray(v, float), rng)) for v in normals]
     sh = np.zeros((n, 1, 3))
     sh[:, 0] = (rng.uniform(0.2, 0.8, (n, 3)) - 0.5) / hs.SH_C0
     alpha = [rng.uniform(0.2, 1.0, (4, 4)) if i % 2 else None for i in range(n)]
