@@ -24,6 +24,7 @@ __all__ = [
     "PRESETS",
     "RUNTIME_FIELDS",
     "STAGE2_FIELDS",
+    "STAGE2_LR_FIELDS",
     "TEXTURE_SCHEDULE_FIELDS",
     "TrainConfig",
     "comparable_config",
@@ -309,9 +310,17 @@ def comparable_config(saved: dict) -> dict:
     return {k: v for k, v in full.items() if k not in RUNTIME_FIELDS}
 
 
+#: Learning rates (fields of :class:`~patexgs_jax.optim.LearningRates`) that only act on textures,
+#: which appear after the 2DGS stage: runs that differ in them share stage 1.
+STAGE2_LR_FIELDS = ("texture_rgb", "texture_alpha")
+
+
 def stage1_part(saved: dict) -> dict:
     """The part of a saved config that determines stage 1."""
-    return {k: v for k, v in comparable_config(saved).items() if k not in STAGE2_FIELDS}
+    part = {k: v for k, v in comparable_config(saved).items() if k not in STAGE2_FIELDS}
+    if isinstance(part.get("lr"), dict):
+        part["lr"] = {k: v for k, v in part["lr"].items() if k not in STAGE2_LR_FIELDS}
+    return part
 
 
 def stage1_key(cfg: TrainConfig) -> dict:

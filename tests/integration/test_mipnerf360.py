@@ -7,6 +7,7 @@ One study (two methods, stage 1 shared) is run once per module; the other tests 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -191,6 +192,11 @@ def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
     other = TrainConfig(method="2dgs", iters_2dgs=5, lambda_normal=0.5)
     assert stage1_key(cfg) == stage1_key(TrainConfig(method="2dgs", iters_2dgs=5, iters_tex=99))
     assert stage1_key(cfg) != stage1_key(other)
+    # The texels' learning rates act only in stage 2; every other learning rate shapes stage 1.
+    lr = cfg.lr
+    assert stage1_key(cfg) == stage1_key(dataclasses.replace(
+        cfg, lr=dataclasses.replace(lr, texture_rgb=4 * lr.texture_rgb, texture_alpha=lr.texture_alpha / 2)))
+    assert stage1_key(cfg) != stage1_key(dataclasses.replace(cfg, lr=dataclasses.replace(lr, sh_dc=2 * lr.sh_dc)))
     from patexgs_jax import checkpoint as ckpt
 
     path = ckpt.save_checkpoint(ckpt.checkpoint_path(tmp_path / "checkpoints", 5), {"x": 1},
