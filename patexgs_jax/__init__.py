@@ -5,6 +5,8 @@ Conventions (cameras, kernel, textures, mip levels) are fixed in :mod:`patexgs_j
 
 from typing import TYPE_CHECKING
 
+# First, before JAX is imported: a Ctrl-C in `python -m patexgs_jax...`'s first second (see _startup).
+from . import _startup  # noqa: F401  (installs on import)
 from .camera import Camera, look_at
 from .rendering import Capacity, RenderConfig, RenderOutput, render, render_jit
 from .scene import Scene, random_scene

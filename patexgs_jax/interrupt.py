@@ -31,7 +31,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 
-from . import progress
+from . import _startup, progress
 
 __all__ = [
     "GRACE_ENV",
@@ -198,6 +198,7 @@ def handle_stop_signals(handler: Callable[[int, object], None]) -> dict:
 
     A process started with SIGINT ignored (a job started with ``&`` from a script) or blocked (a
     test runner's worker) inherits that through exec, and Ctrl-C would then never reach it."""
+    _startup.uninstall()  # the command line handles its signals from here on
     old = {sig: signal.signal(sig, handler) for sig in SIGNALS}
     signal.pthread_sigmask(signal.SIG_UNBLOCK, set(SIGNALS))
     return old

@@ -116,3 +116,57 @@ def test_no_stop_request_outlives_the_guard():
         assert interrupt.requested() == signal.SIGTERM
     assert interrupt.requested() is None
     interrupt.check()  # library code after the command line's body (a test, the viewer) runs on
+
+
+def _python(code: str, cwd) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
+                          cwd=cwd, env=dict(os.environ, PYTHONPATH=str(REPO)), timeout=120)
+
+
+def test_ctrl_c_while_a_command_line_imports_gives_one_line(tmp_path):
+    """Under ``python -m`` (runpy's sys.argv[0] == "-m" while the parent packages import), a
+    KeyboardInterrupt before the command line's handlers ends with the one line and 130; a library
+    import keeps Python's own behaviour; the command line's handlers take the hook out."""
+    started = _python("""
+        import sys
+        sys.argv[0] = "-m"
+        import patexgs_jax
+        raise KeyboardInterrupt
+    """, tmp_path)
+    assert started.returncode == 130 and started.stderr == "stopped by SIGINT while starting; nothing was saved yet\n"
+    # A SIGINT that arrives inside an import (as in jaxlib's initialisation, where a KeyboardInterrupt
+    # can end in a segmentation fault) ends the process from the handler, before any exception.
+    (tmp_path / "slow_module.py").write_text("import os, signal, time\nos.kill(os.getpid(), signal.SIGINT)\n"
+                                             "time.sleep(30)\nprint('not reached')\n")
+    importing = _python("""
+        import sys
+        sys.argv[0] = "-m"
+        import patexgs_jax
+        sys.path.insert(0, ".")
+        import slow_module
+    """, tmp_path)
+    assert importing.returncode == 130 and importing.stderr == "stopped by SIGINT while starting; nothing was saved yet\n"
+    for package in ("patexgs_jax", "experiments"):  # the studies' package installs it too
+        probe = _python(f"""
+            import sys
+            sys.argv[0] = "-m"
+            import {package}
+            from patexgs_jax import _startup
+            print(_startup.installed())
+        """, tmp_path)
+        assert probe.stdout.split() == ["True"], probe.stderr[-2000:]
+    library = _python("""
+        import patexgs_jax
+        from patexgs_jax import _startup
+        assert not _startup.installed()
+        raise KeyboardInterrupt
+    """, tmp_path)
+    assert "Traceback" in library.stderr and library.returncode != 130
+    handled = _python("""
+        import sys
+        sys.argv[0] = "-m"
+        from patexgs_jax import _startup, interrupt
+        interrupt.handle_stop_signals(lambda *_: None)
+        print(_startup.installed())
+    """, tmp_path)
+    assert handled.stdout.split() == ["False"], handled.stderr[-2000:]
