@@ -1,6 +1,7 @@
 """The README's headline figures of the main job, regenerated from the run they come from.
 
     python -m experiments.headline SOURCE [--save benchmarks/main_job_tiny.json --conditions TEXT]
+    python -m experiments.headline STUDY --budgets LABEL
 
 SOURCE is a main-job output folder (``python -m experiments.mipnerf360 --out DIR``: its
 ``results.json``) or a benchmark file written by ``--save``. The command prints the README's
@@ -9,7 +10,8 @@ Gaussians, texels and storage) and a small table of the same figures. ``--save``
 results with their provenance (commit, date, machine: :mod:`experiments.provenance`) and
 ``--conditions``, a few words on how the machine was loaded and whether the compile cache was warm,
 as a file under ``benchmarks/``: the README quotes that file, and ``tests/unit/test_repo.py`` fails
-when the README's sentence no longer matches it.
+when the README's sentence no longer matches it. ``--budgets LABEL`` prints instead the README's
+Gaussian-budget rows of a ``--budgets`` study (``benchmarks/budgets_*.json``), checked the same way.
 
 Benchmark file schema (``schema`` 1)::
 
@@ -101,6 +103,24 @@ def table(data: dict) -> str:
     return "\n".join(lines + [f"\nmain job: {duration(f['seconds'])} (commit {f['git']})"])
 
 
+def budget_rows(data: dict, scene_label: str) -> list[str]:
+    """The README's budget-table rows (``| scene_label | budget | 2DGS | PATexGS (gain) | 2DGS 1/8 |
+    PATexGS 1/8 | Gaussians | PATexGS MB |``) of a ``--budgets`` study's record (its
+    ``results.json`` or a benchmark file such as ``benchmarks/budgets_tiny.json``), one per budget
+    that has both methods, in the study's order; the record's first scene."""
+    per = next(iter(data["results"].values()))
+    rows = []
+    for budget in ("100%", "10%", "1%"):
+        suffix = "" if budget == "100%" else f"({budget})"
+        base, ours = per.get(BASELINE + suffix), per.get(METHOD + suffix)
+        if base is None or ours is None:
+            continue
+        b, o = base["1"]["psnr"], ours["1"]["psnr"]
+        rows.append(f"| {scene_label} | {budget} | {b:.2f} | {o:.2f} ({o - b:+.2f}) | {base['8']['psnr']:.2f} | "
+                    f"{ours['8']['psnr']:.2f} | {int(ours['num_gaussians']):,} | {ours['storage_mb']:.2f} |")
+    return rows
+
+
 def save(data: dict, path, conditions: str) -> Path:
     """Writes the study's results with their provenance to ``path`` (see the module docstring)."""
     keep = {k: data.get(k) for k in ("version", "config", "lpips", "results")}
@@ -115,7 +135,19 @@ def main(argv=None) -> int:
     ap.add_argument("--save", default=None, help="write the results with their provenance to this JSON file")
     ap.add_argument("--conditions", default="", help="with --save: how the machine was (load, compile cache), "
                     "quoted in the sentence")
+    ap.add_argument("--budgets", default=None, metavar="LABEL",
+                    help="SOURCE is a --budgets study (any scene): print the README's budget-table rows, "
+                    "with LABEL in the scene column")
     args = ap.parse_args(argv)
+    if args.budgets is not None:
+        try:
+            data = json.loads(Path(args.source, "results.json" if Path(args.source).is_dir() else "").read_text())
+            rows = budget_rows(data, args.budgets)
+        except (OSError, json.JSONDecodeError, StopIteration, KeyError) as e:
+            print(f"error: {args.source} is not a --budgets study's results: {e!r}", file=sys.stderr)
+            return 2
+        print("\n".join(rows))
+        return 0
     try:
         data = load(args.source)
     except HeadlineError as e:

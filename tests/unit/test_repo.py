@@ -1,6 +1,7 @@
 """The README's set-up promises: CI runs exactly the README's test command, and its headline figures
-are those of the benchmark file they were taken from."""
+and tables are those of the benchmark files they were taken from."""
 
+import json
 
 from locations import REPO as ROOT
 
@@ -26,6 +27,20 @@ def test_readme_headline_matches_its_benchmark_file():
     assert data["git"] and data["date"] and data["conditions"], "the benchmark file lacks its provenance"
     readme = " ".join((ROOT / "README.md").read_text().split())
     assert headline.sentence(data) in readme, headline.sentence(data)
+
+
+def test_readme_budget_rows_match_their_benchmark_files():
+    """The README's Gaussian-budget table is `python -m experiments.headline FILE --budgets LABEL`'s
+    rows of the studies it was taken from."""
+    from experiments import headline
+
+    readme = (ROOT / "README.md").read_text()
+    for name, label in (("budgets_tiny.json", "embedded (`tiny`)"),
+                        ("budgets_beer.json", "beer (`--factor 4 --preset cpu`)")):
+        rows = headline.budget_rows(json.loads((ROOT / "benchmarks" / name).read_text()), label)
+        assert rows, name
+        for row in rows:
+            assert row in readme, row
 
 
 def test_ci_runs_the_readme_test_command():
