@@ -467,7 +467,10 @@ class Study:
         s1_cfg = self._train_config("2dgs", max_g)
         s1_dir = runs / label("2dgs", budget)
         self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(label(m, budget) for m in todo)}")
-        s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True)
+        # The texture stages that start from it get their first programs compiled ahead, in the
+        # background, from the end of its 2DGS stage (patexgs_jax.ahead).
+        nxt = [self._train_config(m, max_g) for m in todo if m not in ("2dgs", MATCHED)]
+        s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True, prepare=nxt)
         for method in todo:
             key = run_key = label(method, budget)
             if method == MATCHED:

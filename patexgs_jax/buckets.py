@@ -132,10 +132,16 @@ class ViewRenderer:
       reuse_textures: build the scene's texture atlases and their pyramids once
         (:func:`rendering.prepare_textures`) and reuse them for every view, instead of in every
         render: for many views of one scene (a viewer), at the cost of one more program.
+      programs: programs compiled ahead for this scene's layout (:mod:`patexgs_jax.ahead`):
+        ``("count", h, w)``: ``count_pairs.lower(scene, camera, config=config).compile()``;
+        ``("render", h, w, capacity)``: ``render_jit.lower(scene, camera, config=config,
+        capacity=capacity, active_sh_degree=None, textures=None).compile()``, for bucket cameras of
+        h x w; used in place of compiling the same (other keys compile as usual).
     """
 
     def __init__(self, scene, config, *, steps_per_octave: int | None = EVAL_STEPS_PER_OCTAVE,
-                 active_sh_degree=None, headroom: float = 1.0, reuse_textures: bool = False):
+                 active_sh_degree=None, headroom: float = 1.0, reuse_textures: bool = False,
+                 programs: dict | None = None):
         if not headroom >= 1.0:
             raise ValueError(f"headroom must be >= 1, got {headroom}.")
         self.scene, self.config, self.steps = scene, config, steps_per_octave
@@ -144,14 +150,25 @@ class ViewRenderer:
         self.reuse_textures = reuse_textures
         self._textures = None  # the scene's prepare_textures, once built (reuse_textures)
         self.capacities: dict = {}  # (height, width) of a bucket -> Capacity; as many as buckets
+        self.programs = dict(programs or {})
 
     def camera(self, camera: Camera) -> Camera:
         """``camera`` at its bucket size."""
         return padded_camera(camera, self.config.tile_size, self.steps)
 
     def _needed(self, cam: Camera) -> float:
-        needed, _ = count_pairs(self.scene, cam, self.config)
+        program = self.programs.get(("count", cam.height, cam.width))
+        needed, _ = (program(self.scene, cam) if program is not None
+                     else count_pairs(self.scene, cam, self.config))
         return float(needed)
+
+    def _render(self, cam: Camera, cap: Capacity):
+        program = (self.programs.get(("render", cam.height, cam.width, cap))
+                   if self.active_sh_degree is None and self._textures is None else None)
+        if program is not None:
+            return program(self.scene, cam, active_sh_degree=None, textures=None)
+        return render_jit(self.scene, cam, config=self.config, capacity=cap,
+                          active_sh_degree=self.active_sh_degree, textures=self._textures)
 
     def prepare(self, cameras: Sequence[Camera]) -> None:
         """Fits every bucket's capacity to the views ``cameras`` (counted, not rendered)."""
@@ -170,12 +187,10 @@ class ViewRenderer:
             cap = self.capacities[key] = Capacity.fit(self.headroom * self._needed(cam))
         if self.reuse_textures and self._textures is None:
             self._textures = prepare_textures(self.scene, config=self.config)
-        out = render_jit(self.scene, cam, config=self.config, capacity=cap,
-                         active_sh_degree=self.active_sh_degree, textures=self._textures)
+        out = self._render(cam, cap)
         if bool(out.overflow):  # a view not prepared for, needing more than its bucket holds
             cap = self.capacities[key] = Capacity.fit(float(out.pairs_needed), minimum=cap)
-            out = render_jit(self.scene, cam, config=self.config, capacity=cap,
-                             active_sh_degree=self.active_sh_degree, textures=self._textures)
+            out = self._render(cam, cap)
         return out
 
     def __call__(self, camera: Camera):
@@ -191,6 +206,7 @@ class ViewRenderer:
         """Releases the compiled renderer and pair counter (see :func:`release_scene_programs`)."""
         release_scene_programs()
         self.capacities.clear()
+        self.programs.clear()
         self._textures = None
 
     def __enter__(self):

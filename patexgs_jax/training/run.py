@@ -95,7 +95,7 @@ def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
           verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
           evaluate_everywhere: bool = False, end_distributed: bool = False,
-          check_memory: bool = True, preset: str | None = None) -> TrainResult:
+          check_memory: bool = True, preset: str | None = None, prepare=()) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
 
     Args:
@@ -122,6 +122,10 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
       check_memory: before the first step, compare the step's estimated memory with the memory
         available (:func:`patexgs_jax.memory.check_training_memory`; CPU backend only).
       preset: the name of the preset ``config`` was made from, for the start line.
+      prepare: configs of runs this process will start from this run's stage-1 checkpoint
+        (``stage1=``): when this run reaches the end of its 2DGS stage, their texture stage's first
+        programs are compiled ahead in a background thread (:mod:`patexgs_jax.ahead`,
+        ``PATEXGS_COMPILE_AHEAD=0`` turns it off), so that their first steps do not wait for them.
     Returns:
       :class:`TrainResult`.
     Raises:
@@ -143,6 +147,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         ckpt.check_writable(out)
         ckpt.check_writable(out / "checkpoints")
     run = Trainer(dataset, config, out, verbose, map_guard)
+    run.prepare_for = tuple(prepare)
     latest = ckpt.latest_checkpoint(out / "checkpoints") if (out is not None and resume) else None
     if latest is not None:
         tree, meta = ckpt.load_checkpoint(latest)

@@ -113,6 +113,9 @@ class TextureStage:
         self.texel_budget: int | None = None
         self.allocation: dict | None = None
         self.growth_events: list[dict] = []  # one dict per Eq. 8-10 event that grew textures
+        # Eq. 7's pair counter and renderer compiled ahead for the next allocation (see
+        # buckets.ViewRenderer's ``programs``), set by the trainer; used once.
+        self.programs: dict | None = None
 
     def load(self, state: adaptive.TextureScheduleState | None, allocation: dict | None, growth_events) -> None:
         """Restores the strategy's state from a checkpoint."""
@@ -126,9 +129,14 @@ class TextureStage:
         cfg = self.cfg
         if self.spec.textures is not None and step == cfg.iters_2dgs and state.scene.rgb is None:
             state = self.start(state)
-        if self.spec.textures == "adaptive" and self.state is None and step == cfg.iters_2dgs + cfg.warmup_tex:
+        if self.allocates_at(state, step):
             state = self.allocate(state, step)
         return state
+
+    def allocates_at(self, state: TrainState, step: int) -> bool:
+        """Whether :meth:`before_step` runs the Eq. 7 allocation at ``step``."""
+        cfg = self.cfg
+        return self.spec.textures == "adaptive" and self.state is None and step == cfg.iters_2dgs + cfg.warmup_tex
 
     def start(self, state: TrainState) -> TrainState:
         """Stage 2 starts: ``fixed`` methods get their N x N textures, the adaptive ones a 5x5 alpha
@@ -154,7 +162,8 @@ class TextureStage:
         N x N for every Gaussian, ``patexgs-fixed-N``)."""
         cfg, scene = self.cfg, state.scene
         counts = []
-        with buckets.ViewRenderer(scene, self.render_config) as renderer:
+        programs, self.programs = self.programs, None
+        with buckets.ViewRenderer(scene, self.render_config, programs=programs) as renderer:
             renderer.prepare([v.camera for v in self.train_views])
             for v in self.train_views:
                 counts.append(np.asarray(renderer(v.camera).max_contrib_count))

@@ -34,6 +34,7 @@ import dataclasses
 import datetime
 import json
 import os
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -43,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import buckets, compiled, interrupt, progress
+from .. import ahead, buckets, compiled, interrupt, progress
 from .. import checkpoint as ckpt
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
@@ -164,6 +165,50 @@ def _layout(scene: Scene) -> tuple:
     return tuple(np.shape(x) for x in jax.tree_util.tree_leaves(scene))
 
 
+def _single_step_jit(optimizer, render_cfg: RenderConfig, capacity: Capacity | None, lambda_dssim: float,
+                     lambda_dist: float):
+    """The jitted single-view training step (see :meth:`Trainer.step_fn`); it closes over nothing of
+    a Trainer, so that a step compiled ahead by one run serves another."""
+    return jax.jit(lambda sc, st, stats, cam, img, hw, sh, wn: single_view_step(
+        sc, st, stats, cam, img, hw, sh, wn, optimizer=optimizer, render_config=render_cfg, capacity=capacity,
+        lambda_dssim=lambda_dssim, lambda_dist=lambda_dist), donate_argnums=(0, 1, 2))
+
+
+@dataclasses.dataclass(eq=False)
+class _Prepared:
+    """A texture stage's first programs, being compiled ahead (:mod:`patexgs_jax.ahead`) for a layout
+    not reached yet: the textured step for the warm-up's layout at the first view's size bucket and,
+    for Eq. 7 methods, the allocation's pair counter and renderer (:meth:`Trainer.prepare_stage2`).
+
+    ``identity``: what defines the step besides its render config and tile capacity (scene radius,
+    learning rates, loss weights); ``capacity``, ``fn`` (the jitted step) and ``eq7`` (programs for
+    :class:`patexgs_jax.buckets.ViewRenderer`) are set by the background job."""
+
+    identity: tuple
+    render_cfg: RenderConfig
+    layout: tuple
+    bucket: tuple[int, int]
+    owner: int  # id() of the Trainer whose own stage 2 it is (0: made for another run)
+    step_job: ahead.Job | None = None
+    eq7_job: ahead.Job | None = None
+    capacity: Capacity | None = None
+    fn: Any = None
+    counted: threading.Event = dataclasses.field(default_factory=threading.Event)
+
+    def cancel(self) -> None:
+        for job in (self.step_job, self.eq7_job):
+            if job is not None:
+                job.cancel()
+
+
+#: Stage-2 programs compiled ahead and not yet claimed by the run that needs them (process-wide: a
+#: run may prepare the runs that start from its stage-1 checkpoint, see ``train(..., prepare=)``).
+_PREPARED: list[_Prepared] = []
+
+#: Prepared entries kept at most (the oldest are dropped first).
+_MAX_PREPARED = 4
+
+
 def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
     """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
 
@@ -239,6 +284,14 @@ class Trainer:
         # Durations of steps that compiled nothing, per stage, for the time estimate (see _measure).
         self._clean_steps: dict[int, list[float]] = {1: [], 2: []}
         self.estimated: set[int] = set()  # the stages whose steps gave an estimate
+        # Compiling ahead (see prepare_stage2): the configs of runs that start from this run's stage-1
+        # checkpoint in this process (train(..., prepare=)), whether this run has prepared its own
+        # texture stage, and whether the last step waited for (or took) a program compiled ahead.
+        self.prepare_for: tuple[TrainConfig, ...] = ()
+        self._prepared_own = False
+        self._took_ahead = False
+        dc = self.densification.config
+        self._last_densify = max((t for t in range(1, config.iters_2dgs) if dc.densify_at(t)), default=0)
 
     @property
     def render_cfg(self) -> RenderConfig:
@@ -335,13 +388,15 @@ class Trainer:
                                  self.state_tree(), meta, keep=1)
 
     # -- helpers ---------------------------------------------------------------------------------
-    def view(self, step):
+    def view(self, step, seed: int | None = None):
+        """The training view of ``step`` (a per-epoch permutation seeded by (seed, epoch); ``seed``
+        defaults to the run's)."""
         n = len(self.train_views)
         epoch, i = divmod(step, n)
-        perm = np.random.default_rng([self.cfg.seed, epoch]).permutation(n)
+        perm = np.random.default_rng([self.cfg.seed if seed is None else seed, epoch]).permutation(n)
         return self.train_views[perm[i]]
 
-    def _compiled_step(self, key, make):
+    def _compiled_step(self, key, make, claim=None):
         """The jitted step for ``key`` (render config, capacity, ...) and the scene's current layout,
         made by ``make()`` when new. A layout, once left, is rarely met again within a run (the
         Gaussian capacity only grows; texture buckets are sized afresh when one overflows), so when
@@ -358,9 +413,162 @@ class Trainer:
         if key not in self._jit_cache:
             while len(self._jit_cache) >= _MAX_STEP_FNS:
                 self._jit_cache.pop(next(iter(self._jit_cache)))
-            # (the jitted step, the size buckets it has been called with: a new one compiles)
-            self._jit_cache[key] = (make(), set())
+            # (the jitted step, the size buckets it has been called with: a new one compiles, and
+            # the background jobs compiling it ahead for a bucket, see prepare_stage2)
+            prepared = None if claim is None else claim(layout)
+            if prepared is not None:
+                self._jit_cache[key] = (prepared.fn, set(), {prepared.bucket: prepared.step_job})
+            else:
+                self._jit_cache[key] = (make(), set(), {})
         return self._jit_cache[key]
+
+    def prepare_stage2(self, config: TrainConfig) -> None:
+        """Starts compiling ahead, in the background (:mod:`patexgs_jax.ahead`), the first programs of
+        ``config``'s texture stage (this run's own, or one that will start from this run's stage-1
+        checkpoint in this process) from this run's current state: the textured step for the
+        warm-up's layout at the size bucket of the stage's first view, with the tile capacity the
+        first step will fit, and for Eq. 7 methods the allocation's pair counter and renderer. The
+        layout is known exactly once the Gaussian count is fixed (densification has stopped); the
+        capacities are predicted from the current scene. A prediction that does not match what the
+        run then needs is not used (the run compiles as it would have), so results never depend on
+        it. Does nothing when compiling ahead is off, for 2DGS, batches, or several processes."""
+        if (not ahead.enabled() or config.spec.textures is None or config.batch_size != 1
+                or config.iters_2dgs != self.cfg.iters_2dgs or config.total_steps <= config.iters_2dgs
+                or jax.process_count() > 1):
+            return
+        from ..rendering import render_jit
+
+        own = config is self.cfg
+        lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
+        identity = (self.radius, lr, config.lambda_dssim, config.lambda_dist)
+        optimizer = self.optimizer if own else make_optimizer(self.radius, lr)
+        render_cfg = config.render_config(stage=2)
+        state = TextureStage(config, optimizer, self.train_views, render_cfg).start(self.state)
+
+        def copy(x):  # arrays the background thread owns (the next step donates the current ones)
+            return jnp.copy(x) if isinstance(x, jax.Array) else x
+
+        scene, opt_state, stats = jax.tree_util.tree_map(copy, tuple(state))
+        view = self.view(config.iters_2dgs, config.seed)
+        cam = buckets.padded_camera(view.camera, render_cfg.tile_size)
+        layout = _layout(scene)
+        for old in [p for p in _PREPARED if (p.identity, p.render_cfg, p.layout) == (identity, render_cfg, layout)]:
+            old.cancel()  # superseded (a refit since, or a second run of the same settings)
+            _PREPARED.remove(old)
+        prep = _Prepared(identity, render_cfg, layout, (cam.height, cam.width), 0 if not own else id(self))
+        # The stage's first step fits the capacity (1.25 x its view's pairs) from none (a run started
+        # from a stage-1 checkpoint), or this run keeps its own (refitted up at the stage's start
+        # when a refit falls there).
+        minimum = self.capacity if own else None
+        keep = own and not self._refits_at(config.iters_2dgs)
+        args = (jax.ShapeDtypeStruct((cam.height, cam.width, 3), np.float32),
+                jax.ShapeDtypeStruct((2,), np.int32), jax.ShapeDtypeStruct((), jnp.int32),
+                jax.ShapeDtypeStruct((), jnp.float32))
+
+        def compile_step():
+            try:
+                if keep:
+                    prep.capacity = minimum
+                else:  # (its own program: the main thread releases the shared jitted ones at will)
+                    needed, _ = count_pairs.lower(scene, cam, config=render_cfg).compile()(scene, cam)
+                    prep.capacity = Capacity.fit(float(needed) * 1.25, minimum=minimum)
+                prep.fn = _single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dssim,
+                                           config.lambda_dist)
+            finally:
+                prep.counted.set()
+            prep.fn.lower(scene, opt_state, stats, cam, *args).compile()
+
+        def compile_eq7():
+            programs, caps, cams = {}, {}, {}
+            for v in self.train_views:  # as TextureStage.allocate's ViewRenderer buckets and counts them
+                c = buckets.padded_camera(v.camera, render_cfg.tile_size, buckets.EVAL_STEPS_PER_OCTAVE)
+                key = (c.height, c.width)
+                if ("count", *key) not in programs:
+                    programs[("count", *key)] = count_pairs.lower(scene, c, config=render_cfg).compile()
+                    cams[key] = c
+                needed, _ = programs[("count", *key)](scene, c)
+                caps[key] = Capacity.fit(float(needed), minimum=caps.get(key))
+            for key, cap in caps.items():
+                programs[("render", *key, cap)] = render_jit.lower(
+                    scene, cams[key], config=render_cfg, capacity=cap, active_sh_degree=None,
+                    textures=None).compile()
+            return programs
+
+        say = self.say
+        whose = "" if own else f" of {config.method}"
+        prep.step_job = ahead.submit(f"the textured step{whose} for {cam.width}x{cam.height} px", compile_step, say)
+        if config.spec.textures == "adaptive" and config.warmup_tex < config.iters_tex:
+            prep.eq7_job = ahead.submit(f"Eq. 7's pair counter and renderer{whose}", compile_eq7, say)
+        if prep.step_job is None:
+            return
+        _PREPARED.append(prep)
+        while len(_PREPARED) > _MAX_PREPARED:
+            _PREPARED.pop(0).cancel()
+
+    def _prepare_others(self) -> None:
+        """At the end of the 2DGS stage: the first programs of the runs that start from this state
+        (``train(..., prepare=)``), once."""
+        for other in self.prepare_for:
+            self.prepare_stage2(other)
+        self.prepare_for = ()
+
+    def _find_prepared(self, render_cfg: RenderConfig, layout: tuple) -> _Prepared | None:
+        identity = (self.radius, self.lr, self.cfg.lambda_dssim, self.cfg.lambda_dist)
+        return next((p for p in _PREPARED if p.identity == identity and p.render_cfg == render_cfg
+                     and p.layout == layout), None)
+
+    def _claim_step(self, render_cfg: RenderConfig, capacity, layout: tuple) -> _Prepared | None:
+        """The step prepared ahead for this render config, capacity and layout, if any (see
+        :meth:`prepare_stage2`); a job not started yet is cancelled (compiling here is sooner)."""
+        if self.cfg.batch_size != 1:
+            return None
+        prep = self._find_prepared(render_cfg, layout)
+        if prep is None or prep.step_job is None:
+            return None
+        job = prep.step_job
+        if job.cancel() or job.cancelled:
+            _PREPARED.remove(prep)
+            prep.cancel()
+            return None
+        prep.counted.wait()  # (the capacity is counted first, in seconds)
+        if prep.capacity != capacity or prep.fn is None:
+            return None  # (a capacity the run does not use; Eq. 7's programs may still serve)
+        prep.owner = id(self)
+        if prep.eq7_job is None:
+            _PREPARED.remove(prep)
+        return prep
+
+    def _claim_eq7(self) -> dict | None:
+        """Eq. 7's programs prepared ahead for the current layout (see :meth:`prepare_stage2`), waiting
+        for them if they are being compiled; None if there are none."""
+        prep = self._find_prepared(self.render_cfgs[1], _layout(self.scene))
+        if prep is None or prep.eq7_job is None:
+            return None
+        _PREPARED.remove(prep)
+        job = prep.eq7_job
+        if job.cancel():
+            return None
+        self._wait_ahead(job)
+        return job.value if job.ok else None
+
+    def _wait_ahead(self, job: ahead.Job) -> None:
+        """Waits for a background compile the next step needs (a stop signal still stops the run)."""
+        if job.done:
+            return
+        interrupt.set_phase(f"waiting for the background compile of {job.what}")
+        interrupt.set_step(self.step, self.cfg.total_steps)
+        self.say(f"[compile ahead] waiting for {job.what} ({time.monotonic() - (job.started or 0):.0f} s "
+                 "into its compile)")
+        job.wait(poll=interrupt.check)
+
+    def _take_ahead(self, job: ahead.Job | None, what: str) -> bool:
+        """Whether the step's program for a new size bucket was compiled ahead by ``job`` (waited for
+        if still compiling); False (the step compiles it) if the job failed or had not started."""
+        if job is None or job.cancel():
+            return False
+        self._wait_ahead(job)
+        self._took_ahead = True
+        return job.ok
 
     def stage_name(self, step: int | None = None) -> str:
         """``"2DGS"`` or ``"textured"``: which step ``step`` (default: the current one) runs."""
@@ -379,17 +587,19 @@ class Trainer:
         if self.cfg.batch_size > 1:
             return self._batch_step_fn()
         cfg, render_cfg, capacity = self.cfg, self.render_cfg, self.capacity
-        fn, buckets_seen = self._compiled_step((render_cfg, capacity), lambda: jax.jit(
-            lambda sc, st, stats, cam, img, hw, sh, wn: single_view_step(
-                sc, st, stats, cam, img, hw, sh, wn, optimizer=self.optimizer, render_config=render_cfg,
-                capacity=capacity, lambda_dssim=cfg.lambda_dssim, lambda_dist=cfg.lambda_dist),
-            donate_argnums=(0, 1, 2)))
+        fn, buckets_seen, ahead_jobs = self._compiled_step(
+            (render_cfg, capacity),
+            lambda: _single_step_jit(self.optimizer, render_cfg, capacity, cfg.lambda_dssim, cfg.lambda_dist),
+            claim=lambda layout: self._claim_step(render_cfg, capacity, layout))
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
             cam = buckets.padded_camera(camera, render_cfg.tile_size)
             if (cam.height, cam.width) not in buckets_seen:  # this call compiles (see _compiled_step)
                 buckets_seen.add((cam.height, cam.width))
-                self.announce_compile(f"{cam.width}x{cam.height} px")
+                job = ahead_jobs.pop((cam.height, cam.width), None)
+                what = f"{cam.width}x{cam.height} px"
+                if not self._take_ahead(job, f"the {self.stage_name()} step for {what}"):
+                    self.announce_compile(what)
             img = buckets.pad_image(image, cam.height, cam.width)
             hw = np.array([camera.height, camera.width], np.int32)
             return fn(scene, opt_state, stats, cam, img, hw, active_sh, w_normal)
@@ -513,11 +723,16 @@ class Trainer:
                            show=self.verbose and self.main)
         try:
             self._run(bar)
+            if self.step == self.cfg.iters_2dgs and self.scene.rgb is None:  # (a run of stage 1 alone)
+                self._prepare_others()
         except interrupt.Interrupted:
             self.save_on_stop()
             raise
         finally:
             bar.close()
+            for p in [p for p in _PREPARED if p.owner == id(self)]:  # (never claimed: not needed)
+                p.cancel()
+                _PREPARED.remove(p)
 
     def _measure(self, step: int, seconds: float) -> None:
         """Records the duration of a step that compiled nothing; after the first few steps of each
@@ -547,6 +762,9 @@ class Trainer:
         strategies (the texture stage's start and Eq. 7 allocation)."""
         if step == self.cfg.iters_2dgs and self.scene.rgb is None and not self.stage1_saved:
             self.save_stage1()
+            self._prepare_others()
+        if self.textures.allocates_at(self.state, step):
+            self.textures.programs = self._claim_eq7()
         for strategy in self.strategies:
             self.state = strategy.before_step(self.state, step)
 
@@ -558,8 +776,19 @@ class Trainer:
             self.state = strategy.after_step(self.state, step)
         if self.scene.capacity != capacity:  # the scene's shapes changed: refit before the next step
             self.capacity = None
-        if step <= self.cfg.iters_2dgs and self.capacity is not None and step % 100 == 0:
+        if self._refits_at(step):
             self.fit_capacity(self.view(step).camera)
+        # Once densification has stopped, the texture stage's first layout is known: compile its step
+        # ahead (again after a capacity refit, which may change the prediction).
+        if (self._last_densify <= step < self.cfg.iters_2dgs and self.scene.rgb is None
+                and self.capacity is not None and (not self._prepared_own or self._refits_at(step))):
+            self._prepared_own = True
+            self.prepare_stage2(self.cfg)
+
+    def _refits_at(self, step: int) -> bool:
+        """Whether :meth:`after_step` refits the tile capacity after ``step`` steps (every 100 steps of
+        the 2DGS stage, up to and including its end)."""
+        return step <= self.cfg.iters_2dgs and self.capacity is not None and step % 100 == 0
 
     def _views(self, step):
         """The batch of ``step``: its views, images (None where another process loads them) and each
@@ -616,6 +845,9 @@ class Trainer:
                         else self.batch_inputs(views, images))
                 scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)
                 self.scene, self.opt_state, self.stats = scene, opt_state, stats
+                if self._took_ahead:  # (its mappings are new; its time is not a step's)
+                    self._took_ahead, compiled_last = False, True
+                    interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if sum(STEP_TRACES.values()) > traces:
                     self.recompiles += 1
                     compiled_last = True
