@@ -133,7 +133,8 @@ def test_ctrl_c_while_a_command_line_imports_gives_one_line(tmp_path):
         import patexgs_jax
         raise KeyboardInterrupt
     """, tmp_path)
-    assert started.returncode == 130 and started.stderr == "stopped by SIGINT while starting; nothing was saved yet\n"
+    line = "stopped by SIGINT while starting; nothing was saved yet\n"
+    assert started.returncode == 130 and started.stderr == line
     # A SIGINT that arrives inside an import (as in jaxlib's initialisation, where a KeyboardInterrupt
     # can end in a segmentation fault) ends the process from the handler, before any exception.
     (tmp_path / "slow_module.py").write_text("import os, signal, time\nos.kill(os.getpid(), signal.SIGINT)\n"
@@ -145,7 +146,7 @@ def test_ctrl_c_while_a_command_line_imports_gives_one_line(tmp_path):
         sys.path.insert(0, ".")
         import slow_module
     """, tmp_path)
-    assert importing.returncode == 130 and importing.stderr == "stopped by SIGINT while starting; nothing was saved yet\n"
+    assert importing.returncode == 130 and importing.stderr == line
     for package in ("patexgs_jax", "experiments"):  # the studies' package installs it too
         probe = _python(f"""
             import sys
