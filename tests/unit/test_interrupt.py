@@ -140,7 +140,8 @@ def test_ctrl_c_while_a_command_line_imports_gives_one_line(tmp_path):
     (tmp_path / "slow_module.py").write_text("import os, signal, time\nos.kill(os.getpid(), signal.SIGINT)\n"
                                              "time.sleep(30)\nprint('not reached')\n")
     importing = _python("""
-        import sys
+        import signal, sys
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # as started from a terminal (not with &)
         sys.argv[0] = "-m"
         import patexgs_jax
         sys.path.insert(0, ".")
