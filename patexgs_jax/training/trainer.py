@@ -618,7 +618,7 @@ class Trainer:
         from .. import parallel
 
         mesh, render_cfg, capacity, cfg = self.data_mesh(), self.render_cfg, self.capacity, self.cfg
-        jitted, seen = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
+        jitted, seen, _ = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
             lambda sc, st, stats, cams, imgs, sh, wn: batch_step(
                 sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
                 render_config=render_cfg, capacity=capacity, lambda_dssim=cfg.lambda_dssim,
