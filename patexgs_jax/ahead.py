@@ -4,8 +4,9 @@ critical path in a background thread.
 A textured run compiles its step again whenever the scene's shapes change, and each compile of a
 training step takes tens of seconds on a CPU (docs/performance.md, issue 40). Some of those shapes
 are known well before the step that needs them: the texture stage's first layout once stage 1's
-densification has stopped (or once the stage-1 checkpoint another run starts from is written), and
-Eq. 7's renderer as soon as that layout exists. :func:`submit` hands such a compile
+densification has stopped (or once the stage-1 checkpoint another run starts from is written),
+Eq. 7's renderer as soon as that layout exists, and (predicted: a speculative Eq. 7 on the
+warm-up's first state) the layout the allocation will give. :func:`submit` hands such a compile
 (``jax.jit(f).lower(...).compile()``, which fills the same in-memory cache a later ``f(x)`` hits)
 to one background thread; the program is the one the main thread would have compiled, so results
 are bit-identical with and without it.

@@ -160,29 +160,15 @@ class TextureStage:
     def allocate(self, state: TrainState, step: int) -> TrainState:
         """Eqs. 6-7 at ``step``: contribution counts over all training views -> initial sizes (or
         N x N for every Gaussian, ``patexgs-fixed-N``)."""
-        cfg, scene = self.cfg, state.scene
+        scene = state.scene
         counts = []
         programs, self.programs = self.programs, None
         with buckets.ViewRenderer(scene, self.render_config, programs=programs) as renderer:
             renderer.prepare([v.camera for v in self.train_views])
             for v in self.train_views:
                 counts.append(np.asarray(renderer(v.camera).max_contrib_count))
-        S = np.stack(counts)
         act = np.asarray(scene.active) > 0
-        budget = None
-        if self.spec.size is not None:  # patexgs-fixed-N: the same schedule with one size for all
-            sigma = None
-            sides = np.where(act, self.spec.size, 0).astype(np.int64)
-        else:
-            if cfg.texture_budget_mb is not None:
-                budget = mb_to_texels(cfg.texture_budget_mb)
-                # Eq. 7 spends its share (at least one texel a Gaussian), growth the rest.
-                target = max(int(round(cfg.budget_eq7_share * budget)), int(act.sum()))
-                sigma = adaptive.solve_sigma_for_budget(S, target, max_size=cfg.max_texture_size, active=act)
-            else:
-                pixels = sum(v.camera.height * v.camera.width for v in self.train_views)
-                sigma = cfg.sigma or adaptive.pixel_share_sigma(pixels, int(act.sum()))
-            sides = adaptive.initial_texture_sizes(S, sigma, max_size=cfg.max_texture_size, active=act)
+        sides, sigma, budget = self.allocation_sides(np.stack(counts), act)
         self.state = adaptive.TextureScheduleState.create(sides)
         scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                               min_spare=TEXTURE_MIN_SPARE)
@@ -196,6 +182,25 @@ class TextureStage:
         self.say(f"[stage 2] allocation ({how}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
                  f"{adaptive.total_texels(sides, act)} RGBA texels")
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(scene.capacity))
+
+    def allocation_sides(self, S: np.ndarray, act: np.ndarray) -> tuple[np.ndarray, float | None, int | None]:
+        """Eq. 7's texture sides from the contribution counts ``S`` (V, C) of the active Gaussians
+        ``act`` (C,): (sides (C,) int64, sigma (None for ``patexgs-fixed-N``), the texel budget or
+        None). Pure: also what a speculative allocation compiles ahead for (the trainer's
+        ``prepare_stage2``)."""
+        cfg = self.cfg
+        if self.spec.size is not None:  # patexgs-fixed-N: the same schedule with one size for all
+            return np.where(act, self.spec.size, 0).astype(np.int64), None, None
+        budget = None
+        if cfg.texture_budget_mb is not None:
+            budget = mb_to_texels(cfg.texture_budget_mb)
+            # Eq. 7 spends its share (at least one texel a Gaussian), growth the rest.
+            target = max(int(round(cfg.budget_eq7_share * budget)), int(act.sum()))
+            sigma = adaptive.solve_sigma_for_budget(S, target, max_size=cfg.max_texture_size, active=act)
+        else:
+            pixels = sum(v.camera.height * v.camera.width for v in self.train_views)
+            sigma = cfg.sigma or adaptive.pixel_share_sigma(pixels, int(act.sum()))
+        return adaptive.initial_texture_sizes(S, sigma, max_size=cfg.max_texture_size, active=act), sigma, budget
 
     def after_step(self, state: TrainState, step: int) -> TrainState:
         """An Eqs. 8-10 growth event at the schedule's growth steps (``patexgs`` sizes only); the

@@ -30,6 +30,7 @@ Compiled programs (see :mod:`patexgs_jax.compiled`)
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import datetime
 import json
@@ -50,11 +51,12 @@ from .. import densify as dens
 from ..adaptive import TextureScheduleState
 from ..evaluation import camera_problem, image_problem
 from ..optim import make_optimizer, upgrade_state
+from ..rebucket import resize_textures
 from ..rendering import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from .config import TrainConfig, config_dict
 from .step import STEP_TRACES, batch_step, single_view_step
-from .strategies import Densification, TextureStage, TrainState
+from .strategies import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, Densification, TextureStage, TrainState
 
 __all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "long_run_note",
            "rgba_texels", "run_estimate", "step_seconds", "typical_size"]
@@ -67,6 +69,10 @@ _MAP_CHECK_EVERY = 25
 
 #: Jitted steps (capacities) kept for one scene layout.
 _MAX_STEP_FNS = 4
+
+#: A jitted step as Trainer._compiled_step keeps it: the function, the size buckets it has been
+#: called with (a new one compiles), and the background jobs compiling it ahead, per bucket.
+StepEntry = tuple[Callable, set, dict[tuple[int, int], "ahead.Job | None"]]
 
 #: A textured step's cost in 2DGS steps, for the time estimate made before the texture stage is
 #: measured (2.5-4x on a 2-core CPU, docs/performance.md).
@@ -182,11 +188,13 @@ class _Prepared:
 
     ``identity``: what defines the step besides its render config and tile capacity (scene radius,
     learning rates, loss weights); ``capacity``, ``fn`` (the jitted step) and ``eq7`` (programs for
-    :class:`patexgs_jax.buckets.ViewRenderer`) are set by the background job."""
+    :class:`patexgs_jax.buckets.ViewRenderer`) are set by the background job. ``layout`` is None
+    while a predicted allocation's sides are being counted (``counted`` is set once it is known);
+    ``then``: the entry of the allocation predicted from this warm-up state."""
 
     identity: tuple
     render_cfg: RenderConfig
-    layout: tuple
+    layout: tuple | None
     bucket: tuple[int, int]
     owner: int  # id() of the Trainer whose own stage 2 it is (0: made for another run)
     step_job: ahead.Job | None = None
@@ -194,11 +202,16 @@ class _Prepared:
     capacity: Capacity | None = None
     fn: Any = None
     counted: threading.Event = dataclasses.field(default_factory=threading.Event)
+    then: _Prepared | None = None
 
     def cancel(self) -> None:
         for job in (self.step_job, self.eq7_job):
             if job is not None:
                 job.cancel()
+        if self.then is not None:
+            self.then.cancel()
+            with contextlib.suppress(ValueError):
+                _PREPARED.remove(self.then)
 
 
 #: Stage-2 programs compiled ahead and not yet claimed by the run that needs them (process-wide: a
@@ -277,7 +290,7 @@ class Trainer:
         self.strategies = (self.densification, self.textures)
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
         # program per size bucket; released when the layout changes (see _compiled_step).
-        self._jit_cache = {}
+        self._jit_cache: dict[Any, StepEntry] = {}
         self._jit_layout = None
         self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
         self.t_start = time.perf_counter()
@@ -396,9 +409,12 @@ class Trainer:
         perm = np.random.default_rng([self.cfg.seed if seed is None else seed, epoch]).permutation(n)
         return self.train_views[perm[i]]
 
-    def _compiled_step(self, key, make, claim=None):
+    def _compiled_step(self, key, make: Callable[[], Callable],
+                       claim: Callable[[tuple], Any] | None = None) -> StepEntry:
         """The jitted step for ``key`` (render config, capacity, ...) and the scene's current layout,
-        made by ``make()`` when new. A layout, once left, is rarely met again within a run (the
+        made by ``make()`` when new (or taken from a step compiled ahead, ``claim(layout)``); returns
+        (the jitted step, the size buckets it has been called with, the background jobs compiling it
+        ahead per bucket). A layout, once left, is rarely met again within a run (the
         Gaussian capacity only grows; texture buckets are sized afresh when one overflows), so when
         the layout changes the steps of the old one are dropped, with the renderer's and pair
         counter's programs of the old layout, and their memory mappings returned (see
@@ -413,8 +429,6 @@ class Trainer:
         if key not in self._jit_cache:
             while len(self._jit_cache) >= _MAX_STEP_FNS:
                 self._jit_cache.pop(next(iter(self._jit_cache)))
-            # (the jitted step, the size buckets it has been called with: a new one compiles, and
-            # the background jobs compiling it ahead for a bucket, see prepare_stage2)
             prepared = None if claim is None else claim(layout)
             if prepared is not None:
                 self._jit_cache[key] = (prepared.fn, set(), {prepared.bucket: prepared.step_job})
@@ -422,12 +436,15 @@ class Trainer:
                 self._jit_cache[key] = (make(), set(), {})
         return self._jit_cache[key]
 
-    def prepare_stage2(self, config: TrainConfig) -> None:
+    def prepare_stage2(self, config: TrainConfig, predict_allocation: bool = True) -> None:
         """Starts compiling ahead, in the background (:mod:`patexgs_jax.ahead`), the first programs of
         ``config``'s texture stage (this run's own, or one that will start from this run's stage-1
         checkpoint in this process) from this run's current state: the textured step for the
         warm-up's layout at the size bucket of the stage's first view, with the tile capacity the
-        first step will fit, and for Eq. 7 methods the allocation's pair counter and renderer. The
+        first step will fit, and for Eq. 7 methods the allocation's pair counter and renderer and,
+        with ``predict_allocation``, the textured step for the layout Eq. 7 gives on the warm-up's
+        first state (a speculative allocation: counted and sized in the background; the real one,
+        40 steps of training later, usually falls in the same power-of-two buckets). The warm-up's
         layout is known exactly once the Gaussian count is fixed (densification has stopped); the
         capacities are predicted from the current scene. A prediction that does not match what the
         run then needs is not used (the run compiles as it would have), so results never depend on
@@ -443,7 +460,8 @@ class Trainer:
         identity = (self.radius, lr, config.lambda_dssim, config.lambda_dist)
         optimizer = self.optimizer if own else make_optimizer(self.radius, lr)
         render_cfg = config.render_config(stage=2)
-        state = TextureStage(config, optimizer, self.train_views, render_cfg).start(self.state)
+        stage = TextureStage(config, optimizer, self.train_views, render_cfg)
+        state = stage.start(self.state)
 
         def copy(x):  # arrays the background thread owns (the next step donates the current ones)
             return jnp.copy(x) if isinstance(x, jax.Array) else x
@@ -452,9 +470,13 @@ class Trainer:
         view = self.view(config.iters_2dgs, config.seed)
         cam = buckets.padded_camera(view.camera, render_cfg.tile_size)
         layout = _layout(scene)
-        for old in [p for p in _PREPARED if (p.identity, p.render_cfg, p.layout) == (identity, render_cfg, layout)]:
-            old.cancel()  # superseded (a refit since, or a second run of the same settings)
-            _PREPARED.remove(old)
+        same = [p for p in _PREPARED if (p.identity, p.render_cfg, p.layout) == (identity, render_cfg, layout)]
+        if same and not own:
+            return  # (another run the study trains next has the same first programs: prepared once)
+        for old in same:
+            old.cancel()  # superseded (a capacity refit since)
+            with contextlib.suppress(ValueError):
+                _PREPARED.remove(old)
         prep = _Prepared(identity, render_cfg, layout, (cam.height, cam.width), 0 if not own else id(self))
         # The stage's first step fits the capacity (1.25 x its view's pairs) from none (a run started
         # from a stage-1 checkpoint), or this run keeps its own (refitted up at the stage's start
@@ -502,14 +524,84 @@ class Trainer:
         if prep.step_job is None:
             return
         _PREPARED.append(prep)
+        if predict_allocation and prep.eq7_job is not None:
+            def capacity():
+                prep.counted.wait()
+                return prep.capacity
+
+            prep.then = self._predict_allocation(config, stage, optimizer, identity, (scene, opt_state, stats),
+                                                 prep.eq7_job, capacity, prep.owner, whose)
         while len(_PREPARED) > _MAX_PREPARED:
             _PREPARED.pop(0).cancel()
+
+    def _predict_allocation(self, config: TrainConfig, stage: TextureStage, optimizer, identity: tuple,
+                            state: tuple, eq7_job: ahead.Job, capacity: Callable[[], Capacity | None], owner: int,
+                            whose: str = "") -> _Prepared | None:
+        """Queues a speculative Eq. 7 allocation of ``config`` on ``state`` (scene, opt_state, stats:
+        arrays the background thread owns, at the warm-up's layout) and the compile of the textured
+        step for the layout it gives, at the size bucket of the allocation step's view and the tile
+        capacity ``capacity()`` (called in the background); counted with Eq. 7's programs of
+        ``eq7_job``. Returns its entry (in ``_PREPARED``; its layout is None until counted), or None
+        when compiling ahead is off."""
+        render_cfg = config.render_config(stage=2)
+        scene, opt_state, stats = state
+        view = self.view(config.iters_2dgs + config.warmup_tex, config.seed)
+        cam = buckets.padded_camera(view.camera, render_cfg.tile_size)
+        alloc = _Prepared(identity, render_cfg, None, (cam.height, cam.width), owner)
+        args = (jax.ShapeDtypeStruct((cam.height, cam.width, 3), np.float32),
+                jax.ShapeDtypeStruct((2,), np.int32), jax.ShapeDtypeStruct((), jnp.int32),
+                jax.ShapeDtypeStruct((), jnp.float32))
+
+        def compile_allocation():
+            try:
+                cap = capacity()
+                if not eq7_job.ok or cap is None:
+                    return
+                # As TextureStage.allocate counts, with the programs compiled for this layout; not
+                # released after (the main thread's Eq. 7 shares them).
+                renderer = buckets.ViewRenderer(scene, render_cfg, programs=eq7_job.value)
+                renderer.prepare([v.camera for v in self.train_views])
+                counts = np.stack([np.asarray(renderer(v.camera).max_contrib_count) for v in self.train_views])
+                sides, _, _ = stage.allocation_sides(counts, np.asarray(scene.active) > 0)
+                new_scene, new_opt, _ = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
+                                                        min_spare=TEXTURE_MIN_SPARE)
+                alloc.capacity, alloc.layout = cap, _layout(new_scene)
+                alloc.fn = _single_step_jit(optimizer, render_cfg, cap, config.lambda_dssim, config.lambda_dist)
+            finally:
+                alloc.counted.set()
+            alloc.fn.lower(new_scene, new_opt, stats, cam, *args).compile()
+
+        alloc.step_job = ahead.submit(f"the textured step{whose} for Eq. 7's predicted layout", compile_allocation,
+                                      self.say)
+        if alloc.step_job is None:
+            return None
+        _PREPARED.append(alloc)
+        return alloc
+
+    def _predict_own_allocation(self) -> None:
+        """At the texture stage's start of a run through both stages: the speculative allocation (see
+        :meth:`_predict_allocation`) from the warm-up's actual first state, with Eq. 7's programs
+        compiled ahead for this layout (:meth:`prepare_stage2`)."""
+        cfg = self.cfg
+        if (not ahead.enabled() or cfg.spec.textures != "adaptive" or cfg.batch_size != 1
+                or cfg.warmup_tex >= cfg.iters_tex or jax.process_count() > 1 or self.capacity is None):
+            return
+        prep = self._find_prepared(self.render_cfgs[1], _layout(self.scene))
+        if prep is None or prep.eq7_job is None or prep.then is not None or prep.eq7_job.cancelled:
+            return
+        state = jax.tree_util.tree_map(lambda x: jnp.copy(x) if isinstance(x, jax.Array) else x, tuple(self.state))
+        identity = (self.radius, self.lr, cfg.lambda_dssim, cfg.lambda_dist)
+        cap = self.capacity
+        prep.then = self._predict_allocation(cfg, self.textures, self.optimizer, identity, state, prep.eq7_job,
+                                             lambda: cap, id(self))
 
     def _prepare_others(self) -> None:
         """At the end of the 2DGS stage: the first programs of the runs that start from this state
         (``train(..., prepare=)``), once."""
-        for other in self.prepare_for:
-            self.prepare_stage2(other)
+        for i, other in enumerate(self.prepare_for):
+            if len(_PREPARED) >= _MAX_PREPARED:
+                break  # (entries for runs further on would push out those of the runs trained first)
+            self.prepare_stage2(other, predict_allocation=i == 0)  # (the allocation: the next run's only)
         self.prepare_for = ()
 
     def _find_prepared(self, render_cfg: RenderConfig, layout: tuple) -> _Prepared | None:
@@ -523,6 +615,9 @@ class Trainer:
         if self.cfg.batch_size != 1:
             return None
         prep = self._find_prepared(render_cfg, layout)
+        if prep is None:
+            self._settle_predictions(render_cfg)
+            prep = self._find_prepared(render_cfg, layout)
         if prep is None or prep.step_job is None:
             return None
         job = prep.step_job
@@ -534,9 +629,26 @@ class Trainer:
         if prep.capacity != capacity or prep.fn is None:
             return None  # (a capacity the run does not use; Eq. 7's programs may still serve)
         prep.owner = id(self)
+        if prep.then is not None:
+            prep.then.owner = id(self)
         if prep.eq7_job is None:
             _PREPARED.remove(prep)
         return prep
+
+    def _settle_predictions(self, render_cfg: RenderConfig) -> None:
+        """Waits for the predicted allocations being counted in the background for this run's settings
+        (their layout is known within seconds); drops those not started or failed."""
+        identity = (self.radius, self.lr, self.cfg.lambda_dssim, self.cfg.lambda_dist)
+        for p in [p for p in _PREPARED if p.layout is None and p.identity == identity and p.render_cfg == render_cfg]:
+            job = p.step_job
+            if job is not None and not job.cancel() and not job.cancelled and not p.counted.is_set():
+                interrupt.set_phase("waiting for the background count of Eq. 7's predicted layout")
+                interrupt.set_step(self.step, self.cfg.total_steps)
+                while not p.counted.wait(0.2):
+                    interrupt.check()
+            if p.layout is None:
+                with contextlib.suppress(ValueError):
+                    _PREPARED.remove(p)
 
     def _claim_eq7(self) -> dict | None:
         """Eq. 7's programs prepared ahead for the current layout (see :meth:`prepare_stage2`), waiting
@@ -732,7 +844,8 @@ class Trainer:
             bar.close()
             for p in [p for p in _PREPARED if p.owner == id(self)]:  # (never claimed: not needed)
                 p.cancel()
-                _PREPARED.remove(p)
+                with contextlib.suppress(ValueError):  # (cancelling an entry removes its ``then``)
+                    _PREPARED.remove(p)
 
     def _measure(self, step: int, seconds: float) -> None:
         """Records the duration of a step that compiled nothing; after the first few steps of each
@@ -767,6 +880,8 @@ class Trainer:
             self.textures.programs = self._claim_eq7()
         for strategy in self.strategies:
             self.state = strategy.before_step(self.state, step)
+        if step == self.cfg.iters_2dgs and self.scene.rgb is not None:
+            self._predict_own_allocation()
 
     def after_step(self, step):
         """Host-side work between steps (``step`` counts completed steps, from 1): the strategies,
@@ -783,7 +898,8 @@ class Trainer:
         if (self._last_densify <= step < self.cfg.iters_2dgs and self.scene.rgb is None
                 and self.capacity is not None and (not self._prepared_own or self._refits_at(step))):
             self._prepared_own = True
-            self.prepare_stage2(self.cfg)
+            # (its allocation is predicted at the stage's start, from the warm-up's actual state)
+            self.prepare_stage2(self.cfg, predict_allocation=False)
 
     def _refits_at(self, step: int) -> bool:
         """Whether :meth:`after_step` refits the tile capacity after ``step`` steps (every 100 steps of

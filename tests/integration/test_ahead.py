@@ -24,23 +24,11 @@ from locations import REPO
 from patexgs_jax import ahead
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax.data import load
-from patexgs_jax.densify import DensifyConfig
-from patexgs_jax.training import TrainConfig
+from patexgs_jax.training import trainer as trainer_module
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
 from patexgs_jax.training.trainer import Trainer
-
-
-def tiny_config(**kw) -> TrainConfig:
-    """test_train's main run: 30 2DGS steps (densify at 3, 6, 9, 12), then 24 texture steps (warm-up
-    3, Eq. 7 at 33, growth at 36, 39, ..., 48)."""
-    base = dict(method="patexgs", iters_2dgs=30, iters_tex=24, warmup_tex=3, growth_interval=3, growth_stop=0.75,
-                max_texture_size=6, sh_interval=6, normal_from=8, checkpoint_every=3, log_every=3,
-                max_gaussians=700,
-                densify=DensifyConfig(start=2, stop=12, interval=3, prune_opacity=0.095,
-                                      opacity_reset_interval=10_000))
-    base.update(kw)
-    return TrainConfig(**base)
+from train_configs import tiny_config
 
 
 @pytest.fixture(scope="module")
@@ -112,9 +100,11 @@ def _assert_same_state(a, b):
 
 def test_stage2_compiled_ahead_is_hit_and_bit_identical(dataset, tmp_path, monkeypatch):
     """The study's hand-over: a 2DGS run prepares the patexgs run that starts from its stage-1
-    checkpoint (``train(..., prepare=)``); that run's first textured step then traces and compiles
-    nothing in the main thread, and Eq. 7 runs on the pair counter compiled ahead. With
-    ``PATEXGS_COMPILE_AHEAD=0`` the same runs trace and compile there, and end bit-identical."""
+    checkpoint (``train(..., prepare=)``); that run's first textured step, and its step after the
+    Eq. 7 allocation (whose layout the prediction from the warm-up's first state got right on this
+    scene), then trace and compile nothing in the main thread, and Eq. 7 runs on the pair counter
+    compiled ahead. With ``PATEXGS_COMPILE_AHEAD=0`` the same runs trace and compile there, and end
+    bit-identical."""
     cfg, cfg2 = tiny_config(), tiny_config(method="2dgs")
     results = {}
     for mode in ("1", "0"):
@@ -130,12 +120,14 @@ def test_stage2_compiled_ahead_is_hit_and_bit_identical(dataset, tmp_path, monke
         results[mode] = (result, _final_tree(out / "patexgs"), dict(_record.traces), dict(_record.main_compiles),
                          sum(AHEAD_STEP_TRACES.values()) - ahead_traces)
     (r1, t1, traces1, comp1, ahead1), (r0, t0, traces0, comp0, ahead0) = results["1"], results["0"]
-    start = cfg.iters_2dgs
-    assert ahead1 == 1 and ahead0 == 0
-    # The step compiled ahead: not traced, not compiled (nor loaded from the persistent cache) here.
-    assert traces1[start] == 0 and not [f for f in comp1.get(start, []) if "lambda" in f], (traces1, comp1)
-    assert traces0[start] == 1 and [f for f in comp0[start] if "lambda" in f], (traces0, comp0)  # (without: here)
-    assert r1.summary["recompiles"] == r0.summary["recompiles"] - 1
+    start, allocation = cfg.iters_2dgs, cfg.iters_2dgs + cfg.warmup_tex
+    # The warm-up's step, and the step for the layout of Eq. 7 predicted from the warm-up's first state
+    assert ahead1 == 2 and ahead0 == 0
+    # The steps compiled ahead: not traced, not compiled (nor loaded from the persistent cache) here.
+    for step in (start, allocation):
+        assert traces1[step] == 0 and not [f for f in comp1.get(step, []) if "lambda" in f], (step, traces1, comp1)
+        assert traces0[step] == 1 and [f for f in comp0[step] if "lambda" in f], (step, traces0, comp0)  # (without)
+    assert r1.summary["recompiles"] == r0.summary["recompiles"] - 2
     _assert_same_state(t1, t0)
     for k in ("train_psnr", "test_psnr", "test_ssim", "texels", "allocation", "growth_events"):
         assert r1.summary[k] == r0.summary[k], k
@@ -155,7 +147,40 @@ def test_own_stage2_compiled_ahead_is_bit_identical(dataset, tmp_path, monkeypat
         trees[mode], traces[mode] = _final_tree(out), dict(_record.traces)
     _assert_same_state(trees["1"], trees["0"])
     assert summaries["1"]["test_psnr"] == summaries["0"]["test_psnr"]
-    assert traces["1"][cfg.iters_2dgs] == 0, traces["1"]  # (the prediction is right on this scene)
+    # (the predictions, the warm-up's capacity and Eq. 7's layout, are right on this scene)
+    assert traces["1"][cfg.iters_2dgs] == 0 and traces["1"][cfg.iters_2dgs + cfg.warmup_tex] == 0, traces["1"]
+    assert traces["0"][cfg.iters_2dgs + cfg.warmup_tex] == 1, traces["0"]
+
+
+def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeypatch):
+    """A 2DGS run preparing more runs than entries are kept (a Table 3 + 4 study) prepares them in
+    order while room is left: the first run's programs (and its predicted allocation) are kept,
+    never pushed out by those of runs further on; a run with the same first programs as one already
+    prepared adds nothing. The jobs are recorded, not compiled."""
+    submitted = []
+
+    def record(what, fn, say=None):
+        submitted.append(what)
+        return ahead.Job(what, fn, say)
+
+    monkeypatch.setattr(ahead, "submit", record)
+    methods = ("patexgs", "patexgs-fixed-4", "patexgs-no-mip", "patexgs-no-alpha-mip", "patexgs-no-rgb-mip",
+               "patexgs-fixed-8")
+    cfgs = [tiny_config(method=m) for m in methods]
+    try:
+        train(dataset, tiny_config(method="2dgs"), tmp_path / "2dgs", verbose=False, prepare=cfgs)
+        entries = list(trainer_module._PREPARED)
+        assert 0 < len(entries) <= trainer_module._MAX_PREPARED
+        first = [p for p in entries if p.render_cfg == cfgs[0].render_config(stage=2) and p.layout is not None]
+        assert len(first) == 1 and first[0].then in entries and first[0].eq7_job is not None, entries
+        # patexgs-fixed-4 shares patexgs's warm-up programs; no-mip comes next in the list.
+        assert [p.render_cfg for p in entries if p.layout is not None][:2] == [
+            cfgs[0].render_config(stage=2), cfgs[2].render_config(stage=2)]
+        assert sum("predicted layout" in w for w in submitted) == 1
+    finally:
+        for p in list(trainer_module._PREPARED):
+            p.cancel()
+        trainer_module._PREPARED.clear()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

@@ -41,22 +41,10 @@ from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
 from patexgs_jax.training.strategies import TextureStage, growth_schedule, growth_steps
 from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
+from train_configs import tiny_config
 
 PER_GAUSSIAN = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
 NO_DENSIFY = DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000)
-
-
-def tiny_config(**kw) -> TrainConfig:
-    """The main run's settings: 30 2DGS steps (densify at 3, 6, 9; the first doubles the capacity
-    512 -> 1024, capped at 700 Gaussians), then 24 texture steps (warm-up 3, allocation at 33,
-    growth at 36, 39, ..., 48, textures up to 6 x 6)."""
-    base = dict(method="patexgs", iters_2dgs=30, iters_tex=24, warmup_tex=3, growth_interval=3, growth_stop=0.75,
-                max_texture_size=6, sh_interval=6, normal_from=8, checkpoint_every=3, log_every=3,
-                max_gaussians=700,
-                densify=DensifyConfig(start=2, stop=12, interval=3, prune_opacity=0.095,
-                                      opacity_reset_interval=10_000))
-    base.update(kw)
-    return TrainConfig(**base)
 
 
 class Killed(Exception):

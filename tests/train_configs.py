@@ -1,0 +1,17 @@
+"""Training settings shared by the tests that train (test_train, test_ahead)."""
+
+from patexgs_jax.densify import DensifyConfig
+from patexgs_jax.training.config import TrainConfig
+
+
+def tiny_config(**kw) -> TrainConfig:
+    """test_train's main run on its 64 x 48 synthetic scene: 30 2DGS steps (densify at 3, 6, 9; the
+    first doubles the capacity 512 -> 1024, capped at 700 Gaussians), then 24 texture steps (warm-up
+    3, allocation at 33, growth at 36, 39, ..., 48, textures up to 6 x 6). ``kw`` overrides fields."""
+    base = dict(method="patexgs", iters_2dgs=30, iters_tex=24, warmup_tex=3, growth_interval=3, growth_stop=0.75,
+                max_texture_size=6, sh_interval=6, normal_from=8, checkpoint_every=3, log_every=3,
+                max_gaussians=700,
+                densify=DensifyConfig(start=2, stop=12, interval=3, prune_opacity=0.095,
+                                      opacity_reset_interval=10_000))
+    base.update(kw)
+    return TrainConfig(**base)
