@@ -180,6 +180,26 @@ def _single_step_jit(optimizer, render_cfg: RenderConfig, capacity: Capacity | N
         lambda_dssim=lambda_dssim, lambda_dist=lambda_dist), donate_argnums=(0, 1, 2))
 
 
+def _step_identity(radius: float, config: TrainConfig) -> tuple:
+    """What defines a run's training step besides its render config, tile capacity and layout (the
+    key a step compiled ahead is matched by): scene radius, learning rates, loss weights."""
+    return (radius, dataclasses.replace(config.lr, means_steps=config.iters_2dgs), config.lambda_dssim,
+            config.lambda_dist)
+
+
+def _step_image_args(cam) -> tuple:
+    """Abstract image, image size, SH degree and normal weight of a single-view step at ``cam``'s
+    (padded) size, for ``lower``."""
+    return (jax.ShapeDtypeStruct((cam.height, cam.width, 3), np.float32), jax.ShapeDtypeStruct((2,), np.int32),
+            jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.float32))
+
+
+def _owned_copy(tree):
+    """A copy of ``tree``'s device arrays that a background job owns (the next step donates the
+    originals)."""
+    return jax.tree_util.tree_map(lambda x: jnp.copy(x) if isinstance(x, jax.Array) else x, tree)
+
+
 @dataclasses.dataclass(eq=False)
 class _Prepared:
     """A texture stage's first programs, being compiled ahead (:mod:`patexgs_jax.ahead`) for a layout
@@ -456,17 +476,12 @@ class Trainer:
         from ..rendering import render_jit
 
         own = config is self.cfg
-        lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
-        identity = (self.radius, lr, config.lambda_dssim, config.lambda_dist)
-        optimizer = self.optimizer if own else make_optimizer(self.radius, lr)
+        identity = _step_identity(self.radius, config)
+        optimizer = self.optimizer if own else make_optimizer(self.radius, identity[1])  # (its learning rates)
         render_cfg = config.render_config(stage=2)
         stage = TextureStage(config, optimizer, self.train_views, render_cfg)
         state = stage.start(self.state)
-
-        def copy(x):  # arrays the background thread owns (the next step donates the current ones)
-            return jnp.copy(x) if isinstance(x, jax.Array) else x
-
-        scene, opt_state, stats = jax.tree_util.tree_map(copy, tuple(state))
+        scene, opt_state, stats = _owned_copy(tuple(state))
         view = self.view(config.iters_2dgs, config.seed)
         cam = buckets.padded_camera(view.camera, render_cfg.tile_size)
         layout = _layout(scene)
@@ -483,9 +498,7 @@ class Trainer:
         # when a refit falls there).
         minimum = self.capacity if own else None
         keep = own and not self._refits_at(config.iters_2dgs)
-        args = (jax.ShapeDtypeStruct((cam.height, cam.width, 3), np.float32),
-                jax.ShapeDtypeStruct((2,), np.int32), jax.ShapeDtypeStruct((), jnp.int32),
-                jax.ShapeDtypeStruct((), jnp.float32))
+        args = _step_image_args(cam)
 
         def compile_step():
             try:
@@ -548,9 +561,7 @@ class Trainer:
         view = self.view(config.iters_2dgs + config.warmup_tex, config.seed)
         cam = buckets.padded_camera(view.camera, render_cfg.tile_size)
         alloc = _Prepared(identity, render_cfg, None, (cam.height, cam.width), owner)
-        args = (jax.ShapeDtypeStruct((cam.height, cam.width, 3), np.float32),
-                jax.ShapeDtypeStruct((2,), np.int32), jax.ShapeDtypeStruct((), jnp.int32),
-                jax.ShapeDtypeStruct((), jnp.float32))
+        args = _step_image_args(cam)
 
         def compile_allocation():
             try:
@@ -589,11 +600,9 @@ class Trainer:
         prep = self._find_prepared(self.render_cfgs[1], _layout(self.scene))
         if prep is None or prep.eq7_job is None or prep.then is not None or prep.eq7_job.cancelled:
             return
-        state = jax.tree_util.tree_map(lambda x: jnp.copy(x) if isinstance(x, jax.Array) else x, tuple(self.state))
-        identity = (self.radius, self.lr, cfg.lambda_dssim, cfg.lambda_dist)
         cap = self.capacity
-        prep.then = self._predict_allocation(cfg, self.textures, self.optimizer, identity, state, prep.eq7_job,
-                                             lambda: cap, id(self))
+        prep.then = self._predict_allocation(cfg, self.textures, self.optimizer, _step_identity(self.radius, cfg),
+                                             _owned_copy(tuple(self.state)), prep.eq7_job, lambda: cap, id(self))
 
     def _prepare_others(self) -> None:
         """At the end of the 2DGS stage: the first programs of the runs that start from this state
@@ -605,7 +614,7 @@ class Trainer:
         self.prepare_for = ()
 
     def _find_prepared(self, render_cfg: RenderConfig, layout: tuple) -> _Prepared | None:
-        identity = (self.radius, self.lr, self.cfg.lambda_dssim, self.cfg.lambda_dist)
+        identity = _step_identity(self.radius, self.cfg)
         return next((p for p in _PREPARED if p.identity == identity and p.render_cfg == render_cfg
                      and p.layout == layout), None)
 
@@ -638,7 +647,7 @@ class Trainer:
     def _settle_predictions(self, render_cfg: RenderConfig) -> None:
         """Waits for the predicted allocations being counted in the background for this run's settings
         (their layout is known within seconds); drops those not started or failed."""
-        identity = (self.radius, self.lr, self.cfg.lambda_dssim, self.cfg.lambda_dist)
+        identity = _step_identity(self.radius, self.cfg)
         for p in [p for p in _PREPARED if p.layout is None and p.identity == identity and p.render_cfg == render_cfg]:
             job = p.step_job
             if job is not None and not job.cancel() and not job.cancelled and not p.counted.is_set():
