@@ -1,7 +1,8 @@
 """The README's headline figures of the main job, regenerated from the run they come from.
 
     python -m experiments.headline SOURCE [--save benchmarks/main_job_tiny.json --conditions TEXT]
-    python -m experiments.headline STUDY --budgets LABEL
+    python -m experiments.headline STUDY --budgets LABEL [--save FILE --conditions TEXT]
+    python -m experiments.headline STUDY --zoom LABEL [--save FILE --conditions TEXT]
 
 SOURCE is a main-job output folder (``python -m experiments.mipnerf360 --out DIR``: its
 ``results.json``) or a benchmark file written by ``--save``. The command prints the README's
@@ -11,7 +12,9 @@ results with their provenance (commit, date, machine: :mod:`experiments.provenan
 ``--conditions``, a few words on how the machine was loaded and whether the compile cache was warm,
 as a file under ``benchmarks/``: the README quotes that file, and ``tests/unit/test_repo.py`` fails
 when the README's sentence no longer matches it. ``--budgets LABEL`` prints instead the README's
-Gaussian-budget rows of a ``--budgets`` study (``benchmarks/budgets_*.json``), checked the same way.
+Gaussian-budget rows of a ``--budgets`` study (``benchmarks/budgets_*.json``), and ``--zoom LABEL``
+the README's zoom-out rows of any study (``benchmarks/zoom_*.json``), checked the same way; with
+``--save`` either keeps the study as a benchmark file first.
 
 Benchmark file schema (``schema`` 1)::
 
@@ -45,17 +48,11 @@ class HeadlineError(ValueError):
 def load(source) -> dict:
     """The study record of ``source``: a folder holding ``results.json``, a ``results.json``, or a
     benchmark file written by :func:`save`."""
-    path = Path(source)
-    if path.is_dir():
-        path = path / "results.json"
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise HeadlineError(f"cannot read {path}: {e}") from None
+    data = read(source)
     per = data.get("results", {}).get(SCENE, {})
     missing = [k for k in (BASELINE, METHOD) if k not in per]
     if missing:
-        raise HeadlineError(f"{path} has no {', '.join(missing)} results for the scene {SCENE}: is it the "
+        raise HeadlineError(f"{source} has no {', '.join(missing)} results for the scene {SCENE}: is it the "
                             "main job's (python -m experiments.mipnerf360 without --data)?")
     return data
 
@@ -121,6 +118,37 @@ def budget_rows(data: dict, scene_label: str) -> list[str]:
     return rows
 
 
+def zoom_rows(data: dict, scene_label: str) -> list[str]:
+    """The README's zoom-out rows (``| scene_label | method | PSNR full | 1/2 | 1/4 | 1/8 | alias 1/2 |
+    alias 1/4 | alias 1/8 |``) of a study's record (its ``results.json`` or a benchmark file such as
+    ``benchmarks/zoom_tiny.json``), one per method in the study's order; the record's first scene.
+    Methods without a zoomed-out evaluation are left out."""
+    per = next(iter(data["results"].values()))
+    rows = []
+    for method, entry in per.items():
+        if not all(isinstance(entry.get(str(s)), dict) for s in (1, 2, 4, 8)):
+            continue
+        psnr = [f"{entry[str(s)]['psnr']:.2f}" for s in (1, 2, 4, 8)]
+        alias = [f"{entry[str(s)]['alias_psnr']:.2f}" for s in (2, 4, 8)]
+        rows.append(f"| {scene_label} | {method} | " + " | ".join(psnr + alias) + " |")
+    return rows
+
+
+def read(source) -> dict:
+    """The record of any study: a folder holding ``results.json``, a ``results.json`` or a benchmark
+    file (no check of its scene or methods; :func:`load` checks them for the main job)."""
+    path = Path(source)
+    if path.is_dir():
+        path = path / "results.json"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise HeadlineError(f"cannot read {path}: {e}") from None
+    if not isinstance(data, dict) or not data.get("results"):
+        raise HeadlineError(f"{path} holds no study results (results.json of python -m experiments.mipnerf360)")
+    return data
+
+
 def save(data: dict, path, conditions: str) -> Path:
     """Writes the study's results with their provenance to ``path`` (see the module docstring)."""
     keep = {k: data.get(k) for k in ("version", "config", "lpips", "results")}
@@ -138,14 +166,29 @@ def main(argv=None) -> int:
     ap.add_argument("--budgets", default=None, metavar="LABEL",
                     help="SOURCE is a --budgets study (any scene): print the README's budget-table rows, "
                     "with LABEL in the scene column")
+    ap.add_argument("--zoom", default=None, metavar="LABEL",
+                    help="SOURCE is any study (its first scene): print the README's zoom-out rows, with LABEL "
+                    "in the scene column")
     args = ap.parse_args(argv)
-    if args.budgets is not None:
+    if args.budgets is not None or args.zoom is not None:
         try:
-            data = json.loads(Path(args.source, "results.json" if Path(args.source).is_dir() else "").read_text())
-            rows = budget_rows(data, args.budgets)
-        except (OSError, json.JSONDecodeError, StopIteration, KeyError) as e:
-            print(f"error: {args.source} is not a --budgets study's results: {e!r}", file=sys.stderr)
+            data = read(args.source)
+            rows = budget_rows(data, args.budgets) if args.budgets is not None else zoom_rows(data, args.zoom)
+        except HeadlineError as e:
+            print(f"error: {e}", file=sys.stderr)
             return 2
+        except (KeyError, TypeError, AttributeError) as e:
+            print(f"error: {args.source} is not a {'--budgets ' if args.budgets is not None else ''}study's "
+                  f"results (no {e})", file=sys.stderr)
+            return 2
+        if not rows:
+            what = ("no budget with both 2dgs and patexgs" if args.budgets is not None
+                    else "no method evaluated at 1, 1/2, 1/4 and 1/8")
+            print(f"error: {args.source} has {what}", file=sys.stderr)
+            return 2
+        if args.save:
+            save(data, args.save, args.conditions)
+            print(f"written to {args.save}")
         print("\n".join(rows))
         return 0
     try:

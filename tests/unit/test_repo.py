@@ -43,6 +43,24 @@ def test_readme_budget_rows_match_their_benchmark_files():
             assert row in readme, row
 
 
+def test_readme_zoom_rows_match_their_benchmark_files():
+    """The README's zoom-out table is `python -m experiments.headline FILE --zoom LABEL`'s rows of the
+    studies it was taken from, and names the commit they ran."""
+    from experiments import headline
+
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Results: zoom-out coherence"):]
+    section = section[:section.index("\n## ", 1)]
+    for name, label in (("zoom_tiny.json", "embedded"), ("zoom_beer.json", "beer")):
+        data = json.loads((ROOT / "benchmarks" / name).read_text())
+        assert data["date"] and data["conditions"] and data["version"]["git"], "the benchmark file lacks its provenance"
+        assert f"commit `{data['version']['git']}`" in section, name
+        rows = headline.zoom_rows(data, label)
+        assert len(rows) == 3, name
+        for row in rows:
+            assert row in section, row
+
+
 def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert _readme_commands()[1] in ci
