@@ -159,14 +159,15 @@ def save(data: dict, path, conditions: str) -> Path:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.headline", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("source", help="a main-job output folder (results.json) or a benchmark file written by --save")
+    ap.add_argument("source", help="a study's output folder (results.json) or a benchmark file written by --save")
     ap.add_argument("--save", default=None, help="write the results with their provenance to this JSON file")
     ap.add_argument("--conditions", default="", help="with --save: how the machine was (load, compile cache), "
                     "quoted in the sentence")
-    ap.add_argument("--budgets", default=None, metavar="LABEL",
+    kind = ap.add_mutually_exclusive_group()
+    kind.add_argument("--budgets", default=None, metavar="LABEL",
                     help="SOURCE is a --budgets study (any scene): print the README's budget-table rows, "
                     "with LABEL in the scene column")
-    ap.add_argument("--zoom", default=None, metavar="LABEL",
+    kind.add_argument("--zoom", default=None, metavar="LABEL",
                     help="SOURCE is any study (its first scene): print the README's zoom-out rows, with LABEL "
                     "in the scene column")
     args = ap.parse_args(argv)
