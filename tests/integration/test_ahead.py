@@ -103,17 +103,19 @@ def test_stage2_compiled_ahead_is_hit_and_bit_identical(dataset, tmp_path, monke
     checkpoint (``train(..., prepare=)``); that run's first textured step, and its step after the
     Eq. 7 allocation (whose layout the prediction from the warm-up's first state got right on this
     scene), then trace and compile nothing in the main thread, and Eq. 7 runs on the pair counter
-    compiled ahead. With ``PATEXGS_COMPILE_AHEAD=0`` the same runs trace and compile there, and end
-    bit-identical."""
+    compiled ahead. With ``PATEXGS_COMPILE_AHEAD=0`` the same run from the same stage-1 checkpoint
+    traces and compiles there, and ends bit-identical."""
     cfg, cfg2 = tiny_config(), tiny_config(method="2dgs")
     results = {}
+    ck = None
     for mode in ("1", "0"):
         monkeypatch.setenv(ahead.AHEAD_ENV, mode)
         out = tmp_path / f"ahead{mode}"
         ahead_traces = sum(AHEAD_STEP_TRACES.values())
-        train(dataset, cfg2, out / "2dgs", verbose=False, prepare=[cfg])
-        ck = stage1_checkpoint(out / "2dgs", cfg)
-        assert ck is not None
+        if ck is None:  # (the 2DGS run is the same either way; with compiling ahead it prepares the next)
+            train(dataset, cfg2, tmp_path / "2dgs", verbose=False, prepare=[cfg])
+            ck = stage1_checkpoint(tmp_path / "2dgs", cfg)
+            assert ck is not None
         result = _train_recorded(monkeypatch, dataset, cfg, out / "patexgs", stage1=ck, verbose=False)
         monkeypatch.setenv(ahead.AHEAD_ENV, mode)
         assert ahead.wait_all(600)
