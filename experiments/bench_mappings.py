@@ -53,22 +53,22 @@ class Meter:
 
     # -- counting ---------------------------------------------------------------------------------
     def _enter(self, phase: str) -> None:
-        from patexgs_jax import rendering as R
+        from patexgs_jax.render import TRACE_COUNTS
         from patexgs_jax.training.step import STEP_TRACES
         self.phase = phase
         maps = self.maps()
         self.phases.setdefault(phase, dict(peak=maps, start=maps, end=maps, compiles=0, step_traces=0,
                                            render_traces=0, seconds=0.0, by_function=collections.Counter()))
-        self._marks = (sum(STEP_TRACES.values()), sum(R.TRACE_COUNTS.values()), time.perf_counter())
+        self._marks = (sum(STEP_TRACES.values()), sum(TRACE_COUNTS.values()), time.perf_counter())
 
     def _leave(self) -> None:
-        from patexgs_jax import rendering as R
+        from patexgs_jax.render import TRACE_COUNTS
         from patexgs_jax.training.step import STEP_TRACES
         p = self.phases[self.phase]
         p["end"] = self.maps()
         p["peak"] = max(p["peak"], p["end"])
         p["step_traces"] += sum(STEP_TRACES.values()) - self._marks[0]
-        p["render_traces"] += sum(R.TRACE_COUNTS.values()) - self._marks[1]
+        p["render_traces"] += sum(TRACE_COUNTS.values()) - self._marks[1]
         p["seconds"] += time.perf_counter() - self._marks[2]
 
     def set_phase(self, phase: str) -> None:

@@ -43,8 +43,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.provenance import write_benchmark_json
-from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, rendering
-from patexgs_jax.rendering import binning, count_pairs, projection, render_jit, schedule
+from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
+from patexgs_jax.render import TRACE_COUNTS, count_pairs, render_jit
+from patexgs_jax.rendering import binning, projection, tiling
 
 #: The layout of the --json file (experiments.provenance's header plus peak_gflops, timing, results).
 SCHEMA = 1
@@ -148,12 +149,12 @@ def prepare(name, n, width, height):
     jax.block_until_ready(bwd_c(scene, cam))
     # The public entry point in steady state: same shapes, no new trace.
     jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
-    before = sum(rendering.TRACE_COUNTS.values())
+    before = sum(TRACE_COUNTS.values())
     for _ in range(2):
         jax.block_until_ready(render_jit(scene, cam, config=cfg, capacity=cap).rgb)
-    recompiles = sum(rendering.TRACE_COUNTS.values()) - before
+    recompiles = sum(TRACE_COUNTS.values()) - before
     tiles = -(-width // cfg.tile_size) * -(-height // cfg.tile_size)
-    batch = schedule.resolve_tile_batch(cfg.tile_batch, tiles, tile_size=cfg.tile_size, chunk=cfg.chunk)
+    batch = tiling.resolve_tile_batch(cfg.tile_batch, tiles, tile_size=cfg.tile_size, chunk=cfg.chunk)
     row = dict(config=name, gaussians=n, width=width, height=height, tiles=tiles, tile_batch=batch,
                recompiles=recompiles,
                flops_per_pair=FLOPS_PER_PAIR[name], binned_pairs=float(needed), max_tile=int(max_tile),

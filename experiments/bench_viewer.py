@@ -7,11 +7,11 @@ Two models: ``tiny``, a trained run (``--run``: a run folder or checkpoint; defa
 scene trained with the ``tiny`` preset into ``runs/bench_viewer/patexgs``, resumed or reused when
 there), seen from its first test view's pose; and a synthetic ``N``-Gaussian scene (``--gaussians``,
 built as :mod:`experiments.bench_render` builds it: 8 x 8 RGB and alpha textures, SH degree 3),
-seen from bench_render's camera. Both render as the viewer does (:class:`patexgs_jax.viewing.FrameRenderer`,
+seen from bench_render's camera. Both render as the viewer does (:class:`patexgs_jax.viewer.frames.FrameRenderer`,
 PATexGS coverage, RGB view): for each canvas size, the median over ``--repeats`` poses on a small
 orbit (a moving camera: new poses, no compile) of
 
-  * ``frame_ms``: a full-size frame, camera to uint8 image (render at the size bucket, colouring);
+  * ``frame_ms``: a full-size frame, camera to uint8 image (render at the padded size, colouring);
   * ``frame_cpu_ms``: the CPU time this process spent on it, over all its threads (on a machine
     shared with other jobs the wall time grows, the CPU time much less: on an idle 2-core machine
     a frame takes between half of it and all of it);
@@ -56,9 +56,9 @@ DEFAULT_RUN = "runs/bench_viewer/patexgs"
 
 def tiny_model(run: str | None):
     """(name, scene, render config, (wxyz, position, fov)) of the trained ``tiny`` model."""
-    from patexgs_jax import viewing as vw
     from patexgs_jax.data import load
     from patexgs_jax.data.synthetic import ensure_default_scene
+    from patexgs_jax.viewer import frames as vw
 
     data = load(ensure_default_scene(verbose=False), verbose=False)
     if run is None:
@@ -76,9 +76,9 @@ def tiny_model(run: str | None):
 def synthetic_model(n: int):
     """(name, scene, render config, pose) of bench_render's textured n-Gaussian scene and camera."""
     from experiments.bench_render import make_scene
-    from patexgs_jax import viewing as vw
     from patexgs_jax.camera import Camera, look_at
-    from patexgs_jax.rendering import RenderConfig
+    from patexgs_jax.render import RenderConfig
+    from patexgs_jax.viewer import frames as vw
 
     scene = make_scene(n, 8)
     cam = Camera.from_intrinsics([0.9 * 640, 0.9 * 640, 320, 240], look_at((0.0, 0.0, -5.0), (0.0, 0.0, 0.0)), 640, 480)
@@ -87,7 +87,7 @@ def synthetic_model(n: int):
 
 def orbit(pose, k: int, step_deg: float = 2.0):
     """Pose ``k`` of a small orbit: the camera turned by k * step_deg about its own y axis."""
-    from patexgs_jax import viewing as vw
+    from patexgs_jax.viewer import frames as vw
 
     wxyz, pos, fov = pose
     a = math.radians(step_deg * k)
@@ -104,7 +104,7 @@ def jpeg_ms(image: np.ndarray) -> float:
 
 
 def bench(name, scene, config, pose, sizes, repeats: int, preview: int) -> list[dict]:
-    from patexgs_jax import viewing as vw
+    from patexgs_jax.viewer import frames as vw
 
     fr = vw.FrameRenderer(scene, config)
     mode = vw.own_mode(config)

@@ -515,8 +515,8 @@ class Study:
         return dataclasses.replace(self.cfg.train_config(method, max_gaussians), devices=self.devices)
 
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
-        from patexgs_jax.buckets import ViewRenderer
         from patexgs_jax.evaluation import evaluate_scales, render_ms
+        from patexgs_jax.padding import ViewRenderer
 
         views = list(ds.test_views)
         if not views:
@@ -528,7 +528,7 @@ class Study:
         interrupt.set_phase(f"evaluating {key} on {scene}'s test views at every zoom-out scale")
         rc = cfg.render_config()
         t = time.perf_counter()
-        # One renderer for the metrics and the timing: its programs (one per size bucket) serve both.
+        # One renderer for the metrics and the timing: its programs (one per padded size) serve both.
         with ViewRenderer(result.scene, rc) as renderer:
             ev = evaluate_scales(result.scene, views, rc, scales=SCALES, lpips=self.lpips, keep_images=self.renders,
                                  renderer=renderer)

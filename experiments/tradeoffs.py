@@ -338,10 +338,10 @@ def measure(scene, views, render_config, scales=SCALES, *, active_sh_degree=None
     resolution; alias PSNR as in :func:`patexgs_jax.evaluation.evaluate_scales`; render time: per
     view the fastest of three renders, robust to other processes on the machine, see
     :func:`patexgs_jax.evaluation.render_ms`)."""
-    from patexgs_jax.buckets import ViewRenderer
     from patexgs_jax.evaluation import evaluate_scales, render_ms
+    from patexgs_jax.padding import ViewRenderer
 
-    # One renderer for the metrics and the timings: its programs (one per size bucket) serve both.
+    # One renderer for the metrics and the timings: its programs (one per padded size) serve both.
     with ViewRenderer(scene, render_config, active_sh_degree=active_sh_degree) as renderer:
         ev = evaluate_scales(scene, views, render_config, scales=scales, active_sh_degree=active_sh_degree,
                              renderer=renderer)
@@ -475,8 +475,8 @@ class Study:
 def load_trained(run_dir):
     """(scene, render config, summary or None) of a training run directory: the newest checkpoint's
     scene (or ``scene.ply`` + sidecar without checkpoints) and its method's render configuration
-    (:func:`patexgs_jax.viewing.load_run`)."""
-    from patexgs_jax.viewing import RunEntry, load_run
+    (:func:`patexgs_jax.viewer.frames.load_run`)."""
+    from patexgs_jax.viewer.frames import RunEntry, load_run
 
     run_dir = Path(run_dir)
     if not ((run_dir / "checkpoints").is_dir() or (run_dir / "scene.ply").exists()):
@@ -521,7 +521,7 @@ def without(scene, rc, effects: Sequence[str]):
 
 def render_flops(scene, camera, rc) -> float | None:
     """XLA's flop estimate of one render (compiled separately; None where XLA gives none)."""
-    from patexgs_jax.rendering import Capacity, count_pairs, render_jit
+    from patexgs_jax.render import Capacity, count_pairs, render_jit
 
     needed, _ = count_pairs(scene, camera, rc)
     compiled = render_jit.lower(scene, camera, config=rc, capacity=Capacity.fit(float(needed))).compile()
@@ -568,7 +568,7 @@ def export_reduced(scene, rc, effects, path) -> Path:
 
 def load_render_config(ply_path):
     """The RenderConfig stored next to a reduced export (``<stem>.render.json``)."""
-    from patexgs_jax.rendering import RenderConfig
+    from patexgs_jax.render import RenderConfig
 
     d = json.loads(Path(ply_path).with_suffix(".render.json").read_text())
     d.pop("dropped_effects", None)

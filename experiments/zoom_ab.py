@@ -33,7 +33,7 @@ from patexgs_jax import compiled
 from patexgs_jax.camera import ZOOM_SCALES
 from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
 from patexgs_jax.evaluation import evaluate_scales, render_ms, usable
-from patexgs_jax.rendering import RenderConfig
+from patexgs_jax.render import RenderConfig
 
 SCALES = ZOOM_SCALES
 

@@ -1,6 +1,6 @@
 """patexgs_jax: PATexGS (textured 2D Gaussian splatting with adaptive textures and RGBA mipmaps) in JAX.
 
-Conventions (cameras, kernel, textures, mip levels) are fixed in :mod:`patexgs_jax.rendering`.
+Conventions (cameras, kernel, textures, mip levels) are fixed in :mod:`patexgs_jax.render`.
 """
 
 from typing import TYPE_CHECKING
@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 # First, before JAX is imported: a Ctrl-C in `python -m patexgs_jax...`'s first second (see _startup).
 from . import _startup  # noqa: F401  (installs on import)
 from .camera import Camera, look_at
-from .rendering import Capacity, RenderConfig, RenderOutput, render, render_jit
+from .render import Capacity, RenderConfig, RenderOutput, render, render_jit
 from .scene import Scene, random_scene
 from .textures import TextureBank
 

@@ -2,7 +2,7 @@
 
 Everything here is host-side numpy, run between jitted training steps; every function is pure
 (it returns new objects and never mutates its inputs). The textures themselves are re-bucketed to
-new sizes by :mod:`patexgs_jax.rebucket`.
+new sizes by :mod:`patexgs_jax.textures.rebucket`.
 
 Units and conventions
   * A Gaussian's texture *side* is an int n >= 1 (an n x n texture), 0 meaning "no texture".
@@ -370,7 +370,7 @@ class TextureScheduleState:
 
         Returns:
           ``(new_state, sides (C,) int64, selected (C,) bool)``; pass the sides to
-          :func:`patexgs_jax.rebucket.resize_textures` (for both banks) when ``selected.any()``.
+          :func:`patexgs_jax.textures.rebucket.resize_textures` (for both banks) when ``selected.any()``.
         """
         if not schedule.is_growth_step(step):
             return self, self.sides(schedule.max_size), np.zeros(self.sizes.shape, bool)

@@ -11,8 +11,8 @@ section memory"), and on the CPU that ends as a crash or a segfault rather than 
 
 What keeps the count bounded:
 
-* few programs: views are rendered at a few padded sizes (:mod:`patexgs_jax.buckets`), so a run
-  compiles one program per size bucket, not one per image size;
+* few programs: views are rendered at a few padded sizes (:mod:`patexgs_jax.padding`), so a run
+  compiles one program per padded size, not one per image size;
 * programs of retired layouts are released: :func:`release_programs` drops a jitted function's
   compiled code (training does it when the scene's shapes or the tile capacity change, evaluation
   when it is done with a scene), and :func:`trim_programs` bounds the programs a function keeps;

@@ -4,8 +4,8 @@ of views, metrics at zoom-out scales, render timing, side-by-side images.
 Every function takes a trained :class:`patexgs_jax.Scene`, views from :mod:`patexgs_jax.data` (or
 anything with ``camera`` and ``image``) and a :class:`patexgs_jax.RenderConfig`. Renders are
 clipped to [0, 1] before any metric, as in the 3DGS / Mip-NeRF 360 evaluation protocol. Views are
-rendered at a few padded sizes and cropped (:class:`patexgs_jax.buckets.ViewRenderer`: the same
-pixels, one compiled program per size bucket instead of one per image size, released when a scene is
+rendered at a few padded sizes and cropped (:class:`patexgs_jax.padding.ViewRenderer`: the same
+pixels, one compiled program per padded size instead of one per image size, released when a scene is
 done), with capacities fitted to the views (exact pair counts), so nothing is ever truncated; render
 timing excludes compilation. LPIPS and SSIM, which cannot be padded, keep at most
 :data:`MAX_METRIC_PROGRAMS` compiled image sizes.
@@ -30,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import compiled, interrupt, progress
-from .buckets import ViewRenderer
 from .camera import ZOOM_SCALES
-from .rendering import RenderConfig
+from .padding import ViewRenderer
+from .render import RenderConfig
 
 __all__ = [
     "LPIPS",
@@ -83,7 +83,7 @@ def usable(view) -> bool:
 
 def render_view(scene, camera, config: RenderConfig, *, active_sh_degree=None):
     """The :class:`RenderOutput` of one view with an exactly fitted capacity, rendered at its size
-    bucket and cropped (images as numpy arrays when padded)."""
+    size and cropped (images as numpy arrays when padded)."""
     return ViewRenderer(scene, config, active_sh_degree=active_sh_degree)(camera)
 
 
@@ -189,7 +189,7 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
     acc = {s: dict(psnr=[], ssim=[], lpips=[], alias_psnr=[], supersampled_psnr=[], kept=[]) for s in scales}
     views = [v for v in views if usable(v)]
     with _renderer(scene, config, active_sh_degree, renderer) as renderer:
-        # Every bucket's capacity fitted up front: one program per bucket.
+        # Every padded size's capacity fitted up front: one program per size.
         renderer.prepare([v.camera if s == 1 else v.camera.scaled(s) for v in views for s in scales])
         with progress.bar(len(views), "evaluate", unit="view", show=jax.process_index() == 0) as bar:
             for i, v in enumerate(views):
@@ -254,8 +254,8 @@ def render_ms(scene, views: Sequence, config: RenderConfig, *, max_views: int = 
     the fastest of ``repeats`` timed renders (with several, the minimum is robust to other processes
     on the machine), the median over up to ``max_views`` usable views.
 
-    Views are rendered as evaluation renders them (at their size buckets, see
-    :class:`ViewRenderer`); each bucket is compiled (and capacities counted) before the timed runs.
+    Views are rendered as evaluation renders them (at their padded sizes, see
+    :class:`ViewRenderer`); each padded size is compiled (and capacities counted) before the timed runs.
     ``renderer``: as in :func:`evaluate_scales`.
     """
     ts = []

@@ -2,7 +2,7 @@
 
 All take (H, W, ...) images of one view and return scalars; jit-friendly and differentiable.
 ``valid`` (optional (H, W) bool, a top-left block) marks the pixels of a view rendered at a padded
-size (:mod:`patexgs_jax.buckets`): the loss is then the loss of the cropped images, the padding
+size (:mod:`patexgs_jax.padding`): the loss is then the loss of the cropped images, the padding
 taking no part (the same values up to the order of the sums).
 
 The SSIM and normal-consistency terms filter the image: they are summed over strips of rows

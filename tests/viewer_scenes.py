@@ -34,7 +34,7 @@ def study_of_two_runs(folder: Path, scene: Scene) -> Path:
     return write_run(folder / "runs" / "toy" / "patexgs", scene)
 
 
-#: The canvas of the in-process tests: one size bucket (and its 1/4 preview), shared through
+#: The canvas of the in-process tests: one padded size (and its 1/4 preview), shared through
 #: ``frames``, so the renderer compiles for it once.
 W, H = 64, 48
 

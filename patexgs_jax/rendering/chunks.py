@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from .config import RenderConfig
-from .schedule import resolve_tile_batch
+from .tiling import resolve_tile_batch
 
 
 class Static(NamedTuple):

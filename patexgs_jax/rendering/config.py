@@ -1,5 +1,5 @@
 """The renderer's settings and outputs: constants, :class:`RenderConfig`, :class:`Capacity` and
-:class:`RenderOutput`. The conventions they refer to are fixed in :mod:`patexgs_jax.rendering`."""
+:class:`RenderOutput`. The conventions they refer to are fixed in :mod:`patexgs_jax.render`."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ class RenderConfig:
         pixels saturated (transmittance < 1e-4) or its list ended.
       tile_batch: at most this many tiles advanced together (sorted by list length, so they finish
         at similar steps; fewer when that spreads the tiles more evenly over the batches). None
-        (default): chosen for the device when the render is traced (:mod:`.schedule`: 8 on a CPU;
+        (default): chosen for the device when the render is traced (:mod:`.tiling`: 8 on a CPU;
         on a GPU every tile of the image where memory allows).
       texture_pairs: texture lookups per pass, as a share of a chunk step's (tile, pixel, splat)
         pairs. Only the pairs that can reach alpha 1/255 are looked up, gathered into as many

@@ -2,7 +2,7 @@
 
 Each pixel's ray meets a splat's plane at (u, v) (the homogeneous ray-plane map of
 :func:`projection.ray_planes`). The kernel G and the pair's depth z follow the coverage mode
-(conventions in :mod:`patexgs_jax.rendering`): the 2DGS ``exp(-0.5 min(rho3d, rho2d))``, or the
+(conventions in :mod:`patexgs_jax.render`): the 2DGS ``exp(-0.5 min(rho3d, rho2d))``, or the
 prefiltered ``exp(-0.5 (p u^2 + 2 r u v + t v^2))`` cut outside its screen support.
 """
 

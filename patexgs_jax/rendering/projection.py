@@ -198,7 +198,7 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
 
     Args:
       screen_offset: None or (C, 2), added to the centres on screen (a gradient hook, see
-        :data:`patexgs_jax.rendering.render_jit`).
+        :data:`patexgs_jax.render.render_jit`).
       active_sh_degree: None or a traced int: SH bands above it are masked.
       tex_peak: (C,) the largest alpha-texture value of each splat (:func:`alpha_peak`), for the
         culling.

@@ -14,7 +14,7 @@ import json
 from .. import densify as dens
 from ..adaptive import DEFAULT_MAX_SIZE
 from ..optim import LearningRates
-from ..rendering import RenderConfig
+from ..render import RenderConfig
 
 __all__ = [
     "CPU_PRESET",
@@ -140,7 +140,7 @@ class TrainConfig:
       lr: learning rates.
       background: RGB behind the scene.
       lambda_mip: the paper's lambda_mip (Eq. 11); None: the coverage mode's calibrated value
-        (:data:`patexgs_jax.rendering.LAMBDA_MIP_DEFAULT`).
+        (:data:`patexgs_jax.render.LAMBDA_MIP_DEFAULT`).
       seed: seeds data order, initialisation and every random choice.
       checkpoint_every: steps between checkpoints (and one at the end of each stage and the run).
       log_every: steps between progress lines.

@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from .. import ahead, buckets, losses
+from .. import ahead, losses, padding
 from .. import densify as dens
-from ..rendering import render_jit
+from ..render import render_jit
 
 __all__ = ["AHEAD_STEP_TRACES", "STEP_TRACES", "batch_step", "single_view_step", "view_loss_and_grads"]
 
@@ -39,15 +39,15 @@ def view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_con
     """One view's loss and gradients: ``((loss, (out, l1, mse)), (g_scene, g_offset))``, g_offset
     (C, 2) the gradient w.r.t. the renderer's ``screen_offset`` (densification statistics).
 
-    ``camera`` and ``image`` (Hb, Wb, 3) may be padded to a size bucket (:mod:`patexgs_jax.buckets`);
+    ``camera`` and ``image`` (Hb, Wb, 3) may be padded to a padded size (:mod:`patexgs_jax.padding`);
     ``valid_hw`` ((2,) int, traced) is then the view's own (H, W): the loss is that of the top-left
-    H x W block, so views of every size in one bucket share one compiled step."""
+    H x W block, so views of every size of one padded size share one compiled step."""
     chex.assert_shape(image, (camera.height, camera.width, 3), custom_message=(
         "the training image and its camera disagree; each view's image must be (H, W, 3) at its "
         "camera's size (a loader or a hand-made view gave another size)"))
     chex.assert_type(image, float, custom_message="training images are floating-point RGB in [0, 1]")
     offset = jnp.zeros((scene.capacity, 2), scene.means.dtype)
-    valid = None if valid_hw is None else buckets.valid_mask(image.shape[:2], valid_hw)
+    valid = None if valid_hw is None else padding.valid_mask(image.shape[:2], valid_hw)
 
     def loss_fn(sc, off):
         out = render_jit(sc, camera, config=render_config, capacity=capacity, screen_offset=off,
@@ -93,9 +93,9 @@ def single_view_step(scene, opt_state, stats, camera, image, valid_hw, active_sh
     """One single-view update.
 
     Args:
-      camera: the view's camera at its size bucket (``buckets.padded_camera`` with the exact tile
+      camera: the view's camera at its padded size (``padding.padded_camera`` with the exact tile
         grid: every per-splat output equals the unpadded render's).
-      image: (Hb, Wb, 3) float32, the view's image zero-padded to the bucket.
+      image: (Hb, Wb, 3) float32, the view's image zero-padded to its padded size.
       valid_hw: (2,) int32, the view's own (H, W).
       active_sh, w_normal: traced SH degree and normal-consistency weight.
     Returns:

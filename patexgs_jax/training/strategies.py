@@ -16,12 +16,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .. import adaptive, buckets
+from .. import adaptive, padding
 from .. import densify as dens
 from ..metrics import mb_to_texels
-from ..rebucket import add_textures, resize_textures
-from ..rendering import RenderConfig
+from ..render import RenderConfig
 from ..scene import Scene
+from ..textures.rebucket import add_textures, resize_textures
 from .config import TrainConfig
 
 __all__ = ["Densification", "TEXTURE_HEADROOM", "TEXTURE_MIN_SPARE", "TextureStage", "TrainState", "growth_schedule",
@@ -30,7 +30,7 @@ __all__ = ["Densification", "TEXTURE_HEADROOM", "TEXTURE_MIN_SPARE", "TextureSta
 #: Free slots (a share of the count, a least number) a texture bucket gets when the layout is made
 #: (the texture stage's start, the Eq. 7 allocation, a growth event that overflows a bucket):
 #: ``max(headroom * count, min_spare)``, then rounded up to a power of two
-#: (:func:`patexgs_jax.rebucket.resize_textures`). An Eqs. 8-10 event grows a few dozen textures by
+#: (:func:`patexgs_jax.textures.rebucket.resize_textures`). An Eqs. 8-10 event grows a few dozen textures by
 #: one texel a side, so most events fit and recompile nothing; spare slots cost their texels in the
 #: atlas and the optimiser's update (docs/performance.md).
 TEXTURE_HEADROOM, TEXTURE_MIN_SPARE = 0.25, 16
@@ -96,7 +96,7 @@ def side_histogram(sides, active) -> dict:
 class TextureStage:
     """The texture stage of a textured method: textures at its start, the Eq. 6-7 allocation after
     the warm-up and the Eqs. 8-10 growth events (:mod:`patexgs_jax.adaptive`; the textures are
-    resized by :mod:`patexgs_jax.rebucket`). Does nothing for ``2dgs``.
+    resized by :mod:`patexgs_jax.textures.rebucket`). Does nothing for ``2dgs``.
 
     Its own state: ``state`` (the :class:`patexgs_jax.adaptive.TextureScheduleState`, None before the
     allocation), ``texel_budget`` (RGBA texels, or None), ``allocation`` and ``growth_events`` (what
@@ -114,7 +114,7 @@ class TextureStage:
         self.allocation: dict | None = None
         self.growth_events: list[dict] = []  # one dict per Eq. 8-10 event that grew textures
         # Eq. 7's pair counter and renderer compiled ahead for the next allocation (see
-        # buckets.ViewRenderer's ``programs``), set by the trainer; used once.
+        # padding.ViewRenderer's ``programs``), set by the trainer; used once.
         self.programs: dict | None = None
 
     def load(self, state: adaptive.TextureScheduleState | None, allocation: dict | None, growth_events) -> None:
@@ -163,7 +163,7 @@ class TextureStage:
         scene = state.scene
         counts = []
         programs, self.programs = self.programs, None
-        with buckets.ViewRenderer(scene, self.render_config, programs=programs) as renderer:
+        with padding.ViewRenderer(scene, self.render_config, programs=programs) as renderer:
             renderer.prepare([v.camera for v in self.train_views])
             for v in self.train_views:
                 counts.append(np.asarray(renderer(v.camera).max_contrib_count))

@@ -15,12 +15,12 @@ Robustness
   good checkpoint.
 
 Compiled programs (see :mod:`patexgs_jax.compiled`)
-  A training view is padded to the renderer's tile grid (:mod:`patexgs_jax.buckets`; the loss is
+  A training view is padded to the renderer's tile grid (:mod:`patexgs_jax.padding`; the loss is
   the view's own, the per-splat statistics the unpadded render's), so the step compiles once per
   distinct tile grid of the training images, not once per image size, and again only when the
   tile capacity or the scene's shapes change (densification; the texture stage's start and Eq. 7
   allocation; a growth event only when it overflows a texture bucket's headroom, see
-  :mod:`patexgs_jax.rebucket`); the programs of earlier shapes are then released (and at most a
+  :mod:`patexgs_jax.textures.rebucket`); the programs of earlier shapes are then released (and at most a
   few capacities kept per shapes). Near the
   kernel's memory-map cap the run releases all compiled code and, if that is not enough,
   checkpoints and stops with :class:`patexgs_jax.compiled.MapLimitReached` (resume with
@@ -45,15 +45,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import ahead, buckets, compiled, interrupt, progress
+from .. import ahead, compiled, interrupt, padding, progress
 from .. import checkpoint as ckpt
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
 from ..evaluation import camera_problem, image_problem
 from ..optim import make_optimizer, upgrade_state
-from ..rebucket import resize_textures
-from ..rendering import Capacity, RenderConfig, count_pairs
+from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
+from ..textures.rebucket import resize_textures
 from .config import TrainConfig, config_dict
 from .step import STEP_TRACES, batch_step, single_view_step
 from .strategies import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, Densification, TextureStage, TrainState
@@ -70,8 +70,8 @@ _MAP_CHECK_EVERY = 25
 #: Jitted steps (capacities) kept for one scene layout.
 _MAX_STEP_FNS = 4
 
-#: A jitted step as Trainer._compiled_step keeps it: the function, the size buckets it has been
-#: called with (a new one compiles), and the background jobs compiling it ahead, per bucket.
+#: A jitted step as Trainer._compiled_step keeps it: the function, the padded sizes it has been
+#: called with (a new one compiles), and the background jobs compiling it ahead, per padded size.
 StepEntry = tuple[Callable, set, dict[tuple[int, int], "ahead.Job | None"]]
 
 #: A textured step's cost in 2DGS steps, for the time estimate made before the texture stage is
@@ -203,12 +203,12 @@ def _owned_copy(tree):
 @dataclasses.dataclass(eq=False)
 class _Prepared:
     """A texture stage's first programs, being compiled ahead (:mod:`patexgs_jax.ahead`) for a layout
-    not reached yet: the textured step for the warm-up's layout at the first view's size bucket and,
+    not reached yet: the textured step for the warm-up's layout at the first view's padded size and,
     for Eq. 7 methods, the allocation's pair counter and renderer (:meth:`Trainer.prepare_stage2`).
 
     ``identity``: what defines the step besides its render config and tile capacity (scene radius,
     learning rates, loss weights); ``capacity``, ``fn`` (the jitted step) and ``eq7`` (programs for
-    :class:`patexgs_jax.buckets.ViewRenderer`) are set by the background job. ``layout`` is None
+    :class:`patexgs_jax.padding.ViewRenderer`) are set by the background job. ``layout`` is None
     while a predicted allocation's sides are being counted (``counted`` is set once it is known);
     ``then``: the entry of the allocation predicted from this warm-up state."""
 
@@ -309,7 +309,7 @@ class Trainer:
                                      log=self.log, say=self.say)
         self.strategies = (self.densification, self.textures)
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
-        # program per size bucket; released when the layout changes (see _compiled_step).
+        # program per padded size; released when the layout changes (see _compiled_step).
         self._jit_cache: dict[Any, StepEntry] = {}
         self._jit_layout = None
         self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
@@ -433,8 +433,8 @@ class Trainer:
                        claim: Callable[[tuple], Any] | None = None) -> StepEntry:
         """The jitted step for ``key`` (render config, capacity, ...) and the scene's current layout,
         made by ``make()`` when new (or taken from a step compiled ahead, ``claim(layout)``); returns
-        (the jitted step, the size buckets it has been called with, the background jobs compiling it
-        ahead per bucket). A layout, once left, is rarely met again within a run (the
+        (the jitted step, the padded sizes it has been called with, the background jobs compiling it
+        ahead per padded size). A layout, once left, is rarely met again within a run (the
         Gaussian capacity only grows; texture buckets are sized afresh when one overflows), so when
         the layout changes the steps of the old one are dropped, with the renderer's and pair
         counter's programs of the old layout, and their memory mappings returned (see
@@ -444,7 +444,7 @@ class Trainer:
         if self._jit_layout != layout:
             if self._jit_cache:
                 self._jit_cache.clear()
-                buckets.release_scene_programs()
+                padding.release_scene_programs()
             self._jit_layout = layout
         if key not in self._jit_cache:
             while len(self._jit_cache) >= _MAX_STEP_FNS:
@@ -460,7 +460,7 @@ class Trainer:
         """Starts compiling ahead, in the background (:mod:`patexgs_jax.ahead`), the first programs of
         ``config``'s texture stage (this run's own, or one that will start from this run's stage-1
         checkpoint in this process) from this run's current state: the textured step for the
-        warm-up's layout at the size bucket of the stage's first view, with the tile capacity the
+        warm-up's layout at the padded size of the stage's first view, with the tile capacity the
         first step will fit, and for Eq. 7 methods the allocation's pair counter and renderer and,
         with ``predict_allocation``, the textured step for the layout Eq. 7 gives on the warm-up's
         first state (a speculative allocation: counted and sized in the background; the real one,
@@ -473,7 +473,7 @@ class Trainer:
                 or config.iters_2dgs != self.cfg.iters_2dgs or config.total_steps <= config.iters_2dgs
                 or jax.process_count() > 1):
             return
-        from ..rendering import render_jit
+        from ..render import render_jit
 
         own = config is self.cfg
         identity = _step_identity(self.radius, config)
@@ -483,7 +483,7 @@ class Trainer:
         state = stage.start(self.state)
         scene, opt_state, stats = _owned_copy(tuple(state))
         view = self.view(config.iters_2dgs, config.seed)
-        cam = buckets.padded_camera(view.camera, render_cfg.tile_size)
+        cam = padding.padded_camera(view.camera, render_cfg.tile_size)
         layout = _layout(scene)
         same = [p for p in _PREPARED if (p.identity, p.render_cfg, p.layout) == (identity, render_cfg, layout)]
         if same and not own:
@@ -515,8 +515,8 @@ class Trainer:
 
         def compile_eq7():
             programs, caps, cams = {}, {}, {}
-            for v in self.train_views:  # as TextureStage.allocate's ViewRenderer buckets and counts them
-                c = buckets.padded_camera(v.camera, render_cfg.tile_size, buckets.EVAL_STEPS_PER_OCTAVE)
+            for v in self.train_views:  # as TextureStage.allocate's ViewRenderer pads and counts them
+                c = padding.padded_camera(v.camera, render_cfg.tile_size, padding.EVAL_STEPS_PER_OCTAVE)
                 key = (c.height, c.width)
                 if ("count", *key) not in programs:
                     programs[("count", *key)] = count_pairs.lower(scene, c, config=render_cfg).compile()
@@ -552,14 +552,14 @@ class Trainer:
                             whose: str = "") -> _Prepared | None:
         """Queues a speculative Eq. 7 allocation of ``config`` on ``state`` (scene, opt_state, stats:
         arrays the background thread owns, at the warm-up's layout) and the compile of the textured
-        step for the layout it gives, at the size bucket of the allocation step's view and the tile
+        step for the layout it gives, at the padded size of the allocation step's view and the tile
         capacity ``capacity()`` (called in the background); counted with Eq. 7's programs of
         ``eq7_job``. Returns its entry (in ``_PREPARED``; its layout is None until counted), or None
         when compiling ahead is off."""
         render_cfg = config.render_config(stage=2)
         scene, opt_state, stats = state
         view = self.view(config.iters_2dgs + config.warmup_tex, config.seed)
-        cam = buckets.padded_camera(view.camera, render_cfg.tile_size)
+        cam = padding.padded_camera(view.camera, render_cfg.tile_size)
         alloc = _Prepared(identity, render_cfg, None, (cam.height, cam.width), owner)
         args = _step_image_args(cam)
 
@@ -570,7 +570,7 @@ class Trainer:
                     return
                 # As TextureStage.allocate counts, with the programs compiled for this layout; not
                 # released after (the main thread's Eq. 7 shares them).
-                renderer = buckets.ViewRenderer(scene, render_cfg, programs=eq7_job.value)
+                renderer = padding.ViewRenderer(scene, render_cfg, programs=eq7_job.value)
                 renderer.prepare([v.camera for v in self.train_views])
                 counts = np.stack([np.asarray(renderer(v.camera).max_contrib_count) for v in self.train_views])
                 sides, _, _ = stage.allocation_sides(counts, np.asarray(scene.active) > 0)
@@ -683,7 +683,7 @@ class Trainer:
         job.wait(poll=interrupt.check)
 
     def _take_ahead(self, job: ahead.Job | None, what: str) -> bool:
-        """Whether the step's program for a new size bucket was compiled ahead by ``job`` (waited for
+        """Whether the step's program for a new padded size was compiled ahead by ``job`` (waited for
         if still compiling); False (the step compiles it) if the job failed or had not started."""
         if job is None or job.cancel():
             return False
@@ -703,8 +703,8 @@ class Trainer:
 
     def step_fn(self) -> Callable[..., Any]:
         """The training step as ``fn(scene, opt_state, stats, camera, image, active_sh, w_normal)``
-        (``image`` (H, W, 3) of the camera's size). The view is padded to its size bucket (the
-        renderer's exact tile grid) on the host, so the views of one bucket share a program."""
+        (``image`` (H, W, 3) of the camera's size). The view is padded to its padded size (the
+        renderer's exact tile grid) on the host, so the views of one padded size share a program."""
         if self.cfg.batch_size > 1:
             return self._batch_step_fn()
         cfg, render_cfg, capacity = self.cfg, self.render_cfg, self.capacity
@@ -714,14 +714,14 @@ class Trainer:
             claim=lambda layout: self._claim_step(render_cfg, capacity, layout))
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
-            cam = buckets.padded_camera(camera, render_cfg.tile_size)
+            cam = padding.padded_camera(camera, render_cfg.tile_size)
             if (cam.height, cam.width) not in buckets_seen:  # this call compiles (see _compiled_step)
                 buckets_seen.add((cam.height, cam.width))
                 job = ahead_jobs.pop((cam.height, cam.width), None)
                 what = f"{cam.width}x{cam.height} px"
                 if not self._take_ahead(job, f"the {self.stage_name()} step for {what}"):
                     self.announce_compile(what)
-            img = buckets.pad_image(image, cam.height, cam.width)
+            img = padding.pad_image(image, cam.height, cam.width)
             hw = np.array([camera.height, camera.width], np.int32)
             return fn(scene, opt_state, stats, cam, img, hw, active_sh, w_normal)
 
@@ -787,8 +787,8 @@ class Trainer:
 
     def fit_capacity(self, camera):
         interrupt.set_phase("counting the tile pairs of a view (the counter compiles once per size)")
-        # Counted at the step's size bucket (the same tile grid: the same count), one program a bucket.
-        camera = camera if self.cfg.batch_size > 1 else buckets.padded_camera(camera, self.render_cfg.tile_size)
+        # Counted at the step's padded size (the same tile grid: the same count), one program a size.
+        camera = camera if self.cfg.batch_size > 1 else padding.padded_camera(camera, self.render_cfg.tile_size)
         needed, _ = count_pairs(self.scene, camera, self.render_cfg)
         cap = Capacity.fit(float(needed) * 1.25, minimum=self.capacity)
         if cap != self.capacity:
@@ -948,7 +948,7 @@ class Trainer:
             interrupt.check()  # between steps: the state is whole (a stop writes it, see run())
             if interrupt.set_phase(f"training the {self.stage_name(step)} stage"):
                 interrupt.set_step(step, total)
-            # Mappings grow only when something compiles (a new bucket, capacity or layout); reading
+            # Mappings grow only when something compiles (a new padded size, capacity or layout); reading
             # /proc/self/maps costs milliseconds, so look after compiles and every few steps.
             if compiled_last or step % _MAP_CHECK_EVERY == 0:
                 self.check_memory_maps()

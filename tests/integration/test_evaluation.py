@@ -11,7 +11,7 @@ from patexgs_jax.data.images import box_downsample
 from patexgs_jax.data.synthetic import generate
 from patexgs_jax.evaluation import evaluate_scales, render_image
 from patexgs_jax.metrics import psnr
-from patexgs_jax.rendering import RenderConfig
+from patexgs_jax.render import RenderConfig
 from patexgs_jax.scene import Scene
 
 

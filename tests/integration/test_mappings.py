@@ -1,4 +1,4 @@
-"""Memory mappings stay bounded (patexgs_jax.compiled, patexgs_jax.buckets): views of many sizes are
+"""Memory mappings stay bounded (patexgs_jax.compiled, patexgs_jax.padding): views of many sizes are
 rendered at a few padded sizes with unchanged pixels, compiled programs of retired layouts are
 released, and a run near the cap checkpoints and stops with a clear message instead of crashing."""
 
@@ -11,12 +11,13 @@ import jax
 import numpy as np
 import pytest
 
-from patexgs_jax import Camera, RenderConfig, buckets, compiled, look_at, random_scene, rendering
+from patexgs_jax import Camera, RenderConfig, compiled, look_at, padding, random_scene
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax.data import load
 from patexgs_jax.data.synthetic import generate
 from patexgs_jax.densify import DensifyConfig
-from patexgs_jax.rebucket import resize_textures
+from patexgs_jax.render import TRACE_COUNTS, Capacity, count_pairs, render_jit
+from patexgs_jax.textures.rebucket import resize_textures
 from patexgs_jax.training.config import TrainConfig
 from patexgs_jax.training.run import train
 from patexgs_jax.training.step import STEP_TRACES, view_loss_and_grads
@@ -25,11 +26,11 @@ from patexgs_jax.training.trainer import Trainer
 needs_proc = pytest.mark.skipif(compiled.memory_maps() is None, reason="needs /proc (Linux)")
 
 
-def test_bucket_sides():
+def test_padded_sides():
     for steps in (None, 1, 4, 8):
         prev = 0
         for side in range(1, 2000):
-            b = buckets.bucket_side(side, 16, steps)
+            b = padding.padded_side(side, 16, steps)
             assert b >= side and b % 16 == 0 and b >= prev, (side, steps, b)
             tiles = -(-side // 16)
             if steps is None or tiles <= steps:
@@ -37,10 +38,10 @@ def test_bucket_sides():
             else:
                 assert b / 16 <= tiles * (1 + 1 / steps), (side, steps, b)
             prev = b
-        sides = {buckets.bucket_side(s, 16, steps) for s in range(257, 2049)}  # three octaves
+        sides = {padding.padded_side(s, 16, steps) for s in range(257, 2049)}  # three octaves
         assert steps is None or len(sides) <= 3 * steps
     with pytest.raises(ValueError, match="positive"):
-        buckets.bucket_side(0)
+        padding.padded_side(0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -60,8 +61,8 @@ def _camera(w, h):
 
 
 def _unpadded(scene, cam):
-    needed, _ = rendering.count_pairs(scene, cam, CFG)
-    return rendering.render_jit(scene, cam, config=CFG, capacity=rendering.Capacity.fit(float(needed)))
+    needed, _ = count_pairs(scene, cam, CFG)
+    return render_jit(scene, cam, config=CFG, capacity=Capacity.fit(float(needed)))
 
 
 FIELDS = ("rgb", "alpha", "depth", "normal", "distortion", "dominant", "max_contrib_count")
@@ -72,7 +73,7 @@ def test_padded_render_equals_the_unpadded_one():
     for (w, h), steps in (((37, 22), None), ((37, 22), 1)):
         cam = _camera(w, h)
         ref = _unpadded(scene, cam)
-        renderer = buckets.ViewRenderer(scene, CFG, steps_per_octave=steps)
+        renderer = padding.ViewRenderer(scene, CFG, steps_per_octave=steps)
         out = renderer(cam)
         padded = renderer.camera(cam)
         assert (padded.height, padded.width) == ((32, 48) if steps is None else (32, 64))
@@ -88,7 +89,7 @@ def test_padded_render_equals_the_unpadded_one():
         if steps is None:
             for f in ("visible", "radius_px", "pairs_needed"):
                 np.testing.assert_array_equal(np.asarray(getattr(out, f)), np.asarray(getattr(ref, f)), err_msg=f)
-    buckets.release_scene_programs()
+    padding.release_scene_programs()
 
 
 @needs_proc
@@ -103,8 +104,8 @@ def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded():
         if side > 1:
             n = scene.capacity
             scene, _, info = resize_textures(scene, None, np.full(n, side), np.full(n, 3))
-        traces = sum(rendering.TRACE_COUNTS.values())
-        with buckets.ViewRenderer(scene, CFG) as renderer:
+        traces = sum(TRACE_COUNTS.values())
+        with padding.ViewRenderer(scene, CFG) as renderer:
             cams = [_camera(w, h) for w, h in SIZES]
             renderer.prepare(cams)
             for cam in cams:
@@ -112,7 +113,7 @@ def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded():
                 assert img.shape == (cam.height, cam.width, 3) and np.isfinite(img).all()
             assert len(renderer.capacities) == 1
             peaks.append(compiled.memory_maps()[0] - base)
-        assert sum(rendering.TRACE_COUNTS.values()) - traces == 1  # 8 sizes, 1 bucket: 1 program
+        assert sum(TRACE_COUNTS.values()) - traces == 1  # 8 sizes, 1 bucket: 1 program
     after = compiled.memory_maps()[0] - base
     # One layout's programs (renderer, counter, SSIM-free) at a time: no growth from layout to layout.
     assert max(peaks) < 2500, peaks
@@ -187,13 +188,13 @@ def test_padded_step_matches_the_cropped_loss(mixed_sizes):
     run = Trainer(mixed_sizes, cfg, None, verbose=False)
     run.fresh()
     v = mixed_sizes.train_views[1]  # 45 x 30 in a 48 x 32 bucket
-    cam = buckets.padded_camera(v.camera)
+    cam = padding.padded_camera(v.camera)
     grads = jax.jit(functools.partial(view_loss_and_grads, render_config=cfg.render_config(1),
-                                      capacity=rendering.Capacity.fit(4096), lambda_dssim=0.2, lambda_dist=0.1))
+                                      capacity=Capacity.fit(4096), lambda_dssim=0.2, lambda_dist=0.1))
     args = (jnp.int32(1), jnp.float32(0.05))
     (want, (_, l1_want, mse_want)), (g_want, off_want) = grads(run.scene, v.camera, jnp.asarray(v.image), *args)
     (loss, (_, l1, mse)), (g, off) = grads(
-        run.scene, cam, jnp.asarray(buckets.pad_image(v.image, cam.height, cam.width)), *args,
+        run.scene, cam, jnp.asarray(padding.pad_image(v.image, cam.height, cam.width)), *args,
         valid_hw=jnp.asarray([v.camera.height, v.camera.width]))
     for a, b in ((loss, want), (l1, l1_want), (mse, mse_want)):
         assert float(a) == pytest.approx(float(b), rel=1e-5)

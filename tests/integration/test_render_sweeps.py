@@ -16,8 +16,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import hard_scenes as hs
-from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, render, render_jit, rendering
+from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, render, render_jit
 from patexgs_jax.data import box_downsample
+from patexgs_jax.render import _render as render_unjitted
+from patexgs_jax.render import prepare_textures
 from patexgs_jax.training import TrainConfig
 from render_cases import (
     CAP,
@@ -96,7 +98,7 @@ def test_texture_passes_do_not_change_the_result(name):
     cfgs = [dataclasses.replace(cfg, texture_pairs=t) for t in (1.0, 1 / 512)]
 
     def loss(s, c):  # the image and the gradient from one compiled function per configuration
-        out = rendering._render(s, cam, c, CAP)
+        out = render_unjitted(s, cam, c, CAP)
         return jnp.mean(jnp.abs(out.rgb - 0.3)) + 0.1 * jnp.mean(out.alpha * out.depth), out
 
     with jax.enable_x64(True):
@@ -163,7 +165,7 @@ def test_prepared_textures_render_the_same_image_and_must_match_the_config():
     without textures are refused with a line that names the fix."""
     sc, cam = scene(3), camera()
     cfg = RenderConfig(mip="nearest", coverage="prefilter")
-    tx = rendering.prepare_textures(sc, config=cfg)
+    tx = prepare_textures(sc, config=cfg)
     own = tile_render(sc, cam, cfg)
     out = jax.tree_util.tree_map(np.asarray, render_jit(sc, cam, config=cfg, capacity=CAP, textures=tx))
     for name in ("rgb", "alpha", "depth", "normal", "dominant"):

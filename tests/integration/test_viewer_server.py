@@ -1,4 +1,4 @@
-"""The browser viewer end to end (patexgs_jax.view): the command line's bad input, the server answering
+"""The browser viewer end to end (patexgs_jax.viewer): the command line's bad input, the server answering
 a client (a protocol-level client here, headless Chromium below) and stopping on SIGINT, training
 views snapped to and compared, and the viewer benchmark's report.
 
@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 
 from locations import REPO
-from patexgs_jax import rendering
-from patexgs_jax import viewing as vw
+from patexgs_jax.render import RenderConfig
+from patexgs_jax.viewer import frames as vw
 from viewer_scenes import H, W, orbit_camera
 
 viser = pytest.importorskip("viser", reason='the viewer needs viser: pip install -e ".[viewer]"')
@@ -53,14 +53,14 @@ def subprocess_env(**extra) -> dict:
 
 def run_cli(*args, timeout=120):
     env = subprocess_env()
-    return subprocess.run([sys.executable, "-m", "patexgs_jax.view", *map(str, args)], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "patexgs_jax.viewer", *map(str, args)], capture_output=True,
                           text=True, timeout=timeout, env=env, cwd=REPO)
 
 
 def test_cli_bad_input(viewer_run_dir, tmp_path, capsys):
     """Each gets one line naming the fix and exit status 2 (in-process; the command line's own exit
     status and the absence of a traceback in a subprocess, for a port in use)."""
-    from patexgs_jax.view import main
+    from patexgs_jax.viewer.server import main
 
     with socket.socket() as held:
         held.bind(("127.0.0.1", 0))
@@ -90,7 +90,7 @@ def start_viewer(path, port, *extra, before=None):
     masks, as a viewer started by another program inherits them)."""
     env = subprocess_env(PYTHONUNBUFFERED="1")
     log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
-    cmd = [sys.executable, "-m", "patexgs_jax.view", str(path), "--port", str(port), *extra]
+    cmd = [sys.executable, "-m", "patexgs_jax.viewer", str(path), "--port", str(port), *extra]
     if before is not None:
         cmd = [sys.executable, "-c", f"import os, signal, sys; {before}; os.execv(sys.executable, "
                "[sys.executable] + sys.argv[1:])"] + cmd[1:]
@@ -302,7 +302,7 @@ def test_bench_viewer_reports_frames(tmp_path, capsys):
     from experiments import bench_viewer
 
     out = tmp_path / "viewer.json"
-    # --preview 1: the preview is the frame's own size bucket, one program to compile
+    # --preview 1: the preview is the frame's own padded size, one program to compile
     bench_viewer.main(["--models", "synthetic", "--gaussians", "400", "--sizes", "32x32", "--repeats", "2",
                        "--preview", "1", "--json", str(out)])
     data = json.loads(out.read_text())
@@ -322,10 +322,10 @@ def test_training_views_snap_and_compare(viewer_run_dir, viewer_scene):
     import contextlib
     import types
 
-    from patexgs_jax.view import Viewer
+    from patexgs_jax.viewer.server import Viewer
 
     cams = [orbit_camera(a) for a in (0.2, 1.0, 2.0)]
-    gt = vw.FrameRenderer(viewer_scene, rendering.RenderConfig(coverage="prefilter"))
+    gt = vw.FrameRenderer(viewer_scene, RenderConfig(coverage="prefilter"))
     views = [types.SimpleNamespace(camera=c, name=f"view{i}", image=gt.render(c).image / np.float32(255))
              for i, c in enumerate(cams)]
     lines = []

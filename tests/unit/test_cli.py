@@ -8,8 +8,9 @@ from __future__ import annotations
 import pytest
 
 from experiments import mipnerf360, tradeoffs
-from patexgs_jax import prepare, view
+from patexgs_jax import prepare
 from patexgs_jax.training import cli as train_cli
+from patexgs_jax.viewer import server as view
 
 
 @pytest.fixture

@@ -119,7 +119,7 @@ def test_near_edge_on_splat_stays_on_its_screen_footprint(tilt):
     camera (on screen it is unbounded: such a splat was listed in all 256 tiles of this image). The
     kernel is cut to twice its affine screen footprint: a few tiles around the splat's line, and
     nothing beyond a few pixels of it."""
-    from patexgs_jax.rendering import count_pairs
+    from patexgs_jax.render import count_pairs
 
     side = 256
     cam = Camera.from_intrinsics([F, F, side / 2, side / 2], look_at((0.0, 0.0, -Z), (0.0, 0.0, 0.0)), side, side)

@@ -12,10 +12,11 @@ import jax.numpy as jnp
 import pytest
 from jax import export
 
-from patexgs_jax import RenderConfig, random_scene, render_jit, rendering
+from patexgs_jax import RenderConfig, random_scene, render_jit
 from patexgs_jax.densify import DensifyStats
 from patexgs_jax.optim import make_optimizer
-from patexgs_jax.rendering import schedule
+from patexgs_jax.render import prepare_textures
+from patexgs_jax.rendering import tiling
 from patexgs_jax.training.step import single_view_step
 from render_cases import CAP, camera, scene
 
@@ -24,12 +25,12 @@ P, CHUNK = 16 * 16, 32
 
 
 def _per_tile():
-    return P * CHUNK * schedule.PAIR_BYTES
+    return P * CHUNK * tiling.PAIR_BYTES
 
 
 @pytest.mark.parametrize("num_tiles", [1, 7, 8, 9, 1200, 8160])
 def test_cpu_keeps_its_tuned_batch(num_tiles):
-    assert schedule.choose_tile_batch(num_tiles, backend="cpu", tile_size=16, chunk=CHUNK) == min(8, num_tiles)
+    assert tiling.choose_tile_batch(num_tiles, backend="cpu", tile_size=16, chunk=CHUNK) == min(8, num_tiles)
 
 
 @pytest.mark.parametrize("backend", ["gpu", "cuda", "rocm", "tpu"])
@@ -42,23 +43,23 @@ def test_cpu_keeps_its_tuned_batch(num_tiles):
     (1200, None, 1200),              # a device that does not report its memory: 8 GiB assumed
 ])
 def test_accelerator_batches_as_many_tiles_as_fit(backend, num_tiles, memory, expected):
-    b = schedule.choose_tile_batch(num_tiles, backend=backend, tile_size=16, chunk=CHUNK, memory_bytes=memory)
+    b = tiling.choose_tile_batch(num_tiles, backend=backend, tile_size=16, chunk=CHUNK, memory_bytes=memory)
     assert b == expected
-    mem = schedule.DEFAULT_DEVICE_MEMORY if memory is None else memory
-    assert b == num_tiles or b * _per_tile() <= schedule.MEMORY_SHARE * mem < (b + 1) * _per_tile() or b == 1
+    mem = tiling.DEFAULT_DEVICE_MEMORY if memory is None else memory
+    assert b == num_tiles or b * _per_tile() <= tiling.MEMORY_SHARE * mem < (b + 1) * _per_tile() or b == 1
 
 
 def test_explicit_and_environment_overrides(monkeypatch):
-    monkeypatch.delenv(schedule.ENV_TILE_BATCH, raising=False)
-    assert schedule.resolve_tile_batch(3, 1200, tile_size=16, chunk=32, backend="gpu") == 3
-    assert schedule.resolve_tile_batch(None, 1200, tile_size=16, chunk=32, backend="cpu") == 8
-    monkeypatch.setenv(schedule.ENV_TILE_BATCH, "64")
-    assert schedule.resolve_tile_batch(None, 1200, tile_size=16, chunk=32, backend="cpu") == 64
-    assert schedule.resolve_tile_batch(5, 1200, tile_size=16, chunk=32, backend="cpu") == 5  # the config wins
+    monkeypatch.delenv(tiling.ENV_TILE_BATCH, raising=False)
+    assert tiling.resolve_tile_batch(3, 1200, tile_size=16, chunk=32, backend="gpu") == 3
+    assert tiling.resolve_tile_batch(None, 1200, tile_size=16, chunk=32, backend="cpu") == 8
+    monkeypatch.setenv(tiling.ENV_TILE_BATCH, "64")
+    assert tiling.resolve_tile_batch(None, 1200, tile_size=16, chunk=32, backend="cpu") == 64
+    assert tiling.resolve_tile_batch(5, 1200, tile_size=16, chunk=32, backend="cpu") == 5  # the config wins
     for bad in ("0", "-3", "many"):
-        monkeypatch.setenv(schedule.ENV_TILE_BATCH, bad)
+        monkeypatch.setenv(tiling.ENV_TILE_BATCH, bad)
         with pytest.raises(ValueError, match="PATEXGS_TILE_BATCH"):
-            schedule.resolve_tile_batch(None, 1200, tile_size=16, chunk=32, backend="cpu")
+            tiling.resolve_tile_batch(None, 1200, tile_size=16, chunk=32, backend="cpu")
     with pytest.raises(ValueError, match="tile_batch"):
         RenderConfig(tile_batch=0)
 
@@ -67,7 +68,7 @@ def test_explicit_and_environment_overrides(monkeypatch):
 def test_cpu_default_is_todays_program(monkeypatch):
     """On the CPU the device-chosen schedule is the tuned one: the default config lowers to the same
     program as ``tile_batch=8`` (so the CPU path is exactly as fast as before)."""
-    monkeypatch.delenv(schedule.ENV_TILE_BATCH, raising=False)
+    monkeypatch.delenv(tiling.ENV_TILE_BATCH, raising=False)
     sc, cam = scene(1), camera()
     texts = []
     for tb in (None, 8):
@@ -98,7 +99,7 @@ def _low_precision_products(fn, *args) -> tuple[int, list[str]]:
     return len(products), [p[:240] for p in products if not _full_precision(p)]
 
 
-# Bucket sides above textures._UNROLL_MAX take the einsum path of the mip pyramid.
+# Bucket sides above textures.atlas._UNROLL_MAX take the einsum path of the mip pyramid.
 _SIDES = [0, 1, 3, 5, 8, 12, 24, 40] * 6
 
 
@@ -119,7 +120,7 @@ def test_render_lowered_for_cuda_states_full_precision(config):
 
     counts = []
     for fn in (lambda s: render_jit(s, cam, config=config, capacity=CAP).rgb, jax.grad(loss),
-               lambda s: rendering.prepare_textures(s, config=config)):
+               lambda s: prepare_textures(s, config=config)):
         count, low = _low_precision_products(fn, sc)
         assert not low, f"{len(low)} of {count} products without precision=HIGHEST:\n" + "\n".join(low)
         counts.append(count)
@@ -169,7 +170,7 @@ def test_render_config_replace_keeps_resolved_fields():
 
 
 def test_viewer_frames_take_the_device_schedule_off_the_cpu():
-    from patexgs_jax import viewing as vw
+    from patexgs_jax.viewer import frames as vw
 
     assert vw.frame_schedule("cpu") == vw.FRAME_SCHEDULE
     assert vw.frame_schedule("gpu") == {} and vw.frame_schedule("tpu") == {}

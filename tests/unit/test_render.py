@@ -13,9 +13,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import hard_scenes as hs
-from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, render, render_jit, rendering
+from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, render, render_jit
 from patexgs_jax.data.colmap_model import quaternion_from_rotation
-from patexgs_jax.rendering import chunks
+from patexgs_jax.render import TRACE_COUNTS, check_inputs
+from patexgs_jax.rendering import chunks, projection
 from render_cases import (
     CAP,
     CONFIGS,
@@ -94,10 +95,10 @@ def test_scaled_camera_is_pixel_consistent():
 # ---------------------------------------------------------------------------------------------
 def test_one_compile_per_configuration():
     cfg = RenderConfig(mip="nearest", lambda_mip=0.7)  # a config no other test uses
-    before = rendering.TRACE_COUNTS[(cfg, CAP)]
+    before = TRACE_COUNTS[(cfg, CAP)]
     for seed, eye in [(11, (0.3, -0.4, -3.2)), (12, (-0.5, 0.2, -3.0)), (13, (0.0, 0.1, -2.5))]:
         render_jit(scene(seed), camera(eye=eye), config=cfg, capacity=CAP).rgb.block_until_ready()
-    assert rendering.TRACE_COUNTS[(cfg, CAP)] - before == 1
+    assert TRACE_COUNTS[(cfg, CAP)] - before == 1
 
 
 def test_overflow_is_counted_and_render_grows():
@@ -164,9 +165,9 @@ def test_inputs_off_the_layout_fail_at_trace_time_naming_the_field():
     """A Scene or Camera edited by hand against the layout fails before any rendering work, with the
     field, the expected shape or dtype and how to build one; float64 scenes (the references) pass."""
     sc, cam = scene(3), camera()
-    rendering.check_inputs(sc, cam)
+    check_inputs(sc, cam)
     with jax.enable_x64(True):
-        rendering.check_inputs(sc.astype(jnp.float64), cam)
+        check_inputs(sc.astype(jnp.float64), cam)
     cases = [
         (sc.replace(means=sc.means[:, :2]), cam, r"Scene\.means must be \(\d+, 3\)"),
         (sc.replace(quats=sc.quats[:-1]), cam, r"Scene\.quats must be \(\d+, 4\)"),
@@ -253,8 +254,8 @@ def _binning_case(rng, n, box, tiles_x, tiles_y):
     ty1 = np.minimum(ty0 + rng.integers(1, box + 1, n), tiles_y)
     ok = rng.random(n) < 0.9
     every = np.arange(n) % 2 == 0
-    fp = np.zeros((n, rendering.projection.FOOTPRINT.width), np.float32)
-    F = rendering.projection.FOOTPRINT
+    fp = np.zeros((n, projection.FOOTPRINT.width), np.float32)
+    F = projection.FOOTPRINT
     fp[:, F.c] = (1.0, 1.0, 1.0)                 # s = (1, 1, 1) at every pixel: front = side * 1
     fp[:, F.conic] = (1.0, 0.0, 1.0)
     fp[:, F.r2] = 0.0                            # Phi = -|s01|^2 < 0 (and the front is negative)

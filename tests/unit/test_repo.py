@@ -112,8 +112,8 @@ def test_runtime_dependencies_are_what_the_package_imports():
     """The package's dependencies are exactly its third-party imports; the studies and the tests
     import nothing that the extras the README installs for them (studies, test) do not declare."""
     runtime, extras = _requirements()
-    # The viewer's server (view.py) imports viser when it runs: the viewer extra declares it.
-    assert _third_party_imports("patexgs_jax", skip={"view.py"}) == runtime
+    # The viewer's server (viewer/server.py) imports viser when it runs: the viewer extra declares it.
+    assert _third_party_imports("patexgs_jax", skip={"server.py"}) == runtime
     assert _third_party_imports("patexgs_jax") <= runtime | extras["viewer"]
     assert extras["viewer"] <= extras["test"]
     assert _third_party_imports("experiments") <= runtime | extras["studies"]

@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, rendering
+from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
 from patexgs_jax.adaptive import (
     GrowthSchedule,
     TextureScheduleState,
@@ -34,7 +34,8 @@ from patexgs_jax.adaptive import (
 )
 from patexgs_jax.metrics import mb_to_texels, storage_mb, texels_to_mb
 from patexgs_jax.optim import adam_moments, make_optimizer
-from patexgs_jax.rebucket import add_textures, resample_matrix, resize_textures
+from patexgs_jax.render import _render
+from patexgs_jax.textures.rebucket import add_textures, resample_matrix, resize_textures
 
 BANKS = ("rgb", "alpha")
 NEUTRAL = {"rgb": 0.0, "alpha": 1.0}
@@ -346,7 +347,7 @@ def test_exact_growth_leaves_the_render_unchanged():
     cam = Camera.from_intrinsics([40.0, 40.0, 16.0, 16.0], look_at((0.2, -0.1, -2.0), (0, 0, 0)), 32, 32)
     cfg, cap = RenderConfig(mip="none"), Capacity(pairs=256)
     # The renderer traced at most once for the three scenes below (a second trace raises).
-    render_once = jax.jit(chex.assert_max_traces(rendering._render, n=1), static_argnames=("config", "capacity"))
+    render_once = jax.jit(chex.assert_max_traces(_render, n=1), static_argnames=("config", "capacity"))
     outs = [render_once(s, cam, config=cfg, capacity=cap) for s in (scene, grown)]
     assert not any(bool(o.overflow) for o in outs)
     np.testing.assert_allclose(np.asarray(outs[1].rgb), np.asarray(outs[0].rgb), atol=2e-5)

@@ -27,7 +27,7 @@ def test_pyramid_levels_and_their_transpose_match_numpy():
     """Each bucket's levels are ``D X D^T`` of the level above (the first with each slot's own
     filter for its size), and the backward is the transpose ``D^T G D``: checked in float64 against
     numpy, for the unrolled filters and the einsum (the first level of a 32-texel slot)."""
-    from patexgs_jax import textures as tx
+    from patexgs_jax.textures import atlas as tx
 
     rng = np.random.default_rng(3)
     with jax.enable_x64(True):

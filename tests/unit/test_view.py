@@ -1,4 +1,4 @@
-"""The browser viewer's in-process parts (patexgs_jax.viewing, patexgs_jax.view): the browser's camera
+"""The browser viewer's in-process parts (patexgs_jax.viewer.frames, patexgs_jax.viewer.server): the browser's camera
 becomes our Camera, camera moves never compile, the per-pixel mip level follows Eq. 11, the modes, the
 runs a path names, and the browser's values only ever picked from lists. The server, the browser and
 the command line are in tests/integration/test_viewer_server.py.
@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 
 from patexgs_jax import checkpoint as ckpt
-from patexgs_jax import compiled, rendering
-from patexgs_jax import viewing as vw
+from patexgs_jax import compiled
 from patexgs_jax.camera import Camera, look_at
+from patexgs_jax.render import TRACE_COUNTS, RenderConfig, count_pairs, render, render_jit
 from patexgs_jax.scene import Scene
 from patexgs_jax.textures import TextureBank
+from patexgs_jax.viewer import frames as vw
 from viewer_scenes import H, W, orbit_camera
 
 viser = pytest.importorskip("viser", reason='the viewer needs viser: pip install -e ".[viewer]"')
@@ -29,7 +30,7 @@ viser = pytest.importorskip("viser", reason='the viewer needs viser: pip install
 @pytest.fixture(scope="module")
 def frames(viewer_scene):
     """The viewer's renderer of ``viewer_scene`` in PATexGS's own mode."""
-    return vw.FrameRenderer(viewer_scene, rendering.RenderConfig(coverage="prefilter"))
+    return vw.FrameRenderer(viewer_scene, RenderConfig(coverage="prefilter"))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -59,7 +60,7 @@ def test_training_view_through_the_viewer_renders_as_render(viewer_scene, frames
     # render() of the run's own mode with its default compositor schedule: the viewer's
     # frame_schedule() (a CPU's FRAME_SCHEDULE) changes the order of the work, not the image
     assert r.config == dataclasses.replace(vw.mode_config(frames.base, "patexgs"), **vw.frame_schedule())
-    ref = np.clip(np.asarray(rendering.render(viewer_scene, cam, vw.mode_config(frames.base, "patexgs")).rgb), 0, 1)
+    ref = np.clip(np.asarray(render(viewer_scene, cam, vw.mode_config(frames.base, "patexgs")).rgb), 0, 1)
     assert frame.image.shape == (H, W, 3)
     assert ref.std() > 0.05  # the view sees the scene
     np.testing.assert_allclose(frame.image / 255.0, ref, atol=1.0 / 255 + 1e-6)
@@ -68,18 +69,18 @@ def test_training_view_through_the_viewer_renders_as_render(viewer_scene, frames
 def test_camera_moves_never_compile(frames):
     """After the first frame at a canvas size (full and preview size), frames of other poses at that
     size compile nothing: neither the renderer nor the mip-level function."""
-    fns = (rendering.render_jit, rendering.count_pairs, vw.dominant_mip_level)
+    fns = (render_jit, count_pairs, vw.dominant_mip_level)
     for view in ("rgb", "mip level"):
         frames.render(orbit_camera(0.0), view=view)
         frames.render(orbit_camera(0.0), view=view, scale=4, enlarge=False)
-    traces = sum(rendering.TRACE_COUNTS.values())
+    traces = sum(TRACE_COUNTS.values())
     programs = [compiled.program_count(f) for f in fns]
     for k, angle in enumerate(np.linspace(0.2, 2.5, 6)):
         cam = orbit_camera(angle, radius=3.2 + 0.15 * k)
         for view in ("rgb", "mip level"):
             for f in (frames.render(cam, view=view), frames.render(cam, view=view, scale=4, enlarge=False)):
                 assert not f.grew and not f.compiled
-    assert sum(rendering.TRACE_COUNTS.values()) == traces
+    assert sum(TRACE_COUNTS.values()) == traces
     assert [compiled.program_count(f) for f in fns] == programs
 
 
@@ -110,10 +111,10 @@ def test_mip_level_follows_eq11():
     cam = Camera.from_intrinsics((f, f, 32.0, 32.0), look_at((0, 0, -z), (0, 0, 0)), 64, 64)
     bare = scene.replace(rgb=None)  # the same dominant splat, cheaper to compile
     for coverage, lam in (("prefilter", 1 / 6),):
-        cfg = rendering.RenderConfig(coverage=coverage)
+        cfg = RenderConfig(coverage=coverage)
         for factor in (1, 2):
             c = cam if factor == 1 else cam.scaled(factor)
-            out = rendering.render(bare, c, cfg)
+            out = render(bare, c, cfg)
             lev = np.asarray(vw.dominant_mip_level(scene, c, out.dominant, bank="rgb", lambda_mip=lam, use_mip=True))
             want = int(np.clip(np.floor(np.log2(lam * 32 * D * factor)), 0, 5))
             centre = lev[c.height // 2, c.width // 2]
@@ -124,7 +125,7 @@ def test_mip_level_follows_eq11():
 
 
 def test_modes():
-    base = rendering.RenderConfig(coverage="prefilter")
+    base = RenderConfig(coverage="prefilter")
     assert vw.own_mode(base) == "patexgs"
     lit = vw.mode_config(base, "literal")
     assert (lit.coverage, lit.lambda_mip, lit.mip) == ("lowpass", 0.4, "nearest")
@@ -163,7 +164,7 @@ def test_find_runs(viewer_run_dir, tmp_path):
 def test_browser_input_only_picks_from_lists(viewer_run_dir, tmp_path):
     """Values a browser sends are looked up in the lists made at start-up; anything else (a path, a
     made-up mode) is logged and ignored."""
-    from patexgs_jax.view import Viewer
+    from patexgs_jax.viewer.server import Viewer
 
     lines = []
     viewer = Viewer(vw.find_runs(viewer_run_dir.parents[1]), log=lines.append)

@@ -39,8 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .scene import Scene
-from .textures import TextureBank, bucket_of
+from ..scene import Scene
+from .bank import TextureBank, bucket_of
 
 __all__ = [
     "ALPHA_NEUTRAL",

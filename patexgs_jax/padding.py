@@ -4,12 +4,12 @@ A jitted renderer or training step is compiled once per image size (``Camera.wid
 ``height`` are static). Undistorted captures have a slightly different size per image (beer at 1/4:
 20 sizes over 62 training views), and evaluation adds every view's zoom-outs, so compiling per size
 fills the process's memory mappings (see :mod:`patexgs_jax.compiled`). Here a view is rendered at a
-bucket size instead, with the same intrinsics, and cropped: pixel (i, j) keeps its centre
+padded size instead, with the same intrinsics, and cropped: pixel (i, j) keeps its centre
 (j + 0.5, i + 0.5) and the renderer composites each tile independently, so the cropped image is the
-unpadded render: bit for bit when the bucket keeps the tile grid, within float rounding (1e-6
+unpadded render: bit for bit when the padded size keeps the tile grid, within float rounding (1e-6
 relative, tiles are batched differently) when it adds tiles.
 
-Buckets: the side is rounded up to whole tiles (the renderer computes whole tiles anyway: the
+Padded sizes: the side is rounded up to whole tiles (the renderer computes whole tiles anyway: the
 padding inside the last tile is free), then the number of tiles t to ``steps_per_octave`` sizes per
 octave: t itself up to ``steps_per_octave`` tiles, above that the next ``m 2^k`` with
 ``steps_per_octave <= m < 2 steps_per_octave`` (at most 1/steps_per_octave of extra tiles a side).
@@ -28,15 +28,15 @@ import numpy as np
 
 from . import compiled
 from .camera import Camera
-from .rendering import Capacity, count_pairs, prepare_textures, render_jit
+from .render import Capacity, count_pairs, prepare_textures, render_jit
 
-#: Bucket sizes per octave of tiles used by evaluation: the exact tile grid up to 16 x 16 = 256
+#: Padded sizes per octave of tiles used by evaluation: the exact tile grid up to 16 x 16 = 256
 #: pixels a side, at most an eighth of extra tiles above (beer's test views at 1/4 and their
-#: zoom-outs by 2, 4, 8: 5 buckets).
+#: zoom-outs by 2, 4, 8: 5 padded sizes).
 EVAL_STEPS_PER_OCTAVE = 8
 
 
-def bucket_side(side: int, tile_size: int = 16, steps_per_octave: int | None = None) -> int:
+def padded_side(side: int, tile_size: int = 16, steps_per_octave: int | None = None) -> int:
     """The padded length of an image side of ``side`` pixels (see the module docstring)."""
     side, tile_size = int(side), int(tile_size)
     if side < 1 or tile_size < 1:
@@ -55,15 +55,15 @@ def bucket_side(side: int, tile_size: int = 16, steps_per_octave: int | None = N
     return tiles * tile_size
 
 
-def bucket_shape(height: int, width: int, tile_size: int = 16,
+def padded_shape(height: int, width: int, tile_size: int = 16,
                  steps_per_octave: int | None = None) -> tuple[int, int]:
     """(padded height, padded width) of an ``height x width`` image."""
-    return (bucket_side(height, tile_size, steps_per_octave), bucket_side(width, tile_size, steps_per_octave))
+    return (padded_side(height, tile_size, steps_per_octave), padded_side(width, tile_size, steps_per_octave))
 
 
 def padded_camera(camera: Camera, tile_size: int = 16, steps_per_octave: int | None = None) -> Camera:
-    """The same camera (K and pose unchanged: pixel centres stay where they are) at its bucket size."""
-    h, w = bucket_shape(camera.height, camera.width, tile_size, steps_per_octave)
+    """The same camera (K and pose unchanged: pixel centres stay where they are) at its padded size."""
+    h, w = padded_shape(camera.height, camera.width, tile_size, steps_per_octave)
     if (h, w) == (camera.height, camera.width):
         return camera
     return Camera(K=camera.K, world_to_camera=camera.world_to_camera, width=w, height=h)
@@ -114,10 +114,10 @@ def crop_output(out, height: int, width: int):
 
 
 class ViewRenderer:
-    """Renders one scene from views of any size with one program per size bucket.
+    """Renders one scene from views of any size with one program per padded size.
 
-    The tile capacity of a bucket is the largest any of its views needs (:meth:`prepare` counts a
-    list of views up front, so that each bucket compiles once; a view met later grows its bucket's
+    The tile capacity of a padded size is the largest any of its views needs (:meth:`prepare` counts a
+    list of views up front, so that each padded size compiles once; a view met later grows its size's
     capacity, a new program). Images are never truncated. Use as a context manager (or call
     :meth:`release`) so that the scene's compiled renderer and pair counter are released when done:
     another scene has other shapes and never reuses them.
@@ -125,17 +125,17 @@ class ViewRenderer:
     Args:
       scene: the :class:`patexgs_jax.Scene`.
       config: its :class:`patexgs_jax.RenderConfig`.
-      steps_per_octave: the buckets (see :func:`bucket_side`; None: the exact tile grid).
+      steps_per_octave: the padded sizes (see :func:`padded_side`; None: the exact tile grid).
       active_sh_degree: optional cap on the SH bands.
-      headroom: a bucket first met in :meth:`padded` gets the capacity of ``headroom`` times the
+      headroom: a padded size first met in :meth:`padded` gets the capacity of ``headroom`` times the
         view's need, so that nearby views (an interactive camera) fit it without a new program.
       reuse_textures: build the scene's texture atlases and their pyramids once
-        (:func:`rendering.prepare_textures`) and reuse them for every view, instead of in every
+        (:func:`patexgs_jax.render.prepare_textures`) and reuse them for every view, instead of in every
         render: for many views of one scene (a viewer), at the cost of one more program.
       programs: programs compiled ahead for this scene's layout (:mod:`patexgs_jax.ahead`):
         ``("count", h, w)``: ``count_pairs.lower(scene, camera, config=config).compile()``;
         ``("render", h, w, capacity)``: ``render_jit.lower(scene, camera, config=config,
-        capacity=capacity, active_sh_degree=None, textures=None).compile()``, for bucket cameras of
+        capacity=capacity, active_sh_degree=None, textures=None).compile()``, for padded cameras of
         h x w; used in place of compiling the same (other keys compile as usual).
     """
 
@@ -149,11 +149,11 @@ class ViewRenderer:
         self.headroom = float(headroom)
         self.reuse_textures = reuse_textures
         self._textures = None  # the scene's prepare_textures, once built (reuse_textures)
-        self.capacities: dict = {}  # (height, width) of a bucket -> Capacity; as many as buckets
+        self.capacities: dict = {}  # (height, width) of a padded size -> Capacity; one per size
         self.programs = dict(programs or {})
 
     def camera(self, camera: Camera) -> Camera:
-        """``camera`` at its bucket size."""
+        """``camera`` at its padded size."""
         return padded_camera(camera, self.config.tile_size, self.steps)
 
     def _needed(self, cam: Camera) -> float:
@@ -171,14 +171,14 @@ class ViewRenderer:
                           active_sh_degree=self.active_sh_degree, textures=self._textures)
 
     def prepare(self, cameras: Sequence[Camera]) -> None:
-        """Fits every bucket's capacity to the views ``cameras`` (counted, not rendered)."""
+        """Fits every padded size's capacity to the views ``cameras`` (counted, not rendered)."""
         for c in cameras:
             cam = self.camera(c)
             key = (cam.height, cam.width)
             self.capacities[key] = Capacity.fit(self._needed(cam), minimum=self.capacities.get(key))
 
     def padded(self, camera: Camera):
-        """The :class:`RenderOutput` of ``camera`` rendered at its bucket size, uncropped (on the
+        """The :class:`RenderOutput` of ``camera`` rendered at its padded size, uncropped (on the
         device; what render timing measures)."""
         cam = self.camera(camera)
         key = (cam.height, cam.width)
@@ -188,7 +188,7 @@ class ViewRenderer:
         if self.reuse_textures and self._textures is None:
             self._textures = prepare_textures(self.scene, config=self.config)
         out = self._render(cam, cap)
-        if bool(out.overflow):  # a view not prepared for, needing more than its bucket holds
+        if bool(out.overflow):  # a view not prepared for, needing more than its padded size's capacity holds
             cap = self.capacities[key] = Capacity.fit(float(out.pairs_needed), minimum=cap)
             out = self._render(cam, cap)
         return out

@@ -16,7 +16,7 @@ Memory bound: a batch's forward and backward keep about :data:`PAIR_BYTES` bytes
 chunk slot) of working memory, so a batch needs ``B * tile_size**2 * chunk * PAIR_BYTES`` bytes.
 :data:`PAIR_BYTES` is above the largest slope measured (XLA's memory analysis of the compiled
 forward and backward of trilinear mipmaps with the prefilter, the heaviest configuration, in
-docs/performance.md; tests/integration/test_device_schedule.py measures it again).
+docs/performance.md; tests/integration/test_device_tiling.py measures it again).
 
 ``RenderConfig(tile_batch=N)`` fixes B; the environment variable ``PATEXGS_TILE_BATCH`` sets it
 for every render whose config leaves it to the device (None, the default).

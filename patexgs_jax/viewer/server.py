@@ -1,6 +1,6 @@
 """Interactive browser viewer of trained runs (viser).
 
-    python -m patexgs_jax.view PATH [--port 8080] [--host 127.0.0.1] [--data DATA [--factor F]]
+    python -m patexgs_jax.viewer PATH [--port 8080] [--host 127.0.0.1] [--data DATA [--factor F]]
 
 PATH is a run folder (``runs/<scene>/<label>/``), a study's output folder (its runs are listed and
 the browser switches between them) or a checkpoint file. ``--data`` names the scene the run was
@@ -10,7 +10,7 @@ shows the render beside the ground truth with its PSNR). Open the printed URL in
 The server renders each browser's camera with the jitted renderer and sends the image as the
 scene's background: at a reduced size while the camera moves, at full size once it rests for
 ``--settle`` seconds. Controls: render scale 1, 1/2, 1/4, 1/8 (the zoom-out protocol, enlarged by
-nearest neighbour), coverage mode, view (see :mod:`patexgs_jax.viewing`), run.
+nearest neighbour), coverage mode, view (see :mod:`patexgs_jax.viewer.frames`), run.
 
 Safety: it binds to 127.0.0.1 unless ``--host`` says otherwise (with a warning: the viewer has no
 authentication). The browser only picks from lists made at start-up (runs, modes, views, scales,
@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from . import compiled, interrupt
-from . import viewing as vw
+from .. import compiled, interrupt
+from . import frames as vw
 
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
 #: Seconds after a full-size frame at which a resting camera's frame is sent again: viser's browser
@@ -283,7 +283,7 @@ class Viewer:
     def _snap(self, client, i: int) -> None:
         """Moves ``client``'s camera to training view ``i`` and shows its render beside the ground
         truth, with the PSNR (rendered at the view's own camera, scale 1, current coverage mode)."""
-        from .metrics import psnr
+        from ..metrics import psnr
 
         if not 0 <= i < len(self.train_views):
             return
@@ -428,7 +428,7 @@ def _thumbnail(image, width: int) -> np.ndarray:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m patexgs_jax.view", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m patexgs_jax.viewer", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("path", help="a run folder, a study's output folder or a .ckpt file")
     ap.add_argument("--port", type=int, default=8080)
@@ -452,7 +452,7 @@ def main(argv=None) -> int:
         check_port(args.host, args.port)
         dataset = None
         if args.data is not None:
-            from .data import DatasetError, load
+            from ..data import DatasetError, load
 
             try:
                 dataset = load(args.data, factor=args.factor)
@@ -483,6 +483,3 @@ def main(argv=None) -> int:
         os._exit(0)
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from patexgs_jax import Capacity, RenderConfig, random_scene, render_jit
-from patexgs_jax.rendering import schedule
+from patexgs_jax.rendering import tiling
 from render_cases import CAP, camera, scene
 
 P, CHUNK = 16 * 16, 32
@@ -17,7 +17,7 @@ P, CHUNK = 16 * 16, 32
 
 def test_whole_image_batch_renders_the_same_image(monkeypatch):
     """Every tile in one batch (a GPU's schedule) gives the CPU schedule's image."""
-    monkeypatch.delenv(schedule.ENV_TILE_BATCH, raising=False)
+    monkeypatch.delenv(tiling.ENV_TILE_BATCH, raising=False)
     sc, cam = scene(2), camera()
     outs = [render_jit(sc, cam, config=RenderConfig(mip="nearest", coverage="prefilter", tile_batch=tb), capacity=CAP)
             for tb in (8, 10_000)]
@@ -43,4 +43,4 @@ def test_memory_bound_covers_the_heaviest_render():
 
         temp[tb] = jax.jit(jax.grad(loss)).lower(sc).compile().memory_analysis().temp_size_in_bytes
     per_tile = (temp[32] - temp[4]) / 28
-    assert 0 < per_tile <= P * CHUNK * schedule.PAIR_BYTES, (per_tile, P * CHUNK * schedule.PAIR_BYTES)
+    assert 0 < per_tile <= P * CHUNK * tiling.PAIR_BYTES, (per_tile, P * CHUNK * tiling.PAIR_BYTES)

@@ -1,20 +1,4 @@
-"""Per-Gaussian textures in power-of-two buckets, their mip pyramids, and one flat texel atlas.
-
-Storage
-  A texture of n x n texels (any n >= 1) lives in bucket ``b = ceil(log2 n)``, whose slots are
-  ``P x P`` with ``P = 2**b``; only the top-left ``n x n`` block is used (the rest stays zero and
-  receives no gradient). Index ``[a, c]`` of a texture runs along the splat's first tangent axis (u)
-  for ``a`` and the second (v) for ``c``. A texture spans the splat-plane square ``[-3, 3]^2`` in
-  units of the scales, align-corners: texel 0 sits at -3 and texel n-1 at +3; lookups are bilinear
-  and clamp at the edges. A 1 x 1 texture is a constant.
-
-Mip pyramid (paper Eqs. 11-13)
-  ``L = ceil(log2 n)`` levels above level 0; level 0 is the texture itself (n x n) and level k >= 1
-  has ``2**(L-k)`` texels a side. Level k is computed from level k-1 by an antialiased bilinear
-  (tent-filter) downsampling over the align-corners texel positions: output texel j takes the
-  weights ``max(0, 1 - |x_i - y_j| / h)`` of the input texels i, normalised to sum to one, where h is
-  the output texel spacing (a 1-texel level is the mean of its parent). Constants are preserved
-  exactly, and for power-of-two n each level is a low-pass of the previous one.
+"""The flat texel atlas of a texture bank, with its mip pyramids (built inside jit), and its lookups.
 
 Atlas
   Every texel, of every bucket and level, sits in one flat ``(M, channels)`` array (the
@@ -31,43 +15,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-
-def bucket_of(n: int) -> int:
-    """Bucket index ``ceil(log2 n)`` of an n x n texture (n >= 1)."""
-    n = int(n)
-    if n < 1:
-        raise ValueError(f"texture size must be >= 1, got {n}")
-    return (n - 1).bit_length()
-
-
-def mip_level_sizes(n: int) -> list[int]:
-    """Side lengths of the pyramid of an n x n texture: ``[n, 2**(L-1), ..., 1]``, L = ceil(log2 n)."""
-    L = bucket_of(n)
-    return [int(n)] + [2 ** (L - k) for k in range(1, L + 1)]
-
-
-@functools.cache
-def downsample_matrix(size_in: int, size_out: int) -> np.ndarray:
-    """(size_out, size_in) float64 tent-filter resampling matrix between align-corners grids.
-
-    Rows sum to one. ``size_out == 1`` gives the mean. Used separably: ``D @ X @ D.T``.
-    """
-    if size_out == 1:
-        return np.full((1, size_in), 1.0 / size_in)
-    if size_in == 1:
-        return np.ones((size_out, 1))
-    x = np.linspace(-3.0, 3.0, size_in)
-    y = np.linspace(-3.0, 3.0, size_out)
-    h = 6.0 / (size_out - 1)
-    w = np.maximum(0.0, 1.0 - np.abs(x[None, :] - y[:, None]) / max(h, 6.0 / (size_in - 1)))
-    return w / w.sum(axis=1, keepdims=True)
+from .bank import TextureBank, downsample_matrix
 
 
 @functools.cache
@@ -82,104 +36,6 @@ def _first_level_table(P: int) -> np.ndarray:
         n = half + 1 + i
         table[i, :, :n] = downsample_matrix(n, half)
     return table
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class TextureBank:
-    """Textures of one channel group (RGB offsets or alpha) for a scene of capacity C.
-
-    Attributes:
-      buckets: tuple of B arrays; ``buckets[b]`` is (capacity_b, 2**b, 2**b, channels) float32.
-        Bucket capacities are static (shapes); a zero-capacity bucket costs nothing.
-      bucket: (C,) float32 holding exact integers: the Gaussian's bucket, -1 for no texture.
-      slot: (C,) float32 holding exact integers: the slot inside that bucket.
-      size: (C,) float32 holding exact integers: the true side n (0 for no texture).
-      channels: 3 for RGB, 1 for alpha (static).
-
-    Indices are stored as float32 so that ``jax.grad`` over a whole Scene works without
-    ``allow_int``; they receive zero gradient and are exact up to 2**24.
-    """
-
-    buckets: tuple
-    bucket: jax.Array
-    slot: jax.Array
-    size: jax.Array
-    channels: int = dataclasses.field(metadata=dict(static=True))
-
-    @property
-    def num_buckets(self) -> int:
-        return len(self.buckets)
-
-    @property
-    def capacities(self) -> tuple[int, ...]:
-        return tuple(int(b.shape[0]) for b in self.buckets)
-
-    @classmethod
-    def from_list(cls, textures: Sequence, capacity: int, channels: int, default: float,
-                  min_buckets: int = 0) -> TextureBank:
-        """Packs per-Gaussian textures into buckets.
-
-        Args:
-          textures: length-N sequence (N <= capacity); entry i is None (no texture) or an array of
-            shape (n, n, channels) (or (n, n) when channels == 1).
-          capacity: the scene's Gaussian capacity C.
-          channels: 3 or 1.
-          default: the value a texture-less Gaussian samples (0 for RGB offsets, 1 for alpha); only
-            used for validation messages.
-          min_buckets: build at least this many buckets (zero-capacity ones included).
-        """
-        del default
-        sizes = np.zeros(capacity, np.int64)
-        arrays = []
-        for i, t in enumerate(textures):
-            if t is None:
-                arrays.append(None)
-                continue
-            t = np.asarray(t, np.float32)
-            if channels == 1 and t.ndim == 2:
-                t = t[..., None]
-            if t.ndim != 3 or t.shape[0] != t.shape[1] or t.shape[2] != channels or t.shape[0] < 1:
-                want = "(n, n)" if channels == 1 else f"(n, n, {channels})"
-                raise ValueError(f"texture of Gaussian {i} has shape {t.shape}; expected {want} with n >= 1.")
-            if not np.all(np.isfinite(t)):
-                raise ValueError(f"texture of Gaussian {i} has non-finite texels.")
-            sizes[i] = t.shape[0]
-            arrays.append(t)
-        nb = max([bucket_of(int(s)) + 1 for s in sizes if s > 0] + [min_buckets])
-        counts = [0] * nb
-        bucket = -np.ones(capacity, np.int64)
-        slot = np.zeros(capacity, np.int64)
-        for i, s in enumerate(sizes):
-            if s > 0:
-                b = bucket_of(int(s))
-                bucket[i], slot[i] = b, counts[b]
-                counts[b] += 1
-        caps = [0 if c == 0 else 1 << (c - 1).bit_length() for c in counts]
-        data = [np.zeros((caps[b], 1 << b, 1 << b, channels), np.float32) for b in range(nb)]
-        for i, t in enumerate(arrays):
-            if t is not None:
-                n = t.shape[0]
-                data[bucket[i]][slot[i], :n, :n] = t
-        return cls(buckets=tuple(jnp.asarray(d) for d in data),
-                   bucket=jnp.asarray(bucket, jnp.float32), slot=jnp.asarray(slot, jnp.float32),
-                   size=jnp.asarray(sizes, jnp.float32), channels=channels)
-
-    def texture(self, i: int) -> np.ndarray | None:
-        """Host-side copy of Gaussian i's level-0 texture, (n, n, channels), or None."""
-        b = int(self.bucket[i])
-        if b < 0:
-            return None
-        n = int(self.size[i])
-        return np.asarray(self.buckets[b][int(self.slot[i]), :n, :n])
-
-    def texel_count(self, active=None) -> int:
-        """Number of stored texels (sum of n*n over textured, optionally active, Gaussians)."""
-        n = np.asarray(self.size, np.int64)
-        if active is not None:
-            n = n * (np.asarray(active) > 0)
-        return int(np.sum(n * n))
-
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -398,7 +254,7 @@ def mip_level(footprint, n, max_level, lambda_mip: float, trilinear: bool):
       trilinear: if False, ``l = clip(floor(log2(lambda * n * D)), 0, L)`` (int32); if True the
         fractional level ``clip(log2(lambda * n * D), 0, L)`` (float).
     """
-    from .math import safe_log2
+    from ..math import safe_log2
 
     return mip_level_log2(safe_log2(footprint), n, max_level, lambda_mip, trilinear)
 
@@ -407,7 +263,7 @@ def mip_level_log2(log2_footprint, n, max_level, lambda_mip: float, trilinear: b
     """:func:`mip_level` from ``log2(footprint)``: ``log2(lambda n D) = log2(D) + log2(lambda n)``,
     so the renderer takes one logarithm per pixel and splat, shared by every bank and level it reads,
     and one per splat for the texture side."""
-    from .math import safe_log2
+    from ..math import safe_log2
 
     lf = log2_footprint + safe_log2(lambda_mip * n)
     Lf = max_level.astype(lf.dtype)

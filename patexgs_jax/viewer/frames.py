@@ -1,5 +1,5 @@
 """What the interactive viewer shows, without the web server: trained runs found on disk, the
-camera of a browser's view, and frames of each view mode (:mod:`patexgs_jax.view` serves them).
+camera of a browser's view, and frames of each view mode (:mod:`patexgs_jax.viewer.server` serves them).
 
 Cameras
   A browser's camera (viser's) is a camera-to-world rotation ``wxyz`` and position in OpenCV axes
@@ -10,8 +10,8 @@ Cameras
 Frames
   A frame is rendered at the canvas size divided by the render scale s (1, 2, 4, 8: the zoom-out
   protocol's ``Camera.scaled``) and enlarged s times by nearest neighbour, so aliasing stays
-  visible. Views are rendered at the size buckets of :class:`patexgs_jax.buckets.ViewRenderer`, with
-  a tile capacity fitted with headroom when a bucket is first met: a moving camera reuses the
+  visible. Views are rendered at the padded sizes of :class:`patexgs_jax.padding.ViewRenderer`, with
+  a tile capacity fitted with headroom when a padded size is first met: a moving camera reuses the
   compiled programs of its canvas size.
 
 View modes (per pixel)
@@ -40,13 +40,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import textures as tex
-from .buckets import ViewRenderer, crop, release_scene_programs
-from .camera import ZOOM_SCALES, Camera
-from .rendering import RenderConfig
-from .rendering.kernel import UV_LIMIT
-from .rendering.kernel import uv as ray_plane_uv
-from .rendering.projection import image_map, ray_planes
+from .. import textures as tex
+from ..camera import ZOOM_SCALES, Camera
+from ..padding import ViewRenderer, crop, release_scene_programs
+from ..render import RenderConfig
+from ..rendering.kernel import UV_LIMIT
+from ..rendering.kernel import uv as ray_plane_uv
+from ..rendering.projection import image_map, ray_planes
 
 #: Render scales (zoom-out factors) the viewer offers.
 SCALES = ZOOM_SCALES
@@ -59,7 +59,7 @@ MODES = {"patexgs": "PATexGS (prefilter)", "literal": "literal Eqs. 11-13 (2DGS 
 #: order, not the image: within 1e-6). A trained model's view lists far more splats per tile than a
 #: training batch's random views, so a frame is almost all compositing, which smaller chunks over
 #: more tiles at once (the same 64k-pair block as the default 8 x 32) run faster
-#: (docs/performance.md has the A/B). A CPU's: on a GPU the device's own (:mod:`patexgs_jax.rendering.schedule`)
+#: (docs/performance.md has the A/B). A CPU's: on a GPU the device's own (:mod:`patexgs_jax.rendering.tiling`)
 #: advances every tile at once.
 FRAME_SCHEDULE = dict(tile_batch=16, chunk=16)
 
@@ -93,7 +93,7 @@ class RunEntry:
 
 
 def _is_run(folder: Path) -> bool:
-    from .checkpoint import latest_checkpoint
+    from ..checkpoint import latest_checkpoint
 
     ck = folder / "checkpoints"
     return (ck.is_dir() and latest_checkpoint(ck) is not None) or (folder / "scene.ply").is_file()
@@ -140,7 +140,7 @@ class LoadedRun:
 
 def render_config_of(train_config: dict) -> RenderConfig:
     """The render configuration of a run's method from its saved training configuration (a dict)."""
-    from .training import Method
+    from ..training import Method
 
     lam = train_config.get("lambda_mip")
     return Method.from_name(train_config.get("method", "patexgs")).render_config(
@@ -150,8 +150,8 @@ def render_config_of(train_config: dict) -> RenderConfig:
 def load_run(entry: RunEntry) -> LoadedRun:
     """Loads a run: its newest checkpoint's scene (or ``scene.ply`` without checkpoints) with its
     method's render configuration. Raises :class:`ViewerError` when it cannot be read."""
-    from . import checkpoint as ckpt
-    from .export import PlyFormatError, load_ply
+    from .. import checkpoint as ckpt
+    from ..export import PlyFormatError, load_ply
 
     path = entry.path
     try:
@@ -345,7 +345,7 @@ class FrameRenderer:
     Args:
       scene: the trained :class:`patexgs_jax.Scene`.
       base: the run's own :class:`RenderConfig` (its mip flags and background).
-      headroom: tile capacity headroom of a bucket (see :class:`ViewRenderer`).
+      headroom: tile capacity headroom of a padded size (see :class:`ViewRenderer`).
     """
 
     def __init__(self, scene, base: RenderConfig, *, headroom: float = 2.0):
@@ -429,7 +429,7 @@ class FrameRenderer:
             r.capacities.clear()
         self._renderers.clear()
         release_scene_programs()
-        from .compiled import release_programs
+        from ..compiled import release_programs
 
         release_programs(dominant_mip_level)
 
@@ -437,8 +437,8 @@ class FrameRenderer:
 def _programs() -> tuple:
     """Traces of the renderer and programs of the pair counter, the texture preparer and the mip-level
     function: a frame that changes them compiled something."""
-    from . import compiled
-    from .rendering import TRACE_COUNTS, count_pairs, prepare_textures
+    from .. import compiled
+    from ..render import TRACE_COUNTS, count_pairs, prepare_textures
 
     return (sum(TRACE_COUNTS.values()), compiled.program_count(count_pairs),
             compiled.program_count(prepare_textures), compiled.program_count(dominant_mip_level))
@@ -446,7 +446,7 @@ def _programs() -> tuple:
 
 def scene_stats(scene) -> dict:
     """``{"gaussians", "texels", "storage_mb"}`` of a scene (see :func:`metrics.scene_storage`)."""
-    from .metrics import scene_storage
+    from ..metrics import scene_storage
 
     size = scene_storage(scene)
     return {k: size[k] for k in ("gaussians", "texels", "storage_mb")}
