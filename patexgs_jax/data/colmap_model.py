@@ -1,4 +1,5 @@
-"""COLMAP model files: finding a scene's model folder, reading it (``.bin`` or ``.txt``) and writing one.
+"""COLMAP model files: finding a scene's model folder, what a model holds, and reading it (``.bin`` by
+:mod:`.colmap_binary`, which also writes one, ``.txt`` by :mod:`.colmap_text`).
 
 The reader is ours (numpy and :mod:`struct`), so that a COLMAP scene loads without pycolmap. It walks
 every record and checks it as it goes: a truncated or padded binary file, a damaged text line, an
@@ -16,9 +17,6 @@ COLMAP does not use it either); older models have only the three files and the p
 
 from __future__ import annotations
 
-import re
-import struct
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
@@ -40,9 +38,6 @@ __all__ = [
     "quaternion_from_rotation",
     "read_model",
     "rotation_from_quaternion",
-    "validate_binary_model",
-    "validate_text_model",
-    "write_binary_model",
 ]
 
 _MODEL_FILES = ("cameras", "images", "points3D")
@@ -112,6 +107,11 @@ CAMERA_MODELS_BY_NAME: dict[str, CameraModel] = {m.name: m for m in CAMERA_MODEL
 _SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}
 _SENSOR_TYPE_IDS = {v: k for k, v in _SENSOR_TYPES.items()}
 _CAMERA = 0
+# Ids are kept as int64 (COLMAP's are unsigned; none comes near 2**63).
+_ID_LIMIT = 1 << 63
+
+# A keypoint of images.bin (and .txt): x, y (float64), its 3D point's id (uint64, all ones for none: -1 as int64).
+_POINT2D = np.dtype([("xy", "<f8", (2,)), ("point3D_id", "<i8")])
 # The pose of a rig's reference sensor in the rig (the identity; compared by identity, never composed).
 _REFERENCE = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
 
@@ -333,188 +333,6 @@ def _has_rigs_frames(folder: Path, ext: str) -> bool:
     return all(present)
 
 
-def _read_rigs_frames_binary(folder: Path) -> _RigsFrames | None:
-    if not _has_rigs_frames(folder, ".bin"):
-        return None
-    rigs: dict[int, dict[tuple[int, int], np.ndarray | None]] = {}
-    r = _Reader(folder / "rigs.bin")
-    for _ in range(r.count("<Q", 8, "rigs")):
-        rig_id, nsensors = r.unpack("<II", "a rig record")
-        sensors: dict[tuple[int, int], np.ndarray | None] = {}
-        if nsensors > 0:
-            sensors[r.unpack("<iI", f"the reference sensor of rig {rig_id}")] = _REFERENCE
-        for _ in range(max(0, nsensors - 1)):
-            stype, sid, has_pose = r.unpack("<iIB", f"a sensor of rig {rig_id}")
-            sensors[(stype, sid)] = None
-            if has_pose:
-                pose = _pose(r.unpack("<7d", f"a sensor pose of rig {rig_id}"))
-                sensors[(stype, sid)] = _check_sensor_pose(r.path, rig_id, pose)
-        if rig_id in rigs:
-            r.fail(f"rig {rig_id} is defined twice")
-        rigs[rig_id] = sensors
-    r.finish()
-    frames = {}
-    r = _Reader(folder / "frames.bin")
-    for _ in range(r.count("<Q", 68, "frames")):
-        frame_id, rig_id, *qt = r.unpack("<II7d", "a frame record")
-        ndata = r.count("<I", 16, f"data ids of frame {frame_id}")
-        cams = []
-        for _ in range(ndata):
-            stype, sid, data_id = r.unpack("<iIQ", f"the data ids of frame {frame_id}")
-            if stype == _CAMERA:
-                cams.append((sid, data_id))
-        if frame_id in frames:
-            r.fail(f"frame {frame_id} is defined twice")
-        frames[frame_id] = (rig_id, _pose(qt), cams)
-    r.finish()
-    return _RigsFrames(folder / "rigs.bin", folder / "frames.bin", rigs, frames)
-
-
-# ----------------------------------------------------------------------------------------------------
-# Binary files
-# ----------------------------------------------------------------------------------------------------
-
-
-class _Reader:
-    """A binary file read front to back; every read checks that the bytes are there."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        try:
-            self.buf = path.read_bytes()
-        except OSError as e:
-            raise DatasetError(f"Cannot read COLMAP file {path}: {e}.") from None
-        self.off = 0
-
-    def fail(self, what: str) -> NoReturn:
-        raise DatasetError(
-            f"COLMAP file {self.path} is corrupt or truncated ({what}, at byte {self.off} of "
-            f"{len(self.buf)}). Re-export the model (colmap model_converter) or re-copy the file.")
-
-    def unpack(self, fmt: str, what: str):
-        size = struct.calcsize(fmt)
-        if self.off + size > len(self.buf):
-            self.fail(f"file ends inside {what}")
-        out = struct.unpack_from(fmt, self.buf, self.off)
-        self.off += size
-        return out
-
-    def take(self, nbytes: int, what: str) -> bytes:
-        if nbytes < 0 or self.off + nbytes > len(self.buf):
-            self.fail(f"file ends inside {what}")
-        out = self.buf[self.off:self.off + nbytes]
-        self.off += nbytes
-        return out
-
-    def count(self, fmt: str, min_record: int, what: str) -> int:
-        (n,) = self.unpack(fmt, f"the {what} count")
-        if n * min_record > len(self.buf) - self.off:
-            self.fail(f"it declares {n} {what} but only {len(self.buf) - self.off} bytes follow")
-        return n
-
-    def finish(self):
-        if self.off != len(self.buf):
-            self.fail(f"{len(self.buf) - self.off} unexpected trailing bytes")
-
-
-# Ids are kept as int64 (COLMAP's are unsigned; none comes near 2**63).
-_ID_LIMIT = 1 << 63
-
-# A keypoint in images.bin: x, y (float64), the id of its 3D point (uint64, all ones for none: -1 as int64).
-_POINT2D = np.dtype([("xy", "<f8", (2,)), ("point3D_id", "<i8")])
-# The fixed part of a 3D point in points3D.bin (then track_length (image id, keypoint index) uint32 pairs).
-_POINT3D = np.dtype([("id", "<u8"), ("xyz", "<f8", (3,)), ("rgb", "u1", (3,)), ("error", "<f8"),
-                     ("track_length", "<u8")])
-
-
-def _read_binary(folder: Path) -> ColmapModel:
-    cameras: dict[int, ColmapCamera] = {}
-    r = _Reader(folder / "cameras.bin")
-    for _ in range(r.count("<Q", 24, "cameras")):
-        cam_id, model_id, width, height = r.unpack("<IiQQ", "a camera record")
-        model = CAMERA_MODELS.get(model_id)
-        if model is None:
-            r.fail(f"camera {cam_id} has unknown camera model id {model_id}")
-        if not (0 < width < 1 << 20 and 0 < height < 1 << 20):
-            r.fail(f"camera {cam_id} has implausible size {width}x{height}")
-        params = np.array(r.unpack(f"<{model.num_params}d", f"the parameters of camera {cam_id}"), np.float64)
-        cam = ColmapCamera(cam_id, model, width, height, params)
-        _check_camera(r.path, cam, cameras)
-        cameras[cam_id] = cam
-    r.finish()
-
-    rigs_frames = _read_rigs_frames_binary(folder)
-    entries = {}
-    r = _Reader(folder / "images.bin")
-    for _ in range(r.count("<Q", 64 + 1 + 8, "images")):
-        image_id, *qt, camera_id = r.unpack("<I7dI", "an image record")
-        end = r.buf.find(b"\0", r.off)
-        if end < 0:
-            r.fail(f"the name of image {image_id} is not terminated")
-        try:
-            name = r.buf[r.off:end].decode("utf-8")
-        except UnicodeDecodeError:
-            r.fail(f"the name of image {image_id} is not valid UTF-8")
-        r.off = end + 1
-        npts = r.count("<Q", _POINT2D.itemsize, f"2D points of image {image_id}")
-        kp = np.frombuffer(r.take(_POINT2D.itemsize * npts, f"the 2D points of image {image_id}"), _POINT2D)
-        if image_id in entries:
-            r.fail(f"image {image_id} is defined twice")
-        if camera_id not in cameras:
-            _bad_model(r.path, f"image {image_id} ({name}) uses camera {camera_id}, which cameras.bin does not define")
-        entries[image_id] = (name, camera_id, qt, kp)
-    r.finish()
-    images = _images(folder / "images.bin", entries, rigs_frames)
-
-    points = _read_points_binary(_Reader(folder / "points3D.bin"))
-    return ColmapModel(folder, ".bin", cameras, images, points)
-
-
-def _read_points_binary(r: _Reader) -> ColmapPoints:
-    """``points3D.bin``: a light Python loop finds where each record starts (tracks make them vary in
-    size), then numpy gathers the fields of all records at once (unpacking each record in Python
-    would cost seconds for a few 100k points)."""
-    n = r.count("<Q", _POINT3D.itemsize, "3D points")
-    buf, off, size = r.buf, r.off, len(r.buf)
-    track_length_at = struct.Struct("<Q").unpack_from
-    starts, lengths = [], []
-    for _ in range(n):
-        if off + _POINT3D.itemsize > size:
-            r.off = off
-            r.fail("file ends inside a 3D point record")
-        (track_len,) = track_length_at(buf, off + _POINT3D.itemsize - 8)
-        starts.append(off)
-        lengths.append(track_len)
-        off += _POINT3D.itemsize + 8 * track_len
-        if off > size:
-            r.off = starts[-1] + _POINT3D.itemsize
-            r.fail(f"file ends inside the track of 3D point {track_length_at(buf, starts[-1])[0]}")
-    r.off = off
-    r.finish()
-    raw = np.frombuffer(buf, np.uint8)
-    first = np.asarray(starts, np.int64)
-    rec = _gather(raw, first, _POINT3D.itemsize).view(_POINT3D).reshape(n)
-    too_large = np.nonzero(rec["id"] >= _ID_LIMIT)[0]
-    if too_large.size:
-        r.off = int(first[too_large[0]])
-        r.fail(f"implausible 3D point id {rec['id'][too_large[0]]}")
-    length = np.asarray(lengths, np.int64)
-    # Byte offset of each track element: its point's first element, then 8 bytes apart.
-    element = np.arange(int(length.sum())) - np.repeat(np.cumsum(length) - length, length)
-    at = np.repeat(first + _POINT3D.itemsize, length) + 8 * element
-    tracks = _gather(raw, at, 8).view("<u4").reshape(-1, 2).astype(np.int64)
-    return _points(r.path, rec["id"], rec["xyz"], rec["rgb"], rec["error"], length, tracks)
-
-
-def _gather(raw: np.ndarray, offsets: np.ndarray, nbytes: int, chunk: int = 1 << 16) -> np.ndarray:
-    """(len(offsets), nbytes) uint8: the ``nbytes`` bytes of ``raw`` from each offset (a chunk of
-    offsets at a time, so that the byte indices stay small)."""
-    out = np.empty((offsets.size, nbytes), np.uint8)
-    for k in range(0, offsets.size, chunk):
-        out[k:k + chunk] = raw[offsets[k:k + chunk, None] + np.arange(nbytes)]
-    return out
-
-
 def _images(path: Path, entries: dict, rigs_frames: _RigsFrames | None) -> dict[int, ColmapImage]:
     """The images of ``entries`` ``{id: (name, camera_id, 7 pose numbers, keypoints)}``, posed by
     their frames where the model has frames, else by their own pose."""
@@ -550,232 +368,6 @@ def _points(path: Path, ids, xyz, rgb, error, lengths, tracks) -> ColmapPoints:
                         tracks=np.asarray(tracks, np.int64).reshape(-1, 2)[rows])
 
 
-def validate_binary_model(folder: Path) -> dict[str, int]:
-    """Reads COLMAP ``.bin`` files (cameras, images, points3D, and rigs/frames if present), checking
-    that every record is complete, consistent and finite and that the files end exactly after the last
-    record.
-
-    Args:
-      folder: a folder with ``cameras.bin``, ``images.bin``, ``points3D.bin``.
-
-    Returns:
-      ``{"cameras": n, "images": n, "points3D": n}``.
-
-    Raises:
-      DatasetError naming the corrupt file (truncated, trailing bytes, unknown camera model id,
-      implausible sizes, missing cameras or frames, non-finite values).
-    """
-    model = _read_binary(Path(folder))
-    return {"cameras": len(model.cameras), "images": len(model.images), "points3D": len(model.points)}
-
-
-# ----------------------------------------------------------------------------------------------------
-# Text files
-# ----------------------------------------------------------------------------------------------------
-
-
-class _TextFile:
-    """A COLMAP text file's lines, and its data lines (:meth:`records`: comments and blank lines
-    skipped)."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        try:
-            with open(path, encoding="utf-8") as fh:
-                self.lines = list(enumerate(fh, start=1))
-        except (OSError, UnicodeDecodeError) as e:
-            raise DatasetError(f"Cannot read COLMAP file {path}: {e}.") from None
-
-    def fail(self, lineno: int, what: str) -> NoReturn:
-        raise DatasetError(f"COLMAP file {self.path} is corrupt or truncated at line {lineno} ({what}). "
-                           "Re-export the model (colmap model_converter) or re-copy the file.")
-
-    def records(self) -> Iterator[tuple[int, list[str]]]:
-        for lineno, line in self.lines:
-            t = line.split()
-            if t and not t[0].startswith("#"):
-                yield lineno, t
-
-    def ints(self, lineno: int, tokens) -> list[int]:
-        try:
-            out = [int(t) for t in tokens]
-        except ValueError:
-            self.fail(lineno, "an id or size is not an integer")
-        if any(not -_ID_LIMIT <= v < _ID_LIMIT for v in out):
-            self.fail(lineno, "an id or size is out of range")
-        return out
-
-    def floats(self, lineno: int, tokens) -> list[float]:
-        try:
-            return [float(t) for t in tokens]
-        except ValueError:
-            self.fail(lineno, "a field is not a number")
-
-    def sensor(self, lineno: int, name: str) -> int:
-        if name not in _SENSOR_TYPE_IDS:
-            self.fail(lineno, f"unknown sensor type {name!r}")
-        return _SENSOR_TYPE_IDS[name]
-
-    def declared(self) -> int | None:
-        """The count declared in the header ('# Number of images: 71, ...'), if any."""
-        for _, line in self.lines:
-            if not line.startswith("#"):
-                break
-            m = re.match(r"#\s*Number of (?:cameras|images|points|rigs|frames)\s*:\s*(\d+)", line)
-            if m:
-                return int(m.group(1))
-        return None
-
-    def check_declared(self, got: int) -> None:
-        n = self.declared()
-        if n is not None and n != got:
-            raise DatasetError(f"COLMAP file {self.path} declares {n} entries in its header but holds {got}: "
-                               "it is truncated; re-export the model.")
-
-
-def _read_rigs_frames_text(folder: Path) -> _RigsFrames | None:
-    if not _has_rigs_frames(folder, ".txt"):
-        return None
-    rigs: dict[int, dict[tuple[int, int], np.ndarray | None]] = {}
-    f = _TextFile(folder / "rigs.txt")
-    for lineno, t in f.records():
-        if len(t) < 2:
-            f.fail(lineno, "expected RIG_ID NUM_SENSORS REF_SENSOR_TYPE REF_SENSOR_ID SENSORS[]")
-        rig_id, nsensors = f.ints(lineno, t[:2])
-        sensors: dict[tuple[int, int], np.ndarray | None] = {}
-        k = 2
-        for s in range(nsensors):
-            if len(t) < k + (2 if s == 0 else 3):
-                f.fail(lineno, f"rig {rig_id} declares {nsensors} sensors but lists fewer")
-            key = (f.sensor(lineno, t[k]), f.ints(lineno, t[k + 1:k + 2])[0])
-            if s == 0:
-                sensors[key] = _REFERENCE
-                k += 2
-                continue
-            (has_pose,) = f.ints(lineno, t[k + 2:k + 3])
-            k += 3
-            sensors[key] = None
-            if has_pose:
-                if len(t) < k + 7:
-                    f.fail(lineno, f"a sensor pose of rig {rig_id} is cut short")
-                sensors[key] = _check_sensor_pose(f.path, rig_id, _pose(f.floats(lineno, t[k:k + 7])))
-                k += 7
-        if k != len(t):
-            f.fail(lineno, f"{len(t) - k} unexpected fields after the sensors of rig {rig_id}")
-        if rig_id in rigs:
-            f.fail(lineno, f"rig {rig_id} is defined twice")
-        rigs[rig_id] = sensors
-    f.check_declared(len(rigs))
-    frames = {}
-    f = _TextFile(folder / "frames.txt")
-    for lineno, t in f.records():
-        if len(t) < 10:
-            f.fail(lineno, "expected FRAME_ID RIG_ID QW QX QY QZ TX TY TZ NUM_DATA_IDS DATA_IDS[]")
-        frame_id, rig_id = f.ints(lineno, t[:2])
-        qt = f.floats(lineno, t[2:9])
-        (ndata,) = f.ints(lineno, t[9:10])
-        if len(t) != 10 + 3 * ndata:
-            f.fail(lineno, f"frame {frame_id} declares {ndata} data ids as (SENSOR_TYPE, SENSOR_ID, DATA_ID) "
-                   f"but has {len(t) - 10} fields for them")
-        cams = []
-        for k in range(10, len(t), 3):
-            stype = f.sensor(lineno, t[k])
-            sid, data_id = f.ints(lineno, t[k + 1:k + 3])
-            if stype == _CAMERA:
-                cams.append((sid, data_id))
-        if frame_id in frames:
-            f.fail(lineno, f"frame {frame_id} is defined twice")
-        frames[frame_id] = (rig_id, _pose(qt), cams)
-    f.check_declared(len(frames))
-    return _RigsFrames(folder / "rigs.txt", folder / "frames.txt", rigs, frames)
-
-
-def _read_text(folder: Path) -> ColmapModel:
-    cameras: dict[int, ColmapCamera] = {}
-    f = _TextFile(folder / "cameras.txt")
-    for lineno, t in f.records():
-        if len(t) < 4 or t[1] not in CAMERA_MODELS_BY_NAME:
-            f.fail(lineno, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[] with one of COLMAP's models")
-        model = CAMERA_MODELS_BY_NAME[t[1]]
-        if len(t) != 4 + model.num_params:
-            f.fail(lineno, f"model {t[1]} needs {model.num_params} parameters, found {len(t) - 4}")
-        cam_id, width, height = f.ints(lineno, [t[0], t[2], t[3]])
-        if not (0 < width < 1 << 20 and 0 < height < 1 << 20):
-            f.fail(lineno, f"camera {cam_id} has implausible size {width}x{height}")
-        cam = ColmapCamera(cam_id, model, width, height, np.array(f.floats(lineno, t[4:]), np.float64))
-        _check_camera(f.path, cam, cameras)
-        cameras[cam_id] = cam
-    f.check_declared(len(cameras))
-
-    rigs_frames = _read_rigs_frames_text(folder)
-    entries = {}
-    f = _TextFile(folder / "images.txt")
-    k = 0
-    while k < len(f.lines):
-        lineno, line = f.lines[k]
-        k += 1
-        t = line.split()
-        if not t or t[0].startswith("#"):
-            continue
-        if len(t) < 10:
-            f.fail(lineno, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME")
-        (image_id,) = f.ints(lineno, t[:1])
-        qt = f.floats(lineno, t[1:8])
-        (camera_id,) = f.ints(lineno, t[8:9])
-        name = t[9]
-        # The keypoint line is the next line of the file, blank when the image has none.
-        if k >= len(f.lines):
-            f.fail(lineno + 1, "the POINTS2D line of the last image is missing")
-        kp_lineno, kp_line = f.lines[k]
-        k += 1
-        pts = kp_line.split()
-        if len(pts) % 3:
-            f.fail(kp_lineno, "POINTS2D must be (X, Y, POINT3D_ID) triplets")
-        kp = np.zeros(len(pts) // 3, _POINT2D)
-        kp["xy"] = np.array(f.floats(kp_lineno, pts), np.float64).reshape(-1, 3)[:, :2]
-        kp["point3D_id"] = f.ints(kp_lineno, pts[2::3])
-        if image_id in entries:
-            f.fail(lineno, f"image {image_id} is defined twice")
-        if camera_id not in cameras:
-            _bad_model(f.path, f"image {image_id} ({name}) uses camera {camera_id}, which cameras.txt does not define")
-        entries[image_id] = (name, camera_id, qt, kp)
-    f.check_declared(len(entries))
-    images = _images(f.path, entries, rigs_frames)
-
-    f = _TextFile(folder / "points3D.txt")
-    ids, xyz, rgb, error, lengths, tracks = [], [], [], [], [], []
-    for lineno, t in f.records():
-        if len(t) < 8 or (len(t) - 8) % 2:
-            f.fail(lineno, "expected POINT3D_ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)")
-        (pid,) = f.ints(lineno, t[:1])
-        x, y, z = f.floats(lineno, t[1:4])
-        col = f.ints(lineno, t[4:7])
-        if not all(0 <= c <= 255 for c in col):
-            f.fail(lineno, f"the colour of 3D point {pid} is not in 0..255")
-        (err,) = f.floats(lineno, t[7:8])
-        track = f.ints(lineno, t[8:])
-        ids.append(pid)
-        xyz.append((x, y, z))
-        rgb.append(col)
-        error.append(err)
-        lengths.append(len(track) // 2)
-        tracks.extend(track)
-    f.check_declared(len(ids))
-    points = _points(f.path, ids, xyz, rgb, error, lengths, tracks)
-    return ColmapModel(folder, ".txt", cameras, images, points)
-
-
-def validate_text_model(folder: Path) -> None:
-    """Reads COLMAP ``cameras.txt``, ``images.txt`` and ``points3D.txt`` (and rigs/frames if present),
-    checking each line's fields, the model's consistency and the counts the headers declare, so that
-    a damaged file is reported with its name and line number.
-
-    Raises:
-      DatasetError naming the file and line.
-    """
-    _read_text(Path(folder))
-
-
 # ----------------------------------------------------------------------------------------------------
 # Reading a model folder
 # ----------------------------------------------------------------------------------------------------
@@ -795,7 +387,13 @@ def read_model(folder: Path) -> ColmapModel:
     if ext is None:
         raise DatasetError(f"{folder} does not hold a COLMAP model (cameras, images and points3D as .bin "
                            "or .txt).")
-    return _read_binary(folder) if ext == ".bin" else _read_text(folder)
+    if ext == ".bin":
+        from .colmap_binary import read_binary_model
+
+        return read_binary_model(folder)
+    from .colmap_text import read_text_model
+
+    return read_text_model(folder)
 
 
 def model_points(model: ColmapModel):
@@ -810,47 +408,3 @@ def model_points(model: ColmapModel):
                            f"points have non-finite coordinates (ids {bad[:5].tolist()}"
                            f"{' ...' if bad.size > 5 else ''}); re-run COLMAP triangulation or delete those points.")
     return pts.ids.copy(), pts.xyz.copy(), cols
-
-
-# ----------------------------------------------------------------------------------------------------
-# Writing
-# ----------------------------------------------------------------------------------------------------
-
-
-def write_binary_model(folder: Path, cameras, images, points: ColmapPoints) -> None:
-    """Writes ``cameras.bin``, ``images.bin`` and ``points3D.bin`` into ``folder`` (the three-file
-    layout, which every COLMAP version reads; COLMAP 3.12+ gives each camera a trivial rig and each
-    image a frame of its own).
-
-    Args:
-      cameras: :class:`ColmapCamera` s.
-      images: :class:`ColmapImage` s, with their keypoints and the 3D points they observe.
-      points: :class:`ColmapPoints`, tracks included.
-    """
-    folder = Path(folder)
-    out = [struct.pack("<Q", len(cameras))]
-    for cam in cameras:
-        params = np.asarray(cam.params, "<f8").reshape(-1)
-        if params.size != cam.model.num_params:
-            raise ValueError(f"camera {cam.camera_id}: {cam.model.name} has {cam.model.num_params} parameters, "
-                             f"got {params.size}.")
-        out += [struct.pack("<IiQQ", cam.camera_id, cam.model.model_id, cam.width, cam.height), params.tobytes()]
-    (folder / "cameras.bin").write_bytes(b"".join(out))
-
-    out = [struct.pack("<Q", len(images))]
-    for im in images:
-        pose = np.asarray(im.cam_from_world, np.float64)
-        kp = np.zeros(len(im.points2D), _POINT2D)
-        kp["xy"] = im.points2D
-        kp["point3D_id"] = im.point3D_ids
-        out += [struct.pack("<I7dI", im.image_id, *quaternion_from_rotation(pose[:, :3]), *pose[:, 3], im.camera_id),
-                im.name.encode("utf-8") + b"\0", struct.pack("<Q", len(kp)), kp.tobytes()]
-    (folder / "images.bin").write_bytes(b"".join(out))
-
-    out = [struct.pack("<Q", len(points))]
-    starts = np.concatenate([[0], np.cumsum(points.track_length)])
-    tracks = np.asarray(points.tracks, "<u4").reshape(-1, 2)
-    for k in range(len(points)):
-        out += [struct.pack("<Q3d3BdQ", int(points.ids[k]), *points.xyz[k], *points.rgb[k], float(points.error[k]),
-                            int(points.track_length[k])), tracks[starts[k]:starts[k + 1]].tobytes()]
-    (folder / "points3D.bin").write_bytes(b"".join(out))

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera, look_at
+from .colmap_binary import write_binary_model
 from .colmap_model import (
     CAMERA_MODELS_BY_NAME,
     ColmapCamera,
@@ -41,7 +42,6 @@ from .colmap_model import (
     ColmapPoints,
     quaternion_from_rotation,
     rotation_from_quaternion,
-    write_binary_model,
 )
 from .images import box_downsample, save_image
 from .synthetic_scene import Scene, camera_rays, make_scene, render_ground_truth, row_matmul

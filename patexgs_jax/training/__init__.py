@@ -4,8 +4,11 @@ One module a concern:
 
 - :mod:`.config`: :class:`TrainConfig`, the methods (:class:`Method`), the presets;
 - :mod:`.step`: the jitted single-view and batched steps;
-- :mod:`.strategies`: densification and the texture stage, called between steps;
+- :mod:`.strategies`: densification, called between steps (the texture schedule, also called
+  between steps, is :mod:`patexgs_jax.schedule`);
 - :mod:`.trainer`: the host loop (:class:`~.trainer.Trainer`);
+- :mod:`.compile_ahead`: the texture stage's first programs compiled in the background;
+- :mod:`.progress`: the start line, the time estimate, the note on long runs;
 - :mod:`.run`: :func:`train` (resume, stage-1 sharing, outputs);
 - :mod:`.cli`: ``python -m patexgs_jax.train``.
 

@@ -19,7 +19,7 @@ Stages
      texture (ones) and a 1x1 RGB offset (zeros) - the first render equals the 2DGS one - warm up
      ``warmup_tex`` steps, then allocate Eq. 7 sizes from the max-contribution counts over all
      training views and grow them by Eqs. 8-10 every ``growth_interval`` steps
-     (:mod:`patexgs_jax.adaptive`, run by :mod:`patexgs_jax.training.strategies`);
+     (:mod:`patexgs_jax.adaptive`, run by :mod:`patexgs_jax.schedule`);
      ``textured-fixed-N`` gives every Gaussian an N x N RGBA texture.
 
 Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as Textured Gaussians),

@@ -15,9 +15,10 @@ from .. import compiled, interrupt
 from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
-from .config import PRESETS, STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
-from .strategies import side_histogram
-from .trainer import STAGE1_DIR, Trainer, device_description, rgba_texels, typical_size
+from ..schedule import side_histogram
+from .config import STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
+from .progress import start_line
+from .trainer import STAGE1_DIR, Trainer
 
 __all__ = ["STAGE2_FIELDS", "TrainResult", "load_stage1", "stage1_checkpoint", "train"]
 
@@ -65,31 +66,6 @@ def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
     run.load_state(tree)
     run.capacity = None  # refit for this method's render configuration
     run.say(f"stage 1 from {path} ({run.t_train:.0f} s of 2DGS training)")
-
-
-def preset_name(config: TrainConfig) -> str | None:
-    """The preset whose step counts ``config`` has, or None."""
-    for name, kw in PRESETS.items():
-        steps = tuple(kw.get(k, getattr(TrainConfig, k)) for k in ("iters_2dgs", "iters_tex"))
-        if steps == (config.iters_2dgs, config.iters_tex):
-            return name
-    return None
-
-
-def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = None) -> str:
-    """What a run will do, in one line: method, images, views, preset, schedule, Gaussian cap,
-    device. ``preset``: the preset the config was made from (default: the one with its step counts)."""
-    n_sizes = len({(v.camera.width, v.camera.height) for v in dataset.train_views})
-    size = "{}x{} px".format(*typical_size(dataset.train_views)) + (
-        f" (and {n_sizes - 1} other size{'s' if n_sizes > 2 else ''})" if n_sizes > 1 else "")
-    preset = preset or preset_name(config)
-    steps = (f"{config.iters_2dgs} 2DGS steps" if run.spec.textures is None and not config.continue_2dgs
-             else f"{config.iters_2dgs} + {config.total_steps - config.iters_2dgs} steps")
-    cap = "no Gaussian cap" if config.max_gaussians is None else f"at most {config.max_gaussians:,} Gaussians"
-    where = "" if run.step == 0 else f", from step {run.step}"
-    return (f"training {config.method}: {len(dataset.train_views)} training and {len(dataset.test_views)} test "
-            f"views of {size}; {'preset ' + preset + ', ' if preset else ''}{steps}{where}; {cap}; "
-            f"on {device_description()}")
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
@@ -147,7 +123,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         ckpt.check_writable(out)
         ckpt.check_writable(out / "checkpoints")
     run = Trainer(dataset, config, out, verbose, map_guard)
-    run.prepare_for = tuple(prepare)
+    run.ahead.prepare_for = tuple(prepare)
     latest = ckpt.latest_checkpoint(out / "checkpoints") if (out is not None and resume) else None
     if latest is not None:
         tree, meta = ckpt.load_checkpoint(latest)
@@ -187,7 +163,6 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     summary: dict[str, Any] = dict(
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
-        rgba_texels=rgba_texels(scene),
         storage_mb=size["storage_mb"], recompiles=run.recompiles, skipped_steps=run.skipped,
         allocation=run.textures.allocation, growth_events=run.textures.growth_events,
         sides_final=None if scene.rgb is None else side_histogram(np.asarray(scene.rgb.size),
@@ -217,6 +192,6 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     if verbose and main:
         print(f"done: train PSNR {summary['train_psnr']:.2f}, test PSNR "
               f"{summary['test_psnr'] if summary['test_psnr'] is None else round(summary['test_psnr'], 2)}, "
-              f"{summary['num_gaussians']} Gaussians, {summary['rgba_texels']} RGBA texels, "
+              f"{summary['num_gaussians']} Gaussians, {summary['texels']} texels, "
               f"{summary['storage_mb']:.2f} MB, {summary['train_seconds']:.0f} s", flush=True)
     return TrainResult(scene=scene, summary=summary, out_dir=out)

@@ -24,7 +24,7 @@ from locations import REPO
 from patexgs_jax import ahead
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax.data import load
-from patexgs_jax.training import trainer as trainer_module
+from patexgs_jax.training import compile_ahead
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
 from patexgs_jax.training.trainer import Trainer
@@ -171,8 +171,8 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
     cfgs = [tiny_config(method=m) for m in methods]
     try:
         train(dataset, tiny_config(method="2dgs"), tmp_path / "2dgs", verbose=False, prepare=cfgs)
-        entries = list(trainer_module._PREPARED)
-        assert 0 < len(entries) <= trainer_module._MAX_PREPARED
+        entries = list(compile_ahead.PREPARED)
+        assert 0 < len(entries) <= compile_ahead.MAX_PREPARED
         first = [p for p in entries if p.render_cfg == cfgs[0].render_config(stage=2) and p.layout is not None]
         assert len(first) == 1 and first[0].then in entries and first[0].eq7_job is not None, entries
         # patexgs-fixed-4 shares patexgs's warm-up programs; no-mip comes next in the list.
@@ -180,9 +180,9 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
             cfgs[0].render_config(stage=2), cfgs[2].render_config(stage=2)]
         assert sum("predicted layout" in w for w in submitted) == 1
     finally:
-        for p in list(trainer_module._PREPARED):
+        for p in list(compile_ahead.PREPARED):
             p.cancel()
-        trainer_module._PREPARED.clear()
+        compile_ahead.PREPARED.clear()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

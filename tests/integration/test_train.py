@@ -30,16 +30,16 @@ from locations import BEER
 from patexgs_jax import adaptive, losses
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import densify as dens
+from patexgs_jax import schedule as texture_schedule
 from patexgs_jax.data import load
 from patexgs_jax.densify import DensifyConfig
 from patexgs_jax.evaluation import evaluate
 from patexgs_jax.metrics import mb_to_texels
 from patexgs_jax.optim import adam_moments
-from patexgs_jax.training import strategies
+from patexgs_jax.schedule import TextureSchedule, growth_schedule, growth_steps
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.strategies import TextureStage, growth_schedule, growth_steps
 from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
 from train_configs import tiny_config
 
@@ -137,8 +137,8 @@ def run_p(dataset, tmp_path_factory):
     rec = dict(keys=set(), problems=[], capacities=set(), pruned=0, checks=0, traced=[], resizes=[])
     init = init_scene(dataset.points, dataset.colors, cfg)
     rec["psnr_init"] = evaluate(init, dataset.train_views, cfg.render_config())["psnr"]
-    orig_step_fn, orig_after, orig_start = Trainer.step_fn, Trainer.after_step, TextureStage.start
-    orig_resize = strategies.resize_textures
+    orig_step_fn, orig_after, orig_start = Trainer.step_fn, Trainer.after_step, TextureSchedule.start
+    orig_resize = texture_schedule.resize_textures
 
     def step_fn(self):
         rec["keys"].add((self.capacity, shape_key(self.scene, self.opt_state, self.stats)))
@@ -170,8 +170,8 @@ def run_p(dataset, tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(Trainer, "step_fn", step_fn)
         mp.setattr(Trainer, "after_step", after_step)
-        mp.setattr(TextureStage, "start", start_textures)
-        mp.setattr(strategies, "resize_textures", resize)
+        mp.setattr(TextureSchedule, "start", start_textures)
+        mp.setattr(texture_schedule, "resize_textures", resize)
         result = train(dataset, cfg, out, verbose=False)
     rec["traces"] = sum(STEP_TRACES.values()) - traces
     rec["ahead_traces"] = sum(AHEAD_STEP_TRACES.values()) - ahead_traces
@@ -196,7 +196,7 @@ def test_both_stages_improve(run_p):
     sizes, counters = np.asarray(final["tex_sizes"]), np.asarray(final["tex_counters"])
     assert counters[1] == 5 and counters[0] == 48  # growth at 36, 39, 42, 45, 48
     assert counters[2] > 0, "no texture grew in five growth events"
-    assert s["texels"] > 0 and s["texels_rgb"] == s["texels_alpha"] >= alloc["texels"]
+    assert s["texels"] > 0 and s["texels_rgb"] == s["texels_alpha"] >= alloc["texels"] // 2
     scene = run_p["result"].scene
     act = np.asarray(scene.active) > 0
     np.testing.assert_array_equal(np.asarray(scene.rgb.size)[act], adaptive.side_of(sizes, 6)[act])
@@ -210,7 +210,7 @@ def test_both_stages_improve(run_p):
     assert [r for r in log if r.get("event") == "allocation"] == [dict(event="allocation", **alloc)]
     # What the schedule did: the Eq. 7 sides, each growth event that grew textures, the final sides.
     assert sum(alloc["sides"].values()) == s["num_gaussians"]
-    assert sum(int(k) ** 2 * v for k, v in alloc["sides"].items()) == alloc["texels"]
+    assert 2 * sum(int(k) ** 2 * v for k, v in alloc["sides"].items()) == alloc["texels"]  # RGB + alpha
     events = s["growth_events"]
     assert [r for r in log if r.get("event") == "growth"] == [dict(event="growth", **e) for e in events]
     assert len(events) >= 1 and all(e["step"] in (36, 39, 42, 45, 48) and e["grown"] > 0 for e in events)
@@ -219,12 +219,12 @@ def test_both_stages_improve(run_p):
     for e in events:
         assert e["texels_added"] > 0 and e["texels"] == texels + e["texels_added"]
         texels = e["texels"]
-    assert texels == s["texels_rgb"]
+    assert texels == s["texels"] == s["texels_rgb"] + s["texels_alpha"]
     assert s["sides_final"] == {str(int(k)): int(v) for k, v in zip(*np.unique(np.asarray(scene.rgb.size)[act],
                                                                         return_counts=True))}
     assert log[-1]["step"] == 54 and log[-1]["texels"] == s["texels"]
-    # The progress lines count RGBA texels as the texture-stage lines do (RGB and alpha share sides).
-    assert log[-1]["rgba_texels"] == s["rgba_texels"] == texels
+    # The progress lines count texels as the texture-stage lines do (RGB and alpha texels, sides shared).
+    assert log[-1]["texels"] == s["texels"] == texels
 
 
 # ------------------------------------------------------------------------------------------------
@@ -400,9 +400,9 @@ def test_texture_budget_leaves_growth_room_and_is_met(dataset):
     run.state = tex.start(run.state)
     run.state = tex.allocate(run.state, run.step)
     texels = run.scene.texel_count()
-    assert texels["rgb"] == texels["alpha"] == tex.allocation["texels"]
+    assert texels["rgb"] + texels["alpha"] == tex.allocation["texels"] and texels["rgb"] == texels["alpha"]
     assert abs(texels["rgb"] - 0.6 * budget) <= 0.01 * 0.6 * budget, (texels, budget)
-    assert tex.allocation["budget_texels"] == tex.texel_budget == budget
+    assert tex.allocation["budget_texels"] == 2 * tex.texel_budget == 2 * budget  # (texels: RGB + alpha)
     # Growth with a gradient that selects every textured Gaussian at every event: it fills the room.
     act = np.asarray(run.scene.active) > 0
     schedule = tex.schedule

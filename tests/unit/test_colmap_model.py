@@ -20,12 +20,12 @@ from data_builders import make_colmap_scene
 from locations import BEER, REPO
 from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 from patexgs_jax.data import DatasetError, synthetic
+from patexgs_jax.data.colmap_binary import write_binary_model
 from patexgs_jax.data.colmap_model import (
     CAMERA_MODELS,
     quaternion_from_rotation,
     read_model,
     rotation_from_quaternion,
-    write_binary_model,
 )
 
 SMALL = dict(num_views=4, width=64, height=48, supersample=1, num_points=200)

@@ -32,7 +32,7 @@ from locations import BEER, REPO
 from patexgs_jax._pycolmap import pycolmap  # noqa: E402  (keeps the fatal-signal handlers, see there)
 from patexgs_jax.camera import Camera
 from patexgs_jax.data import DatasetError, DatasetWarning
-from patexgs_jax.data.colmap_model import validate_binary_model
+from patexgs_jax.data.colmap_binary import validate_binary_model
 from patexgs_jax.data.nerf import distort_normalized, read_ply_points
 
 
