@@ -15,6 +15,10 @@ import numpy as np
 import pytest
 
 from experiments import mipnerf360 as mn
+from experiments import study_figures as figs
+from experiments import study_tables as tbl
+from experiments.provenance import write_json
+from experiments.study import RESULTS_SCHEMA
 from patexgs_jax.training.config import TrainConfig, config_dict, stage1_key
 from patexgs_jax.training.run import load_stage1, stage1_checkpoint
 from patexgs_jax.training.trainer import Trainer
@@ -46,7 +50,7 @@ def test_results_schema_and_values(study):
     assert set(on_disk) == {"version", "config", "lpips", "results", "elapsed_seconds"}
     assert on_disk["elapsed_seconds"] > 0  # the study's wall-clock time
     assert on_disk["lpips"] is None  # switched off: no network named
-    assert on_disk["version"]["results_schema"] == mn.RESULTS_SCHEMA
+    assert on_disk["version"]["results_schema"] == RESULTS_SCHEMA
     assert on_disk["config"]["preset"] == "tiny" and on_disk["config"]["iters_2dgs"] == 12
     (scene,) = on_disk["results"]
     entries = on_disk["results"][scene]
@@ -259,9 +263,10 @@ def test_table4_rows_and_the_side_distribution(tmp_path):
     t4 = mn.tables_markdown(data).split("## Table 4")[1].split("##")[0]
     assert "| Full (adaptive) | patexgs |" in t4 and "| 4 x 4 + mip | patexgs-fixed-4 |" in t4
     assert "| similar storage | patexgs-fixed-3 |" in t4
-    path = mn.plot_sides(data, tmp_path / "sides.png")
+    path = figs.plot_sides(data, tmp_path / "sides.png")
     assert path is not None and path.stat().st_size > 0
-    assert mn.plot_sides({"results": {"a": {mn.MATCHED: data["results"]["a"][mn.MATCHED]}}}, tmp_path / "x.png") is None
+    only_matched = {"results": {"a": {mn.MATCHED: data["results"]["a"][mn.MATCHED]}}}
+    assert figs.plot_sides(only_matched, tmp_path / "x.png") is None
     with pytest.raises(mn.StudyError, match="list patexgs before it"):
         mn.run(methods=[mn.MATCHED, "patexgs"], out=tmp_path / "o")
 
@@ -280,7 +285,7 @@ def test_lpips_network_is_named_and_never_mixed(tmp_path, monkeypatch):
     assert "LPIPS: v0.1, AlexNet trunk (`alex`, weights lpips_alex.npz)." in mn.tables_markdown(study.data)
     assert "LPIPS: not computed" in mn.tables_markdown({"results": {}})
     study.data["results"] = {"a": {"2dgs": {"1": dict(psnr=20.0, ssim=0.5, lpips=0.3)}}}
-    mn.write_json(study.path, study.data)
+    write_json(study.path, study.data)
     # resuming with the other trunk would mix two networks' figures in one table
     with pytest.raises(mn.StudyError, match="--lpips-net alex"):
         mn.Study(out, cfg, use_lpips=True, lpips_net="vgg", verbose=False)
@@ -290,18 +295,18 @@ def test_lpips_network_is_named_and_never_mixed(tmp_path, monkeypatch):
 
 
 def test_arguments_are_checked(tmp_path):
-    assert mn.parse_budget("10%") == ("fraction", 0.1) and mn.parse_budget("5000") == ("count", 5000)
-    assert mn.parse_budget(None) is None and mn.label("patexgs", "1%") == "patexgs(1%)"
+    assert tbl.parse_budget("10%") == ("fraction", 0.1) and tbl.parse_budget("5000") == ("count", 5000)
+    assert tbl.parse_budget(None) is None and mn.label("patexgs", "1%") == "patexgs(1%)"
     assert mn.parse_budgets("100%, 10%,1%") == [None, "10%", "1%"] and mn.parse_budgets(None) == [None]
     assert mn.join_budgets([None, "10%", "1%"]) == "100%,10%,1%" and mn.join_budgets([None]) is None
-    assert mn.split_label("patexgs(10%)") == ("patexgs", "10%") and mn.split_label("2dgs") == ("2dgs", None)
+    assert tbl.split_label("patexgs(10%)") == ("patexgs", "10%") and tbl.split_label("2dgs") == ("2dgs", None)
     with pytest.raises(mn.StudyError, match="twice"):
         mn.parse_budgets("10%,100%,10%")
     with pytest.raises(mn.StudyError, match="--budget"):
         mn.parse_budgets("10%,ten")
     for bad in ("0%", "150%", "-3", "ten"):
         with pytest.raises(mn.StudyError, match="--budget"):
-            mn.parse_budget(bad)
+            tbl.parse_budget(bad)
     with pytest.raises(mn.StudyError, match="no scene"):
         mn.find_scenes(tmp_path)
     with pytest.raises(mn.StudyError, match="does not exist"):

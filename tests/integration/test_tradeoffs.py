@@ -14,6 +14,7 @@ import json
 import numpy as np
 import pytest
 
+from experiments import effects
 from experiments import tradeoffs as tr
 from patexgs_jax.training.config import preset_config, stage1_key
 
@@ -213,10 +214,10 @@ def test_effects_and_reduced_export(study, dataset, tmp_path):
     st, state = study
     rid = next(r for r, v in state["runs"].items() if v["method"] == "patexgs")
     run_dir = st.out / "runs" / rid
-    scene, rc, _ = tr.load_trained(run_dir)
-    assert tr.present_effects(scene, rc) == list(tr.EFFECTS)
+    scene, rc, _ = effects.load_trained(run_dir)
+    assert effects.present_effects(scene, rc) == list(effects.EFFECTS)
     res = tr.run_effects(run_dir, dataset, tmp_path, scales=(1,), drop_below=1e9, verbose=False, max_views=1)
-    assert json.loads((tmp_path / "effects.json").read_text())["reduced"]["dropped"] == list(tr.EFFECTS)
+    assert json.loads((tmp_path / "effects.json").read_text())["reduced"]["dropped"] == list(effects.EFFECTS)
     full = res["full"]["psnr"]["1"]
     for v in res["effects"].values():
         assert v["gain_db"]["1"] == pytest.approx(full - v["off"]["psnr"]["1"], abs=1e-9)
@@ -225,10 +226,10 @@ def test_effects_and_reduced_export(study, dataset, tmp_path):
     red = res["reduced"]
     sc = load_ply(red["path"])
     assert sc.rgb is None and sc.alpha is None and sc.sh.shape[1] == 1
-    assert tr.load_render_config(red["path"]).mip == "none"
-    off_scene, off_rc = tr.without(scene, rc, tr.EFFECTS)
+    assert effects.load_render_config(red["path"]).mip == "none"
+    off_scene, off_rc = tr.without(scene, rc, effects.EFFECTS)
     direct = tr.measure(off_scene, dataset.test_views, off_rc, scales=(1,), max_views=1)
     assert red["measure"]["psnr"]["1"] == pytest.approx(direct["psnr"]["1"], abs=1e-3)
     assert red["flops"]["reduced"] is not None and red["flops"]["reduced"] <= red["flops"]["full"]
     # Nothing contributes less than -inf dB: nothing is dropped.
-    assert tr.droppable(res, -np.inf) == []
+    assert effects.droppable(res, -np.inf) == []
