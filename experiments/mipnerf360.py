@@ -12,7 +12,9 @@ evaluates in step, process 0 writes (docs/parallel.md; ``--out`` on a filesystem
 ROOT holds Mip-NeRF 360 scene folders (``bicycle/``, ``garden/``, ... each in COLMAP layout) or is
 one scene (any format :func:`patexgs_jax.data.load` reads). Without ``--data`` the study runs on the
 embedded synthetic scene with the ``tiny`` preset (methods ``2dgs,patexgs``); with ``--data`` the
-default preset is ``paper`` (the paper's iteration counts) and the default factor the Mip-NeRF 360
+default preset is ``paper`` (the paper's iteration counts) on a GPU and ``cpu`` (1,000 + 400 steps)
+on a CPU, where the paper's take days (:func:`patexgs_jax.training.config.default_preset`), and the
+default factor the Mip-NeRF 360
 one (4 outdoors, 2 indoors); other scenes' images wider than 1600 px are resized to 1600 wide (the
 3DGS rule; ``--factor 1`` keeps the full size).
 
@@ -190,6 +192,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
         max_gaussians, seed, test_views, train_overrides).
     """
     from patexgs_jax.training import Method
+    from patexgs_jax.training.config import default_preset
 
     methods = list(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
     if methods == ["table4"]:
@@ -203,10 +206,9 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
         from patexgs_jax.data.synthetic import ensure_default_scene
 
         root = ensure_default_scene(verbose=verbose)
-        config.setdefault("preset", "tiny")
     else:
         root = Path(data)
-        config.setdefault("preset", "paper")
+    config.setdefault("preset", default_preset(data))
     if len(set(methods)) != len(methods):
         raise StudyError(f"--methods lists a method twice: {methods}.")
     budgets = parse_budgets(config.get("budget"))
@@ -238,7 +240,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default=None, help="comma-separated methods (default: 2dgs,patexgs on the embedded "
                     f"scene, {','.join(DEFAULT_METHODS)} with --data)")
     ap.add_argument("--preset", default=None, choices=["tiny", "cpu", "small", "paper"],
-                    help="iteration schedule (default: tiny without --data, paper with it)")
+                    help="iteration schedule (default: tiny without --data; with it, paper on a GPU and cpu on a CPU)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor; "
                     "other scenes: images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--out", default="runs/mipnerf360")

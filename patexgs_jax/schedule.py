@@ -185,8 +185,8 @@ class TextureSchedule:
     def allocation_sides(self, S: np.ndarray, act: np.ndarray) -> tuple[np.ndarray, float | None, int | None]:
         """Eq. 7's texture sides from the contribution counts ``S`` (V, C) of the active Gaussians
         ``act`` (C,): (sides (C,) int64, sigma (None for ``patexgs-fixed-N``), the texel budget or
-        None). Pure: also what a speculative allocation compiles ahead for (the trainer's
-        ``prepare_stage2``)."""
+        None). Pure: also what a speculative allocation compiles ahead for
+        (:meth:`patexgs_jax.training.compile_ahead.CompileAhead.prepare`)."""
         cfg = self.cfg
         if self.spec.size is not None:  # patexgs-fixed-N: the same schedule with one size for all
             return np.where(act, self.spec.size, 0).astype(np.int64), None, None

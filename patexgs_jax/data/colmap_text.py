@@ -12,6 +12,7 @@ from typing import NoReturn
 
 import numpy as np
 
+from . import colmap_model as cm
 from .colmap_model import (
     _CAMERA,
     _ID_LIMIT,
@@ -21,14 +22,6 @@ from .colmap_model import (
     CAMERA_MODELS_BY_NAME,
     ColmapCamera,
     ColmapModel,
-    _bad_model,
-    _check_camera,
-    _check_sensor_pose,
-    _has_rigs_frames,
-    _images,
-    _points,
-    _pose,
-    _RigsFrames,
 )
 from .errors import DatasetError
 
@@ -99,8 +92,8 @@ class _TextFile:
                                "it is truncated; re-export the model.")
 
 
-def _read_rigs_frames_text(folder: Path) -> _RigsFrames | None:
-    if not _has_rigs_frames(folder, ".txt"):
+def _read_rigs_frames_text(folder: Path) -> cm._RigsFrames | None:
+    if not cm._has_rigs_frames(folder, ".txt"):
         return None
     rigs: dict[int, dict[tuple[int, int], np.ndarray | None]] = {}
     f = _TextFile(folder / "rigs.txt")
@@ -124,7 +117,7 @@ def _read_rigs_frames_text(folder: Path) -> _RigsFrames | None:
             if has_pose:
                 if len(t) < k + 7:
                     f.fail(lineno, f"a sensor pose of rig {rig_id} is cut short")
-                sensors[key] = _check_sensor_pose(f.path, rig_id, _pose(f.floats(lineno, t[k:k + 7])))
+                sensors[key] = cm._check_sensor_pose(f.path, rig_id, cm._pose(f.floats(lineno, t[k:k + 7])))
                 k += 7
         if k != len(t):
             f.fail(lineno, f"{len(t) - k} unexpected fields after the sensors of rig {rig_id}")
@@ -151,9 +144,9 @@ def _read_rigs_frames_text(folder: Path) -> _RigsFrames | None:
                 cams.append((sid, data_id))
         if frame_id in frames:
             f.fail(lineno, f"frame {frame_id} is defined twice")
-        frames[frame_id] = (rig_id, _pose(qt), cams)
+        frames[frame_id] = (rig_id, cm._pose(qt), cams)
     f.check_declared(len(frames))
-    return _RigsFrames(folder / "rigs.txt", folder / "frames.txt", rigs, frames)
+    return cm._RigsFrames(folder / "rigs.txt", folder / "frames.txt", rigs, frames)
 
 
 def read_text_model(folder: Path) -> ColmapModel:
@@ -169,7 +162,7 @@ def read_text_model(folder: Path) -> ColmapModel:
         if not (0 < width < 1 << 20 and 0 < height < 1 << 20):
             f.fail(lineno, f"camera {cam_id} has implausible size {width}x{height}")
         cam = ColmapCamera(cam_id, model, width, height, np.array(f.floats(lineno, t[4:]), np.float64))
-        _check_camera(f.path, cam, cameras)
+        cm._check_camera(f.path, cam, cameras)
         cameras[cam_id] = cam
     f.check_declared(len(cameras))
 
@@ -203,10 +196,11 @@ def read_text_model(folder: Path) -> ColmapModel:
         if image_id in entries:
             f.fail(lineno, f"image {image_id} is defined twice")
         if camera_id not in cameras:
-            _bad_model(f.path, f"image {image_id} ({name}) uses camera {camera_id}, which cameras.txt does not define")
+            cm._bad_model(f.path, f"image {image_id} ({name}) uses camera {camera_id}, which cameras.txt does "
+                          "not define")
         entries[image_id] = (name, camera_id, qt, kp)
     f.check_declared(len(entries))
-    images = _images(f.path, entries, rigs_frames)
+    images = cm._images(f.path, entries, rigs_frames)
 
     f = _TextFile(folder / "points3D.txt")
     ids, xyz, rgb, error, lengths, tracks = [], [], [], [], [], []
@@ -227,7 +221,7 @@ def read_text_model(folder: Path) -> ColmapModel:
         lengths.append(len(track) // 2)
         tracks.extend(track)
     f.check_declared(len(ids))
-    points = _points(f.path, ids, xyz, rgb, error, lengths, tracks)
+    points = cm._points(f.path, ids, xyz, rgb, error, lengths, tracks)
     return ColmapModel(folder, ".txt", cameras, images, points)
 
 

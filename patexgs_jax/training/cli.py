@@ -1,6 +1,6 @@
 """Training: the 2DGS stage, then the PATexGS texture stage (or a baseline), with checkpoints.
 
-    python -m patexgs_jax.train --data PATH --method patexgs --out DIR [--factor F] [--preset P]
+    python -m patexgs_jax.train [--data PATH] --method patexgs --out DIR [--factor F] [--preset P]
         [--iters-2dgs N] [--iters-tex N] [--max-gaussians N] [--resume] [--skip-unreadable]
         [--batch-size B [--devices D]] [--coordinator HOST:PORT --num-processes N --process-id I]
 
@@ -65,7 +65,7 @@ import jax
 
 from .. import checkpoint as ckpt
 from .. import interrupt
-from .config import PRESETS, preset_config
+from .config import PRESETS, default_preset, preset_config
 from .run import train
 
 __all__ = ["main"]
@@ -84,8 +84,9 @@ def main(argv=None) -> int:
                     "sidecar) and summary.json (no default: required)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
                     "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
-    ap.add_argument("--preset", default="paper", choices=sorted(PRESETS),
-                    help="iteration schedule (default: paper); --iters-* override it")
+    ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                    help="iteration schedule (default: tiny on the embedded scene; with --data, paper on a GPU "
+                    "and cpu on a CPU); --iters-* override it")
     ap.add_argument("--iters-2dgs", type=int, default=None)
     ap.add_argument("--iters-tex", type=int, default=None,
                     help="texture-stage steps; the preset's warm-up and growth interval scale with it")
@@ -161,6 +162,7 @@ def _train(args) -> None:
 
     compiled.enable_compile_cache()
     interrupt.set_phase("checking the arguments")
+    args.preset = args.preset or default_preset(args.data)
     cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                         iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
                         texture_budget_mb=args.texture_budget_mb, seed=args.seed,

@@ -28,6 +28,7 @@ __all__ = [
     "TEXTURE_SCHEDULE_FIELDS",
     "TrainConfig",
     "comparable_config",
+    "default_preset",
     "config_dict",
     "preset_config",
     "stage1_key",
@@ -273,6 +274,20 @@ PRESETS = {
                                                                 opacity_reset_interval=3_000)),
     "paper": {},
 }
+
+
+def default_preset(data, backend: str | None = None) -> str:
+    """The preset a run gets when none is named: ``tiny`` on the embedded scene (``data`` None:
+    minutes on a 2-core CPU); for a capture, ``paper`` (30k + 30k steps) on a GPU or TPU and ``cpu``
+    (1,000 + 400 steps) on a CPU, where the paper's steps take hours to days (the start line's
+    estimate says how long). ``backend``: ``jax.default_backend()`` unless given."""
+    if data is None:
+        return "tiny"
+    if backend is None:
+        import jax
+
+        backend = jax.default_backend()
+    return "cpu" if backend == "cpu" else "paper"
 
 
 def preset_config(preset: str = "paper", **overrides) -> TrainConfig:
