@@ -22,6 +22,7 @@ from ..metrics import mb_to_texels
 from ..rebucket import add_textures, resize_textures
 from ..rendering import RenderConfig
 from ..scene import Scene
+from .billboards import with_gaussian_alpha
 from .config import TrainConfig
 
 __all__ = ["Densification", "TEXTURE_HEADROOM", "TEXTURE_MIN_SPARE", "TextureStage", "TrainState", "growth_schedule",
@@ -140,7 +141,8 @@ class TextureStage:
 
     def start(self, state: TrainState) -> TrainState:
         """Stage 2 starts: ``fixed`` methods get their N x N textures, the adaptive ones a 5x5 alpha
-        texture (ones) and a 1x1 RGB offset (zeros), so the first render equals the 2DGS one."""
+        texture (ones) and a 1x1 RGB offset (zeros), so the first render equals the 2DGS one.
+        Billboards' alpha textures start as the 2DGS Gaussian instead (:mod:`.billboards`)."""
         scene, opt_state = state.scene, state.opt_state
         act = np.asarray(scene.active) > 0
         if self.spec.textures == "fixed":
@@ -155,6 +157,8 @@ class TextureStage:
                                                np.where(act, 5, 0), headroom=TEXTURE_HEADROOM,
                                                min_spare=TEXTURE_MIN_SPARE)
             self.say(f"[stage 2] 5x5 alpha + 1x1 RGB textures; warm-up {self.cfg.warmup_tex} steps")
+        if self.spec.coverage == "billboard":
+            scene = with_gaussian_alpha(scene, act)
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(state.scene.capacity))
 
     def allocate(self, state: TrainState, step: int) -> TrainState:
