@@ -6,13 +6,16 @@ its plane (u, v in units of the scales, as the textures), ``HALF = 3``: the squa
 the splat's textures (:mod:`patexgs_jax.textures`), so the alpha texture alone shapes it and nothing
 falls off inside it: ``alpha = min(0.99, opacity * A_tex(u, v))`` inside, 0 outside. BBSplat's own
 rasterizer (``diff-bbsplat-rasterization``) samples its textures over ``[-1, 1]^2`` in units of its
-scales, bilinearly with zero padding, and has no opacity (alpha is the sampled alpha texture); here
-the texture spans ``[-3, 3]^2`` (a BBSplat scale is three of ours), lookups clamp at the edges and
-the support stops at the square's edge, and the opacity is a per-splat factor of the alpha texture
-(the products span the same alphas). Colour is ``max(SH + 0.5, 0) + RGB_tex``, as BBSplat's.
+scales (align-corners), bilinearly with zero padding, and has no opacity (alpha is the sampled,
+sigmoid-activated alpha texture); here the texture spans ``[-3, 3]^2`` (a BBSplat scale is three of
+ours), lookups clamp at the edges and the support stops at the square's edge, and the opacity is a
+per-splat factor of the alpha texture (the products span the same alphas). Colour is
+``max(SH + 0.5, 0) + RGB_tex``, as BBSplat's.
 
-Gradients: G is piecewise constant, so the square's edge passes no gradient (as in BBSplat, whose
-kernel has none either); the geometry learns through the textures' (u, v) and the depth inside it.
+Gradients: G is piecewise constant, so the square's edge passes no gradient; the geometry learns
+through the textures' (u, v) and the depth inside it. (BBSplat's zero padding makes its alpha fall
+linearly to 0 over one texel past the edge texels, a ramp that passes a gradient to the geometry;
+here an edge texel's value reaches the edge and stops there.)
 
 Screen bounds are exact: the square's part in front of the near plane is a convex polygon (the
 square clipped at camera z = near), whose projection's box is the box of its at most 8 vertices
