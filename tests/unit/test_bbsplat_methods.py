@@ -10,6 +10,7 @@ from patexgs_jax import Camera, Capacity, RenderConfig, Scene, look_at, render_j
 from patexgs_jax.rendering import LAMBDA_MIP_DEFAULT
 from patexgs_jax.training.billboards import gaussian_alpha, with_gaussian_alpha
 from patexgs_jax.training.config import METHODS, Method, TrainConfig, stage1_key
+from patexgs_jax.viewing import MODES, mode_config, own_mode
 
 BILLBOARDS = ("bbsplat", "bbsplat+mip", "bbsplat+adaptive")
 
@@ -92,3 +93,14 @@ def test_billboard_with_gaussian_alpha_renders_the_2dgs_splat(n):
     assert a.max() > 0.85
     np.testing.assert_allclose(b, a, atol=0.9 * h * h / 4.0, rtol=0)
     np.testing.assert_allclose(b.sum(), a.sum(), rtol={16: 0.02, 5: 0.05}[n], atol=0)
+
+
+@pytest.mark.parametrize("name", ["bbsplat", "bbsplat+mip"])
+def test_viewer_keeps_billboards_in_every_mode(name):
+    """The viewer's coverage modes switch a billboard run's mip levels, never its coverage."""
+    base = TrainConfig(method=name).render_config()
+    for mode in MODES:
+        rc = mode_config(base, mode)
+        assert rc.coverage == "billboard" and rc.lambda_mip == base.lambda_mip
+        assert rc.mip == ("none" if mode == "mip-off" else "nearest")
+    assert mode_config(base, own_mode(base)).mip == base.mip
