@@ -26,7 +26,7 @@ def stage1(synthetic_scene_dir, tmp_path_factory):
 @pytest.mark.parametrize("method", ["bbsplat+mip", "bbsplat+adaptive"])
 def test_bbsplat_trains_from_the_shared_stage1(stage1, method, tmp_path):
     ds, ckpt, base = stage1
-    cfg = tiny_config(method=method)
+    cfg = tiny_config(method=method, iters_tex=12)  # Eq. 7 at step 33, growth at 36 and 39
     rec = {}
     orig = TextureStage.start
 
