@@ -24,6 +24,9 @@ Conventions (fixed for the package)
     zero outside the screen ellipse ``d^T S^-1 d <= SUPPORT_Q`` (S = K K^T + V, d the pixel's
     offset from the centre): the filter is affine about the centre, and where P maps a near
     edge-on splat's pixel to far along its plane, the kernel stops at twice the affine footprint.
+  * ``RenderConfig(coverage="billboard")`` (the ``bbsplat`` methods, :mod:`.rendering.billboard`): G = 1
+    on the square ``|u|, |v| <= 3`` of the splat plane (the textures' span) and 0 outside, no
+    low-pass; the pair's depth is the intersection's. The square's edge passes no gradient.
   * ``alpha = min(0.99, opacity * G * A_tex(u, v))``; a pair with alpha < 1/255, or whose
     intersection lies at depth <= ``near``, is skipped; front-to-back compositing in order of the
     Gaussians' centre depths stops before the first splat that would bring transmittance below 1e-4.

@@ -36,6 +36,7 @@ from . import densify as dens
 from .metrics import mb_to_texels
 from .render import RenderConfig
 from .scene import Scene
+from .textures.billboard_alpha import with_gaussian_alpha
 from .textures.rebucket import add_textures, resize_textures
 
 if TYPE_CHECKING:  # the training package imports this module: no import at run time
@@ -139,7 +140,9 @@ class TextureSchedule:
 
     def start(self, state: TrainState) -> TrainState:
         """Stage 2 starts: ``fixed`` methods get their N x N textures, the adaptive ones a 5x5 alpha
-        texture (ones) and a 1x1 RGB offset (zeros), so the first render equals the 2DGS one."""
+        texture (ones) and a 1x1 RGB offset (zeros), so the first render equals the 2DGS one.
+        Billboards' alpha textures start as the 2DGS Gaussian instead
+        (:mod:`patexgs_jax.textures.billboard_alpha`)."""
         scene, opt_state = state.scene, state.opt_state
         act = np.asarray(scene.active) > 0
         if self.spec.textures == "fixed":
@@ -154,6 +157,8 @@ class TextureSchedule:
                                                np.where(act, 5, 0), headroom=TEXTURE_HEADROOM,
                                                min_spare=TEXTURE_MIN_SPARE)
             self.say(f"[stage 2] 5x5 alpha + 1x1 RGB textures; warm-up {self.cfg.warmup_tex} steps")
+        if self.spec.coverage == "billboard":
+            scene = with_gaussian_alpha(scene, act)
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(state.scene.capacity))
 
     def allocate(self, state: TrainState, step: int) -> TrainState:

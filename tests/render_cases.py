@@ -65,6 +65,8 @@ CONFIGS = {
     "no-rgb-mip": (True, 0, RenderConfig(mip="nearest", rgb_mip=False, lambda_mip=2.0)),
     "prefilter": (True, 1, RenderConfig(mip="nearest", coverage="prefilter", min_var=0.25)),
     "prefilter-2dgs": (False, 2, RenderConfig(mip="none", coverage="prefilter", pixel_var=0.3)),
+    "billboard": (True, 1, RenderConfig(mip="none", coverage="billboard")),
+    "billboard-mip": (True, 1, RenderConfig(mip="nearest", coverage="billboard")),
 }
 
 

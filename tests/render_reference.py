@@ -13,6 +13,8 @@ import numpy as np
 #: The prefilter's screen support (the renderer's SUPPORT_Q, by its definition): twice the radius at
 #: which a fully opaque splat's kernel falls to 1/255.
 SUPPORT_Q = 4.0 * 2.0 * np.log(255.0)
+#: Half the side of a billboard's square in units of the scales (coverage "billboard"): the textures' span.
+BILLBOARD_HALF = 3.0
 
 C0 = 0.28209479177387814
 C1 = 0.4886025119029199
@@ -138,6 +140,8 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
     skipped below 1/255 times that scale. The filter's variance is raised to min_var minus the
     splat's smallest screen variance where that is more than pixel_var. The kernel is zero outside
     the screen ellipse d^T (J J^T + v I)^-1 d <= SUPPORT_Q, d the pixel's offset from the centre.
+    "billboard": the kernel is 1 where the ray meets the plane in the closed square |u|, |v| <= 3
+    (BILLBOARD_HALF) and 0 elsewhere, with the intersection's depth.
 
     g: dict with means (N,3), scales (N,2), quats (N,4), opacities (N,) (0 for inactive), sh (N,K,3),
        rgb (list of None or (n,n,3)), alpha (list of None or (m,m,1)).
@@ -191,7 +195,11 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
         u, v, t, bad = hit(d0)
         opacity = g["opacities"][i]
         a_min = 1 / 255
-        if coverage == "prefilter":
+        if coverage == "billboard":
+            inside = ~bad & (np.abs(u) <= BILLBOARD_HALF) & (np.abs(v) <= BILLBOARD_HALF)
+            G = inside.astype(np.float64)
+            z = np.where(inside, t, pc[2])
+        elif coverage == "prefilter":
             J = screen_jacobian(K, Rc, tc, mean, (tu * s[0], tv * s[1]))
             S = J @ J.T
             Sf = S + max(pixel_var, min_var - np.linalg.eigvalsh(S)[0]) * np.eye(2)

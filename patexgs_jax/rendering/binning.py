@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from .billboard import square_touches
 from .projection import FOOTPRINT
 
 #: tile_touches tests each tile grown by this many pixels a side, and accepts quadratic forms down
@@ -120,15 +121,20 @@ _CULL_BLOCKS = 16
 _MIN_BLOCK = 4096
 
 
-def _touches_in_blocks(footprint, g, tx, ty, total, tile_size: int, lowpass: bool):
-    """:func:`tile_touches` of the slots' splats ``g`` and tiles (tx, ty) (each (N,)), computed only
-    for the blocks of slots that hold a pair (slot < ``total``); False in the others."""
+def _touches_in_blocks(footprint, g, tx, ty, total, tile_size: int, lowpass: bool, billboard: bool = False):
+    """:func:`tile_touches` (with ``billboard``, :func:`billboard.square_touches`) of the slots'
+    splats ``g`` and tiles (tx, ty) (each (N,)), computed only for the blocks of slots that hold a
+    pair (slot < ``total``); False in the others."""
     N = g.shape[0]
 
     def block(args):
         gb, txb, tyb = args
         rows = footprint[gb]
-        return tile_touches([rows[:, i] for i in range(FOOTPRINT.width)], txb, tyb, tile_size, lowpass)
+        fp = [rows[:, i] for i in range(FOOTPRINT.width)]
+        if billboard:
+            F = FOOTPRINT
+            return square_touches(fp[F.a], fp[F.b], fp[F.c], fp[F.side], txb, tyb, tile_size, TOUCH_GROW)
+        return tile_touches(fp, txb, tyb, tile_size, lowpass)
 
     if N % _CULL_BLOCKS or N // _CULL_BLOCKS < _MIN_BLOCK:
         return block((g, tx, ty))
@@ -168,11 +174,11 @@ def _sort_prefix(tile, g, total):
 
 
 def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity, footprint=None,
-              tile_size: int = 16, lowpass: bool = False):
+              tile_size: int = 16, lowpass: bool = False, billboard: bool = False):
     """Depth-ordered per-tile lists.
 
     With ``footprint`` ((C, 16), :attr:`projection.Projection.footprint`), a box's tiles that
-    :func:`tile_touches` rules out are left out.
+    :func:`tile_touches` (``billboard``: :func:`billboard.square_touches`) rules out are left out.
 
     Returns (sorted_ids (P,), tile_start (T,), tile_count_binned (T,)): the splat ids of pairs
     sorted by tile, each tile's run in front-to-back order.
@@ -196,7 +202,8 @@ def bin_pairs(depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity, 
     tile = (ty0[g] + k // w) * tiles_x + tx0[g] + k % w
     valid = (p < total) & (k >= 0)
     if footprint is not None:
-        valid = valid & _touches_in_blocks(footprint, g, tx0[g] + k % w, ty0[g] + k // w, total, tile_size, lowpass)
+        valid = valid & _touches_in_blocks(footprint, g, tx0[g] + k % w, ty0[g] + k // w, total, tile_size, lowpass,
+                                           billboard)
     tile = jnp.where(valid, tile, num_tiles)
     ids_sorted = _sort_prefix(tile, g, total)
     binned = jnp.zeros((num_tiles + 1,), jnp.int32).at[tile].add(1)[:num_tiles]
@@ -210,7 +217,7 @@ def bin_projection(proj, ranges, tiles_x: int, num_tiles: int, pair_capacity: in
     tx0, tx1, ty0, ty1, ok = ranges
     return bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity,
                      footprint=proj.footprint if config.tile_cull else None, tile_size=config.tile_size,
-                     lowpass=config.coverage == "lowpass")
+                     lowpass=config.coverage == "lowpass", billboard=config.coverage == "billboard")
 
 
 def pair_count(tx0, tx1, ty0, ty1, ok):

@@ -42,6 +42,10 @@ class Static(NamedTuple):
         return self.config.coverage == "prefilter"
 
     @property
+    def billboard(self):
+        return self.config.coverage == "billboard"
+
+    @property
     def need_footprint(self):
         return self.rgb_mip or self.alpha_mip
 

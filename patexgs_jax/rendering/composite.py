@@ -165,7 +165,7 @@ def _chunk_fwd(st: Static, ctx, packed, tb, k, x, y, log_t, done):
     gid (B, c)). The chunk's per-pair blocks are (c, B, P) (see :mod:`.chunks`)."""
     gid, valid = jax.vmap(lambda t: chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    G, z = chunk_geometry(pk, x, y, st.prefilter)
+    G, z = chunk_geometry(pk, x, y, st.prefilter, st.billboard)
     offs, a_tex = None, None
     if st.rgb or st.alpha:
         passes = texture_passes(st, ctx, pk, gid, valid, G, done)
@@ -250,7 +250,7 @@ def _chunk_bwd(st: Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, c
     paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""
     gid, valid = jax.vmap(lambda t: chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    geo = geometry_terms(pk, x, y, st.prefilter)
+    geo = geometry_terms(pk, x, y, st.prefilter, st.billboard)
     G, z = geo.G, geo.z
     textured = st.rgb or st.alpha
     passes, offs, a_tex = None, None, None
@@ -259,7 +259,7 @@ def _chunk_bwd(st: Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, c
         offs, a_tex = texture_fwd(st, ctx, pk, gid, x, y, passes, G.shape)
     (log_t2, done2, dot_through), (g_pk, g_G, g_z, g_tv) = _chunk_contrib_bwd(
         st, ctx, pk, G, z, offs, a_tex, gid, valid, log_t, done, ct_acc, dot_through, base_term)
-    g_pk = g_pk + chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, st.prefilter)
+    g_pk = g_pk + chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, st.prefilter, st.billboard)
     if textured:
         g_tex, g_rt, g_at = texture_bwd(st, ctx, pk, gid, x, y, passes, G.shape, g_tv, g_rt, g_at)
         g_pk = g_pk + g_tex

@@ -10,10 +10,11 @@ import jax
 
 #: RenderConfig.mip: level 0 only, the paper's Eq. 11 level, or a blend of the two nearest levels.
 MIP_MODES = ("none", "nearest", "trilinear")
-#: RenderConfig.coverage: the 2DGS low-pass kernel, or the prefiltered (EWA) kernel.
-COVERAGE_MODES = ("lowpass", "prefilter")
+#: RenderConfig.coverage: the 2DGS low-pass kernel, the prefiltered (EWA) kernel, or the billboard
+#: square (:mod:`.billboard`).
+COVERAGE_MODES = ("lowpass", "prefilter", "billboard")
 #: Eq. 11's lambda_mip per coverage mode when RenderConfig.lambda_mip is None (see RenderConfig).
-LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0}
+LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0, "billboard": 0.4 / 3.0}
 ALPHA_MAX = 0.99  # a pair's alpha is capped here
 ALPHA_MIN = 1.0 / 255.0  # pairs below this alpha are skipped (with the prefilter, times the coverage)
 T_MIN = 1e-4  # compositing stops before the first pair that would bring transmittance below this
@@ -34,7 +35,9 @@ class RenderConfig:
         the splat-plane Gaussian convolved with a Gaussian pixel filter of variance
         ``pixel_var`` (px^2), mapped onto the plane at the splat's centre (EWA resampling), with
         the opacity scaled so that the splat's integrated coverage is kept: a splat smaller than a
-        pixel fades instead of growing (the PATexGS methods' mode).
+        pixel fades instead of growing (the PATexGS methods' mode). "billboard": G = 1 on the
+        square ``|u|, |v| <= 3`` of the splat plane (the textures' span) and 0 outside, so the alpha
+        texture alone shapes the splat (BBSplat's primitive, :mod:`.billboard`).
       pixel_var: the prefilter's pixel filter variance in px^2 (a box pixel has 1/12).
       min_var: with the prefilter, the smallest screen variance (px^2) of a filtered splat along
         any axis: where a splat is narrower, its filter is widened to reach it (its coverage still
@@ -44,7 +47,9 @@ class RenderConfig:
       mip: "none" (level 0 only), "nearest" (paper Eq. 11, default) or "trilinear".
       lambda_mip: the paper's lambda_mip in Eq. 11; None takes the coverage mode's value
         (:data:`LAMBDA_MIP_DEFAULT`: 0.4 as the paper for "lowpass"; 1/6 for "prefilter", where
-        ``lambda n D`` is then the texels per pixel of a texture spanning 6 scale units).
+        ``lambda n D`` is then the texels per pixel of a texture spanning 6 scale units; 0.4 / 3
+        for "billboard": the paper's 0.4 in BBSplat's units, whose textures span 2 of its scale
+        units, one of which is 3 of ours).
       rgb_mip: use mipmaps for the RGB textures (False: level 0 always; paper Table 3 ablation).
       alpha_mip: use mipmaps for the alpha textures (paper Eq. 13).
       background: RGB colour behind everything.

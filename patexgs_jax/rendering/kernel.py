@@ -3,7 +3,8 @@
 Each pixel's ray meets a splat's plane at (u, v) (the homogeneous ray-plane map of
 :func:`projection.ray_planes`). The kernel G and the pair's depth z follow the coverage mode
 (conventions in :mod:`patexgs_jax.render`): the 2DGS ``exp(-0.5 min(rho3d, rho2d))``, or the
-prefiltered ``exp(-0.5 (p u^2 + 2 r u v + t v^2))`` cut outside its screen support.
+prefiltered ``exp(-0.5 (p u^2 + 2 r u v + t v^2))`` cut outside its screen support, or the
+billboard's square (:mod:`.billboard`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from . import billboard as bb
 from .chunks import Static, cols
 from .config import ALPHA_MIN
 from .projection import COLS
@@ -40,16 +42,19 @@ class Geometry(NamedTuple):
     v: jax.Array
     ok: jax.Array      # the ray meets the plane
     inv: jax.Array     # 1 / s2 (see uv)
-    use3: jax.Array    # the 3D term wins (rho3d <= rho2d); prefilter: a hit within the support
+    use3: jax.Array    # the 3D term wins (rho3d <= rho2d); prefilter: a hit in the support; billboard: in the square
 
 
-def geometry_terms(pk, x, y, prefilter: bool) -> Geometry:
+def geometry_terms(pk, x, y, prefilter: bool, billboard: bool = False) -> Geometry:
     """The :class:`Geometry` of pk (B, c, F) packed splats at pixel centres x, y (B, P); with
-    ``prefilter`` the kernel is the prefiltered one (coverage "prefilter", columns ``COLS.conic``)."""
+    ``prefilter`` the kernel is the prefiltered one (coverage "prefilter", columns ``COLS.conic``),
+    with ``billboard`` the square's indicator (coverage "billboard")."""
     col = cols(pk)
     ia, ib, ic = COLS.a.start, COLS.b.start, COLS.c.start
     u, v, ok, inv = uv(*[x * col[ia + i] + y * col[ib + i] + col[ic + i] for i in range(3)])
-    if prefilter:
+    if billboard:
+        G, use3 = bb.kernel(u, v, ok)
+    elif prefilter:
         p, r, t = (col[i] for i in range(COLS.conic.start, COLS.conic.stop))
         a, b, c = (col[i] for i in range(COLS.support.start, COLS.support.stop))
         dx, dy = x - col[COLS.mu.start], y - col[COLS.mu.start + 1]
@@ -66,16 +71,17 @@ def geometry_terms(pk, x, y, prefilter: bool) -> Geometry:
     return Geometry(G, z, u, v, ok, inv, use3)
 
 
-def chunk_geometry(pk, x, y, prefilter: bool = False):
+def chunk_geometry(pk, x, y, prefilter: bool = False, billboard: bool = False):
     """G, z (c, B, P) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P) pixel centres.
     G is the 2DGS kernel exp(-0.5 min(rho3d, rho2d)) and z the depth: at the ray-plane intersection
     where the 3D term wins, else the centre's. With ``prefilter``, G is the prefiltered kernel
-    exp(-0.5 (p u^2 + 2 r u v + t v^2)) (0 where the ray misses the plane) and z the intersection's."""
-    t = geometry_terms(pk, x, y, prefilter)
+    exp(-0.5 (p u^2 + 2 r u v + t v^2)) (0 where the ray misses the plane) and z the intersection's;
+    with ``billboard``, G is 1 in the square |u|, |v| <= 3 and 0 outside, z the intersection's in it."""
+    t = geometry_terms(pk, x, y, prefilter, billboard)
     return t.G, t.z
 
 
-def chunk_geometry_bwd(pk, x, y, geo: Geometry, g_G, g_z, prefilter: bool = False):
+def chunk_geometry_bwd(pk, x, y, geo: Geometry, g_G, g_z, prefilter: bool = False, billboard: bool = False):
     """The cotangent (B, c, F) of pk for cotangents g_G, g_z (c, B, P) of :func:`chunk_geometry`,
     given the forward's terms ``geo`` (:func:`geometry_terms` of the same pk, x, y), derived by
     hand: the per-splat sums over a tile's pixels are products of a few per-pair columns with the
@@ -84,11 +90,12 @@ def chunk_geometry_bwd(pk, x, y, geo: Geometry, g_G, g_z, prefilter: bool = Fals
     x and y), and each column is multiplied on its own: stacking them first adds a copy of the
     (9, c, B, P) block that costs more than the products (docs/benchmarks.md). The pixels of every
     tile must share their offsets from the tile's first pixel (x[b] - x[b, 0] the same for every b,
-    and y alike), as the tiles of :func:`chunks.pixel_coords` do."""
+    and y alike), as the tiles of :func:`chunks.pixel_coords` do. A billboard's G is piecewise
+    constant: only the depth passes a gradient to the plane (the square's edge passes none)."""
     G, _, u, v, ok, inv, use3 = geo
     col = cols(pk)
     M2 = col[COLS.m2]
-    g_rho = -0.5 * g_G * G                                    # d/d min(rho3d, rho2d), or d/d q
+    g_rho = jnp.zeros_like(G) if billboard else -0.5 * g_G * G  # d/d min(rho3d, rho2d), or d/d q
     g_rho3 = jnp.where(use3 & ok, g_rho, 0.0)
     g_z3 = jnp.where(use3, g_z, 0.0)
     if prefilter:  # d q / d(u, v) = 2 P (u, v)
@@ -119,7 +126,7 @@ def chunk_geometry_bwd(pk, x, y, geo: Geometry, g_G, g_z, prefilter: bool = Fals
         return r.at[..., :2].add(centre * r[..., 2:])
 
     abc = jnp.stack([xy1(g_u * inv), xy1(g_v * inv), xy1(g_s2)], axis=-1).reshape(B, c, 9)
-    if prefilter:  # the centre is not read
+    if prefilter or billboard:  # the centre is not read
         g_mu = jnp.zeros((B, c, 2), pk.dtype)
     else:  # d rho2d / d mu = -4 (x - mu): from the x-, y- and 1-weighted sums of one column.
         r2 = sums(jnp.where(use3, 0.0, g_rho))

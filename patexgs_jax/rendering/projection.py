@@ -19,6 +19,7 @@ from jax import lax
 from ..camera import Camera
 from ..math import quat_to_rotmat, safe_div, safe_normalize, safe_sqrt, sh_basis
 from ..scene import Scene
+from .billboard import square_bounds
 from .config import ALPHA_MIN, SUPPORT_Q, RenderConfig
 
 
@@ -285,6 +286,10 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
         ymax = jnp.minimum(jnp.where(bounded, cy + hy, big), mus[:, 1] + sy)
         radius = jnp.where(visible, jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, 0.0)
         support = lax.stop_gradient(inv_screen) / SUPPORT_Q
+    elif config.coverage == "billboard":  # the square's part beyond the near plane (billboard.square_bounds)
+        (xmin, xmax, ymin, ymax), hit = square_bounds(Ms, config.near)
+        visible = visible & hit
+        radius = jnp.where(visible, jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, 0.0)
     else:
         r_lp = jnp.sqrt(0.5 * r2)  # the low-pass disc: 2 |d|^2 <= r2
         mus = lax.stop_gradient(mu)

@@ -4,6 +4,7 @@
   sizes and filter.
   :mod:`.atlas`: the flat texel atlas with the mip pyramids that the renderer builds inside jit, and
   its addressing and lookups.
+  :mod:`.billboard_alpha`: the alpha textures billboards start from (the 2DGS Gaussian, sampled).
   :mod:`.rebucket`: banks resized or created with their Adam moments, between jitted steps (texture
   growth, the schedule of :mod:`patexgs_jax.schedule`).
 """

@@ -29,9 +29,12 @@ the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: `
 textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
 Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly),
 ``patexgs-literal`` (the paper's Eqs. 11-13 read literally: the 2DGS screen-space low-pass and
-lambda_mip 0.4). The ``patexgs`` family, but ``patexgs-literal``, renders its texture stage, and
-is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``); stage 1 is
-2DGS for every method.
+lambda_mip 0.4), the baselines ``bbsplat`` (BBSplat's billboards,
+``RenderConfig(coverage="billboard")``, with 16x16 RGBA textures), ``bbsplat+mip`` (and RGBA
+mipmaps), ``bbsplat+adaptive`` (with Eqs. 6-10 sizes) and ``textured-gaussians`` (Textured
+Gaussians: ``textured-fixed-8``); docs/baselines.md. The ``patexgs`` family, but
+``patexgs-literal``, renders its texture stage, and is evaluated, with the prefiltered coverage
+(``RenderConfig(coverage="prefilter")``); stage 1 is 2DGS for every method.
 
 Robustness
   The data order and every random choice are seeded, so ``--resume`` from a checkpoint reaches the

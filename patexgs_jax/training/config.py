@@ -50,7 +50,8 @@ class Method:
         growth: ``patexgs-fixed-N``, which differs from ``patexgs`` in the sizes only).
       size: the fixed texture side, or None.
       mip, rgb_mip, alpha_mip, coverage: the stage-2 :class:`RenderConfig` fields (the ``patexgs``
-        family prefilters, the baselines and ``patexgs-literal`` keep the 2DGS low-pass).
+        family prefilters, the ``bbsplat`` family renders billboards, the other baselines and
+        ``patexgs-literal`` keep the 2DGS low-pass).
     """
 
     textures: str | None = "adaptive"
@@ -101,6 +102,12 @@ METHODS: dict[str, Method] = {
     "patexgs-no-adaptive": Method(textures="fixed", size=8),
     "patexgs-trilinear": Method(mip="trilinear"),
     "patexgs-literal": Method(coverage="lowpass"),
+    # Baselines of the paper's Tables 1-2 (docs/baselines.md): BBSplat's billboards with its 16 x 16
+    # RGBA textures, with our mipmaps, with our adaptive sizes; Textured Gaussians as textured-fixed-8.
+    "bbsplat": Method(textures="fixed", size=16, mip="none", coverage="billboard"),
+    "bbsplat+mip": Method(textures="fixed", size=16, mip="nearest", coverage="billboard"),
+    "bbsplat+adaptive": Method(mip="none", coverage="billboard"),
+    "textured-gaussians": Method(textures="fixed", size=8, mip="none", coverage="lowpass"),
 }
 
 

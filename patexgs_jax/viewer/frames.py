@@ -180,11 +180,16 @@ def mode_config(base: RenderConfig, mode: str) -> RenderConfig:
     """The render configuration of coverage mode ``mode`` (a key of :data:`MODES`) for a run
     rendered with ``base``: the run's mip flags and background, with the mode's coverage, lambda_mip
     and mip setting (``patexgs``: prefilter, lambda 1/6; ``literal``: the 2DGS low-pass, lambda 0.4;
-    ``mip-off``: prefilter, level 0 only). The run's own lambda_mip is kept under its own coverage."""
+    ``mip-off``: prefilter, level 0 only). The run's own lambda_mip is kept under its own coverage.
+    Billboards (the ``bbsplat`` runs) have one coverage, their square: the modes switch their mip
+    levels only (``mip-off``: level 0)."""
     if mode not in MODES:
         raise ViewerError(f"unknown coverage mode {mode!r}; choose one of {', '.join(MODES)}.")
     mip = base.mip if base.mip != "none" else "nearest"
     kw: dict[str, Any] = dict(rgb_mip=base.rgb_mip, alpha_mip=base.alpha_mip, background=base.background)
+    if base.coverage == "billboard":
+        return RenderConfig(coverage="billboard", mip="none" if mode == "mip-off" else mip, lambda_mip=base.lambda_mip,
+                            **kw)
     if mode == "patexgs":
         lam = base.lambda_mip if base.coverage == "prefilter" else None
         return RenderConfig(coverage="prefilter", mip=mip, lambda_mip=lam, **kw)

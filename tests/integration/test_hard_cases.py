@@ -43,9 +43,11 @@ from patexgs_jax import Capacity, RenderConfig, render_jit
 from render_reference import reference_render, sh_color
 
 CFG = RenderConfig(mip="nearest", background=(0.2, 0.5, 0.8), near=hs.NEAR)
-#: The coverage modes under test: the 2DGS low-pass and the prefilter (the patexgs methods').
+#: The coverage modes under test: the 2DGS low-pass, the prefilter (the patexgs methods') and the
+#: billboard square (the bbsplat methods').
 CFGS = {"lowpass": CFG, "prefilter": RenderConfig(mip="nearest", background=CFG.background, near=hs.NEAR,
-                                                 coverage="prefilter", min_var=0.25)}
+                                                 coverage="prefilter", min_var=0.25),
+        "billboard": RenderConfig(mip="nearest", background=CFG.background, near=hs.NEAR, coverage="billboard")}
 CAP = Capacity(pairs=8192)  # C = 2048 splats x 4 tiles: never overflows
 WEIGHTS = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (hs.H, hs.W, 3)), jnp.float32)
 TOL, FLIP_FRACTION = 2e-4, 0.03
@@ -236,6 +238,15 @@ def test_hard_scene_prefilter(case, seed, knob):
     """The same properties with the prefiltered coverage (subpixel, edge-on, huge and near-plane
     splats among the cases)."""
     check_case(case, seed, knob, extra=True, cfg=CFGS["prefilter"])
+
+
+@pytest.mark.parametrize("case", hs.CASES)
+@settings(max_examples=2)
+@given(seed=st.integers(0, 2**32 - 1), knob=st.floats(0.0, 1.0))
+def test_hard_scene_billboard(case, seed, knob):
+    """The same properties with billboards (hard-edged squares: edge-on, needle, huge, across the
+    near plane, sub-pixel)."""
+    check_case(case, seed, knob, extra=True, cfg=CFGS["billboard"])
 
 
 @settings(max_examples=4)
