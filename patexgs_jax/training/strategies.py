@@ -1,4 +1,5 @@
-"""The host-side schedule of a run as strategies: densification (stage 1) and the texture stage.
+"""The host-side schedule of a run as strategies: densification (stage 1), Mip-Splatting's 3D filter
+and the texture stage.
 
 A strategy is a host-side object called between jitted steps, as gsplat's densification strategies
 are: ``before_step(state, step)`` before the step that starts at ``step`` and ``after_step(state,
@@ -16,7 +17,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .. import adaptive, buckets
+from .. import adaptive, buckets, filter3d
 from .. import densify as dens
 from ..metrics import mb_to_texels
 from ..rebucket import add_textures, resize_textures
@@ -24,8 +25,8 @@ from ..rendering import RenderConfig
 from ..scene import Scene
 from .config import TrainConfig
 
-__all__ = ["Densification", "TEXTURE_HEADROOM", "TEXTURE_MIN_SPARE", "TextureStage", "TrainState", "growth_schedule",
-           "growth_steps", "side_histogram"]
+__all__ = ["Densification", "SmoothingFilter", "TEXTURE_HEADROOM", "TEXTURE_MIN_SPARE", "TextureStage", "TrainState",
+           "growth_schedule", "growth_steps", "side_histogram"]
 
 #: Free slots (a share of the count, a least number) a texture bucket gets when the layout is made
 #: (the texture stage's start, the Eq. 7 allocation, a growth event that overflows a bucket):
@@ -50,7 +51,9 @@ class Densification:
     random choice is seeded by (seed, step)."""
 
     def __init__(self, config: TrainConfig, radius: float):
-        self.config = dataclasses.replace(config.densify, max_gaussians=config.max_gaussians)
+        own = config.spec.prune_opacity  # 3DGS's 0.005 for the 3D methods
+        self.config = dataclasses.replace(config.densify, max_gaussians=config.max_gaussians,
+                                          **({} if own is None else dict(prune_opacity=own)))
         self.iters_2dgs, self.seed, self.radius = config.iters_2dgs, config.seed, radius
 
     def before_step(self, state: TrainState, step: int) -> TrainState:
@@ -68,6 +71,35 @@ class Densification:
         if dc.reset_opacity_at(step):
             scene, opt_state = dens.reset_opacity(scene, opt_state, dc.opacity_reset_value)
         return TrainState(scene, opt_state, stats)
+
+
+class SmoothingFilter:
+    """Mip-Splatting's 3D filter (:mod:`patexgs_jax.filter3d`) of a ``mip-splatting`` run, from the
+    training cameras, at its reference code's steps: before the first step, after every
+    densification (this strategy runs after :class:`Densification`) and, once densification has
+    stopped, every densification interval up to one interval before the end. Does nothing for other
+    methods. No state of its own (the filter is part of the scene)."""
+
+    def __init__(self, config: TrainConfig, cameras):
+        self.on, self.cameras = config.spec.filter3d, list(cameras)
+        self.dc, self.iters, self.total = config.densify, config.iters_2dgs, config.total_steps
+
+    def recomputes_at(self, step: int) -> bool:
+        """Whether :meth:`after_step` recomputes the filter after ``step`` steps."""
+        dc = self.dc
+        if step < self.iters and dc.densify_at(step):
+            return True
+        return step % dc.interval == 0 and step > min(dc.stop, self.iters) and step < self.total - dc.interval
+
+    def before_step(self, state: TrainState, step: int) -> TrainState:
+        if not self.on or step != 0:
+            return state
+        return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))
+
+    def after_step(self, state: TrainState, step: int) -> TrainState:
+        if not self.on or not self.recomputes_at(step):
+            return state
+        return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))
 
 
 def growth_schedule(cfg: TrainConfig) -> adaptive.GrowthSchedule:

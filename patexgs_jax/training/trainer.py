@@ -56,7 +56,7 @@ from ..rendering import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from .config import TrainConfig, config_dict
 from .step import STEP_TRACES, batch_step, single_view_step
-from .strategies import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, Densification, TextureStage, TrainState
+from .strategies import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, Densification, SmoothingFilter, TextureStage, TrainState
 
 __all__ = ["STAGE1_DIR", "Trainer", "device_description", "format_seconds", "init_scene", "long_run_note",
            "rgba_texels", "run_estimate", "step_seconds", "typical_size"]
@@ -245,8 +245,9 @@ _MAX_PREPARED = 4
 def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
     """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
 
-    Scales: the mean distance to the 3 nearest neighbours (both axes); random rotations; opacity
-    ``config.init_opacity``; SH DC from the colours, higher bands zero.
+    Scales: the mean distance to the 3 nearest neighbours (both axes; all three for the 3D methods,
+    whose Mip-Splatting filter starts at zero); random rotations; opacity ``config.init_opacity``;
+    SH DC from the colours, higher bands zero.
     """
     from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (missing from scipy's stubs)
 
@@ -269,8 +270,10 @@ def init_scene(points, colors, config: TrainConfig, capacity: int | None = None)
     col = np.full((n, 3), 0.5) if colors is None else np.clip(np.asarray(colors, np.float64), 0, 1)
     sh[:, 0] = (col - 0.5) / 0.28209479177387814
     cap = capacity or 1 << max(n - 1, 1).bit_length()
-    return Scene.from_arrays(points, np.repeat(dist[:, None], 2, axis=1), quats,
-                             np.full(n, config.init_opacity), sh, capacity=cap)
+    spec = config.spec
+    return Scene.from_arrays(points, np.repeat(dist[:, None], 3 if spec.primitive == "3d" else 2, axis=1), quats,
+                             np.full(n, config.init_opacity), sh, capacity=cap,
+                             filter3d=np.zeros(n) if spec.filter3d else None)
 
 
 class Trainer:
@@ -307,7 +310,8 @@ class Trainer:
         self.densification = Densification(config, self.radius)
         self.textures = TextureStage(config, self.optimizer, self.train_views, self.render_cfgs[1],
                                      log=self.log, say=self.say)
-        self.strategies = (self.densification, self.textures)
+        self.strategies = (self.densification, SmoothingFilter(config, [v.camera for v in self.train_views]),
+                           self.textures)
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
         # program per size bucket; released when the layout changes (see _compiled_step).
         self._jit_cache: dict[Any, StepEntry] = {}
@@ -965,7 +969,8 @@ class Trainer:
                 t0 = time.perf_counter()
                 traces = sum(STEP_TRACES.values())
                 active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
-                w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from else 0.0)
+                w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from and self.spec.primitive == "2d"
+                                       else 0.0)  # (3D Gaussians have no surface normal)
                 data = ((view.camera, image) if cfg.batch_size == 1
                         else self.batch_inputs(views, images))
                 scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)

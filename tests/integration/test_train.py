@@ -497,7 +497,7 @@ def test_method_names_parse(method):
 
 
 @pytest.mark.parametrize("method", ["textured-fixed-5", "textured-fixed-", "textured-fixed-x", "patexgs-no",
-                                    "3dgs", ""])
+                                    "4dgs", ""])
 def test_bad_method_names(method):
     with pytest.raises(ValueError, match="method|textured-fixed-N"):
         TrainConfig(method=method)
