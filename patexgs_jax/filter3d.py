@@ -65,8 +65,13 @@ def filter_variance(means, cameras: Sequence[Camera]) -> np.ndarray:
 def opacity_factor(log_scales, filter3d) -> np.ndarray:
     """(C,) float64 ``sqrt(det Sigma / det(Sigma + f I))`` = prod_i s_i / sqrt(s_i^2 + f) (host side)."""
     ls = np.asarray(log_scales, np.float64)
-    f = np.maximum(np.asarray(filter3d, np.float64), 1e-30)[:, None]
-    return np.exp(np.sum(ls - 0.5 * np.logaddexp(2.0 * ls, np.log(f)), axis=-1))
+    return np.exp(np.sum(ls - _filtered(ls, filter3d), axis=-1))
+
+
+def _filtered(ls: np.ndarray, filter3d) -> np.ndarray:
+    """log sqrt(s^2 + f) of log scales ``ls`` (C, 3) (ls itself where f is 0)."""
+    f = np.asarray(filter3d, np.float64)[:, None]
+    return np.where(f > 0, 0.5 * np.logaddexp(2.0 * ls, np.log(np.where(f > 0, f, 1.0))), ls)
 
 
 def with_filter(scene: Scene, cameras: Sequence[Camera]) -> Scene:
@@ -82,8 +87,7 @@ def bake(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     logits = np.asarray(scene.opacity_logits, np.float64)
     if scene.filter3d is None:
         return ls.astype(np.float32), logits.astype(np.float32)
-    f = np.maximum(np.asarray(scene.filter3d, np.float64), 1e-30)[:, None]
-    ls_f = 0.5 * np.logaddexp(2.0 * ls, np.log(f))
+    ls_f = _filtered(ls, scene.filter3d)
     op = 1.0 / (1.0 + np.exp(-logits)) * opacity_factor(ls, scene.filter3d)
     op = np.clip(op, 1e-7, 1 - 1e-7)
     return ls_f.astype(np.float32), (np.log(op) - np.log1p(-op)).astype(np.float32)

@@ -68,8 +68,9 @@ def _filtered_log_scales(scene: Scene):
     ls = scene.log_scales
     if scene.filter3d is None:
         return ls, jnp.ones(ls.shape[:1], ls.dtype)
-    logf = jnp.log(jnp.maximum(lax.stop_gradient(scene.filter3d), 1e-30))[:, None]
-    ls_f = 0.5 * jnp.logaddexp(2.0 * ls, logf)
+    f = lax.stop_gradient(scene.filter3d)[:, None]
+    pos = f > 0  # (a zero filter leaves the Gaussian as it is, however small)
+    ls_f = jnp.where(pos, 0.5 * jnp.logaddexp(2.0 * ls, jnp.log(jnp.where(pos, f, 1.0))), ls)
     return ls_f, jnp.exp(jnp.sum(ls - ls_f, axis=-1))
 
 
