@@ -4,12 +4,17 @@ with every value and gradient finite."""
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from patexgs_jax import Capacity, RenderConfig, Scene, random_scene, render_jit
+from patexgs_jax.rendering import ALPHA_MIN, binning, chunks, kernel
+from patexgs_jax.rendering.gaussian3d import project3d
+from patexgs_jax.rendering.projection import COLS, FOOTPRINT
 from render_cases import C, H, W, camera, directional_fd_check, tile_render
 from render_reference import reference_render_3d, scene_to_reference_3d
 
@@ -141,8 +146,8 @@ def test_flat_gaussian_matches_reference_and_fades_with_the_mip_filter():
                            np.full((1, 1, 3), 1.0), capacity=C)
     cam = camera(eye=(0.0, 0.0, -3.0), target=(0.0, 0.0, 1.0))
     sums = {}
-    for cov in ("lowpass", "prefilter"):
-        cfg = RenderConfig(mip="none", coverage=cov)
+    for cov, name in (("lowpass", "3dgs"), ("prefilter", "mip2d")):
+        cfg = CONFIGS[name][1]  # (the programs of test_matches_reference)
         ref = ref3d(sc, cam, cfg)
         out = tile_render(sc, cam, cfg)
         np.testing.assert_allclose(out.rgb, ref["rgb"], atol=2e-4, rtol=0)
@@ -158,3 +163,42 @@ def test_textures_are_refused_on_3d_gaussians():
     with pytest.raises(ValueError, match="take no textures"):
         Scene.from_arrays(np.zeros((1, 3)), np.ones((1, 3)), [[1.0, 0, 0, 0]], [0.5], np.zeros((1, 3)),
                           rgb_textures=[None])
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def cull_check3d(sc, cam, config, g, px, py):
+    """For (Gaussian g, tile (px, py)) pairs: whether binning.tile_touches keeps each, and whether
+    the compositor's own kernel reaches alpha 1/255 at a pixel of the tile in front of the near plane."""
+    ts = config.tile_size
+    proj = project3d(sc, cam, config, None, None)
+    keep = binning.tile_touches([proj.footprint[:, i][g] for i in range(FOOTPRINT.width)], px, py, ts, False)
+    pk = proj.packed[g][:, None, :]
+    iy, ix = jnp.divmod(jnp.arange(ts * ts), ts)
+    x = (px[:, None] * ts + ix).astype(jnp.float32) + 0.5
+    y = (py[:, None] * ts + iy).astype(jnp.float32) + 0.5
+    G, z = kernel.chunk_geometry(pk, x, y, True)
+    alpha = chunks.cols(pk)[COLS.opacity] * G
+    return keep, jnp.any((alpha >= ALPHA_MIN) & (z > config.near), axis=(0, 2))
+
+
+@pytest.mark.parametrize("case", ["random", "edge_on_flat", "huge", "near_plane", "degenerate"])
+def test_tile_cull_keeps_every_pair(case):
+    """No (Gaussian, tile) pair of a screen box that the tile cull leaves out reaches alpha 1/255 at a
+    pixel of its tile, by the compositor's float32 kernel, under both coverage modes."""
+    if case == "random":
+        sc, cam = scene3d(9, True), camera()
+    else:
+        sc, cam = hard_scene3d(case), camera(eye=(0.0, 0.0, -3.0), target=(0.0, 0.0, 1.0))
+    for cov in ("lowpass", "prefilter"):
+        cfg = RenderConfig(mip="none", coverage=cov)
+        proj = project3d(sc, cam, cfg, None, None)
+        ts = cfg.tile_size
+        tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in binning.tile_ranges(
+            proj.bounds, proj.visible, ts, -(-cam.width // ts), -(-cam.height // ts)))
+        pairs = [(i, x, y) for i in np.flatnonzero(ok) for y in range(ty0[i], ty1[i]) for x in range(tx0[i], tx1[i])]
+        assert 0 < len(pairs) <= 1024
+        g, px, py = (np.pad(np.asarray(v, np.int32), (0, 1024 - len(pairs))) for v in zip(*pairs))
+        keep, reach = (np.asarray(a)[:len(pairs)] for a in cull_check3d(sc, cam, cfg, g, px, py))
+        assert not np.any(reach & ~keep), (case, cov)
+        if case == "random":  # ellipses that are not axis-aligned leave corner tiles of their boxes
+            assert np.mean(keep) < 1.0, "the cull should leave some pairs out"
