@@ -31,7 +31,9 @@ Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly),
 ``patexgs-literal`` (the paper's Eqs. 11-13 read literally: the 2DGS screen-space low-pass and
 lambda_mip 0.4). The ``patexgs`` family, but ``patexgs-literal``, renders its texture stage, and
 is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``); stage 1 is
-2DGS for every method.
+2DGS for every method but the 3D-Gaussian baselines ``3dgs`` (3DGS) and ``mip-splatting``
+(3DGS with Mip-Splatting's 3D and 2D filters), which train 3D Gaussians throughout
+(docs/baselines.md).
 
 Robustness
   The data order and every random choice are seeded, so ``--resume`` from a checkpoint reaches the
