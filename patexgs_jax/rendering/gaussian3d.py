@@ -18,16 +18,16 @@ centre is ``G = exp(-0.5 d^T (Sigma' + e I)^-1 d)`` with, by ``RenderConfig.cove
   from going sub-pixel by the 3D filter instead.
 
 A pair is skipped below alpha 1/255 of the composited alpha, as both reference rasterizers do (the
-coverage column is 1). The depth of every pair is the centre's camera z; the normal is the camera-frame
-axis of the Gaussian's smallest scale, turned to face the camera (a 3D Gaussian has no surface: it is
+coverage column is 1). The depth of every pair is the centre's camera z; the normal is the
+camera-frame axis of the Gaussian's smallest scale, turned to face the camera (a 3D Gaussian has no surface: it is
 the axis a flattened Gaussian's surface would have).
 
 The compositor evaluates G with its prefiltered kernel (:mod:`.kernel`), whose conic, support and
 ray-plane columns fit a screen-space quadratic form exactly: the "plane" map sends pixel (x, y) to
-(u, v) = d (A = (1, 0, 0), B = (0, 1, 0), C = (-mu_x, -mu_y, 1)) and the conic columns hold
-``(Sigma' + e I)^-1``. Binning, tile culling, compositing and the hand-written backward are those of
-2D splats (:func:`kernel_config`); gradients reach the mean through C and the covariance through the
-conic.
+(u, v) = d / w (A = (1, 0, 0) / w, B = (0, 1, 0) / w, C = (-mu_x / w, -mu_y / w, 1), w the larger
+screen standard deviation) and the conic columns hold ``w^2 (Sigma' + e I)^-1``. Binning, tile
+culling, compositing and the hand-written backward are those of 2D splats (:func:`kernel_config`);
+gradients reach the mean through C and the covariance through the conic.
 """
 
 from __future__ import annotations
@@ -155,9 +155,14 @@ def project3d(scene: Scene, camera: Camera, config: RenderConfig, screen_offset,
 
     C = depth.shape[0]
     one, zero = jnp.ones((C, 1), dt), jnp.zeros((C, 1), dt)
-    plane = [one, zero, zero, zero, one, zero, -mu[:, :1], -mu[:, 1:], one]      # A, B, C: (u, v) = d
+    # (u, v) = d / w, in units of the larger screen standard deviation w (a constant for the
+    # gradient: q = d^T conic d whatever w), so that the compositor's "no intersection" limit
+    # (|u|, |v| < kernel.UV_LIMIT) lies 1e4 deviations out, where G has long underflowed, for a
+    # Gaussian of any size on screen.
+    w = lax.stop_gradient(jnp.sqrt(jnp.maximum(screen[:, 0], screen[:, 1])))[:, None]
+    plane = [1.0 / w, zero, zero, zero, 1.0 / w, zero, -mu[:, :1] / w, -mu[:, 1:] / w, one]   # A, B, C
     m2 = [zero, zero, depth[:, None]]                                             # z of every pair: the centre's
-    cols = plane + m2 + [mu, opacity[:, None], color, normal, depth[:, None], conic, one,
+    cols = plane + m2 + [mu, opacity[:, None], color, normal, depth[:, None], conic * (w * w), one,
                          lax.stop_gradient(conic) / SUPPORT_Q]
     packed = jnp.concatenate(cols, axis=-1)
     assert packed.shape[-1] == COLS.width_prefilter
