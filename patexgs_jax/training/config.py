@@ -332,7 +332,7 @@ STAGE2_LR_FIELDS = ("texture_rgb", "texture_alpha")
 def stage1_part(saved: dict) -> dict:
     """The part of a saved config that determines stage 1 (3D methods' own: their method is part)."""
     part = {k: v for k, v in comparable_config(saved).items() if k not in STAGE2_FIELDS}
-    if Method.from_name(saved.get("method", "patexgs")).primitive == "3d":
+    if saved.get("method") in METHODS and METHODS[saved["method"]].primitive == "3d":
         part["method"] = saved["method"]
     if isinstance(part.get("lr"), dict):
         part["lr"] = {k: v for k, v in part["lr"].items() if k not in STAGE2_LR_FIELDS}

@@ -9,8 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from gaussian3d_cases import CONFIGS, HARD, hard_scene3d, ref3d, scene3d
 
+from gaussian3d_cases import CONFIGS, HARD, hard_scene3d, ref3d, scene3d
 from patexgs_jax import Capacity, RenderConfig, Scene, random_scene, render_jit
 from render_cases import C, camera, directional_fd_check, tile_render
 
