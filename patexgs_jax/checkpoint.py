@@ -202,7 +202,11 @@ class _Decoder:
             cls = _resolve_class(node["cls"])
             values = {k: self.decode(v) for k, v in node["f"].items()}
             fields = {f.name: f for f in dataclasses.fields(cls)}
-            if set(values) != set(fields):
+            # A field added to the class since the checkpoint was written takes its default (e.g.
+            # Scene.filter3d, None in every older checkpoint); any other mismatch is an error.
+            added = {k for k in set(fields) - set(values) if fields[k].init
+                     and fields[k].default is not dataclasses.MISSING}
+            if set(values) != set(fields) - added:
                 raise CheckpointError(f"{node['cls']}: stored fields {sorted(values)} do not match the "
                                       f"class's fields {sorted(fields)}.")
             obj = cls(**{k: v for k, v in values.items() if fields[k].init})

@@ -19,7 +19,8 @@ Densify and prune (one call of :func:`densify_and_prune`, in this order, as 3DGS
   * Split: max scale above that: ``split_count`` children replace the Gaussian (child 0 reuses
     its slot, the others take free slots). Child means are ``mean + u t_u + v t_v`` with
     ``u ~ N(0, s_u)``, ``v ~ N(0, s_v)`` along the tangent axes t_u, t_v (rotation columns 0, 1),
-    i.e. samples of the 2D Gaussian in its own plane; child scales are the parent's divided by
+    i.e. samples of the 2D Gaussian in its own plane (of a 3D Gaussian, along its three axes, as
+    3DGS); child scales are the parent's divided by
     ``0.8 * split_count`` (1.6 for the default 2, as 3DGS/2DGS); rotation, opacity, SH are copied.
   * Prune (applied after growth, to old and new Gaussians): opacity < ``prune_opacity``; with
     ``prune_large`` (3DGS: after the first opacity reset, see :meth:`DensifyConfig.prune_large`)
@@ -233,6 +234,8 @@ def _take(a, src, fill):
 def _map_rows(tree: Scene, fn) -> Scene:
     """Applies ``fn(field_name, array) -> array`` to every per-Gaussian leaf (incl. bank indices)."""
     kw = {f: fn(f, getattr(tree, f)) for f in _PARAM_FIELDS}
+    if tree.filter3d is not None:  # Mip-Splatting's 3D filter (recomputed after densification)
+        kw["filter3d"] = fn("filter3d", tree.filter3d)
     for name in ("rgb", "alpha"):
         bank = getattr(tree, name)
         if bank is not None:
@@ -422,9 +425,10 @@ def densify_and_prune(scene: Scene, opt_state, stats: DensifyStats, config: Dens
         if split_rows.size == 0:
             return p
         rot = _quat_to_rotmat_np(np.asarray(scene.quats)[split_rows])            # (S, 3, 3)
-        s = np.exp(log_scales[split_rows])                                         # (S, 2)
-        uv = rng.normal(size=(split_rows.size, N, 2)) * s[:, None, :]             # (S, N, 2)
-        offset = uv[..., :1] * rot[:, None, :, 0] + uv[..., 1:] * rot[:, None, :, 1]
+        s = np.exp(log_scales[split_rows])                                         # (S, d): 2, or 3 (3D)
+        d = s.shape[1]
+        uv = rng.normal(size=(split_rows.size, N, d)) * s[:, None, :]             # (S, N, d)
+        offset = sum(uv[..., k:k + 1] * rot[:, None, :, k] for k in range(d))
         means = np.array(p.means)
         ls = np.array(p.log_scales)
         base = np.asarray(scene.means, np.float64)[split_rows]
@@ -487,13 +491,20 @@ def prune_gaussians(scene: Scene, opt_state, stats: DensifyStats | None, mask):
 
 def reset_opacity(scene: Scene, opt_state, value: float = 0.01):
     """Caps every opacity at ``value`` (in logit space: ``min(logit, logit(value))``, exact) and
-    zeroes the Adam moments of the opacity logits (as 3DGS). Returns (scene, opt_state)."""
+    zeroes the Adam moments of the opacity logits (as 3DGS). With Mip-Splatting's 3D filter
+    (``scene.filter3d``) the cap applies to the filtered opacity, as its reference code does.
+    Returns (scene, opt_state)."""
     from .optim import map_moments
 
     if not 0.0 < value < 1.0:
         raise ValueError(f"reset value must lie in (0, 1), got {value}.")
     cap = np.float32(math.log(value) - math.log1p(-value))
     logits = np.asarray(scene.opacity_logits)
+    if scene.filter3d is not None:  # Mip-Splatting caps the opacity the 3D filter leaves
+        from .filter3d import opacity_factor
+
+        v = np.minimum(value / opacity_factor(scene.log_scales, scene.filter3d), 1.0 - 1e-7)
+        cap = (np.log(v) - np.log1p(-v)).astype(np.float32)
     scene = scene.replace(opacity_logits=jax.device_put(np.minimum(logits, cap.astype(logits.dtype))))
     if opt_state is not None:
         opt_state = map_moments(opt_state, lambda m: m.replace(opacity_logits=jax.device_put(

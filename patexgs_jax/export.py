@@ -1,4 +1,5 @@
-"""PLY export in the 2DGS attribute layout, with a texture sidecar, and the matching loader.
+"""PLY export in the 2DGS attribute layout (3DGS's for 3D Gaussians), with a texture sidecar, and the
+matching loader.
 
 PLY (binary little-endian, one ``vertex`` element, all properties ``float``), in this order::
 
@@ -10,6 +11,12 @@ coefficient of channel c; ``f_rest`` is channel-major (all K-1 higher coefficien
 G, then of B: ``f_rest_{c (K-1) + k - 1} = sh[:, k, c]``); ``opacity`` is the logit;
 ``scale_*`` are log scales; ``rot_*`` the quaternion (w, x, y, z), unnormalised, as stored. Only
 active Gaussians are written, in slot order.
+
+A scene of 3D Gaussians (``3dgs``, ``mip-splatting``) is written in 3DGS's own layout, which the
+common 3DGS viewers read: the same properties with ``scale_0 scale_1 scale_2``. Mip-Splatting's 3D
+filter is baked in as its reference code's fused PLY does (:func:`patexgs_jax.filter3d.bake`:
+scales sqrt(s^2 + f), opacity times sqrt(det Sigma / det(Sigma + f I))), so a viewer without the
+filter shows the trained model (the 2D Mip filter, a renderer setting, is not in the file).
 
 Texture sidecar ``path.with_suffix(".textures.npz")`` (e.g. ``scene.ply`` ->
 ``scene.textures.npz``), always written by :func:`export_ply`, a numpy ``.npz`` with
@@ -35,6 +42,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from . import filter3d
 from .math import SH_COEFFS_PER_DEGREE
 from .scene import Scene
 from .textures import TextureBank
@@ -55,11 +63,11 @@ def sidecar_path(path) -> Path:
     return Path(path).with_suffix(".textures.npz")
 
 
-def ply_property_names(sh_coeffs: int) -> list[str]:
-    """The 2DGS vertex properties for K SH coefficients per channel."""
+def ply_property_names(sh_coeffs: int, scales: int = 2) -> list[str]:
+    """The 2DGS vertex properties for K SH coefficients per channel (3DGS's with ``scales=3``)."""
     return (["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{i}" for i in range(3)]
-            + [f"f_rest_{i}" for i in range(3 * (sh_coeffs - 1))] + ["opacity", "scale_0", "scale_1"]
-            + [f"rot_{i}" for i in range(4)])
+            + [f"f_rest_{i}" for i in range(3 * (sh_coeffs - 1))] + ["opacity"]
+            + [f"scale_{i}" for i in range(scales)] + [f"rot_{i}" for i in range(4)])
 
 
 def _atomic_write(path: Path, write) -> None:
@@ -110,13 +118,13 @@ def export_ply(scene: Scene, path) -> Path:
     sh = np.asarray(scene.sh, np.float32)[rows]                  # (N, K, 3)
     K = sh.shape[1]
     rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (K - 1))
+    log_scales, logits = filter3d.bake(scene)  # the scene's own without a 3D filter
     cols = [np.asarray(scene.means, np.float32)[rows], np.zeros((n, 3), np.float32), sh[:, 0, :], rest,
-            np.asarray(scene.opacity_logits, np.float32)[rows][:, None],
-            np.asarray(scene.log_scales, np.float32)[rows], np.asarray(scene.quats, np.float32)[rows]]
+            logits[rows][:, None], log_scales[rows], np.asarray(scene.quats, np.float32)[rows]]
     data = np.ascontiguousarray(np.concatenate(cols, axis=1).astype("<f4"))
-    names = ply_property_names(K)
+    names = ply_property_names(K, log_scales.shape[1])
     assert data.shape[1] == len(names)
-    header = ("ply\nformat binary_little_endian 1.0\ncomment patexgs-jax 2DGS export\n"
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment patexgs-jax {'3DGS' if scene.is_3d else '2DGS'} export\n"
               f"element vertex {n}\n" + "".join(f"property float {p}\n" for p in names)
               + "end_header\n").encode("ascii")
     body = data.tobytes()
@@ -207,26 +215,26 @@ def _read_vertices(path: Path):
 
 
 def load_ply(path, capacity: int | None = None) -> Scene:
-    """Reads a PLY written by :func:`export_ply` (or any 2DGS PLY) and its sidecar into a Scene.
+    """Reads a PLY written by :func:`export_ply` (or any 2DGS or 3DGS PLY) and its sidecar into a Scene
+    (of 3D Gaussians for a 3DGS file: ``scale_2`` present).
 
     Args:
       path: the PLY file.
       capacity: scene capacity (default: the number of Gaussians N); slots beyond N are inactive.
     Raises:
-      PlyFormatError for truncated or corrupt files, missing properties, a 3DGS (three-scale) file,
-      non-finite values, or a sidecar of the wrong format, version or PLY.
+      PlyFormatError for truncated or corrupt files, missing properties, non-finite values, or a
+      sidecar of the wrong format, version or PLY.
     """
     path = Path(path)
     verts, names, body = _read_vertices(path)
     n = verts.shape[0]
-    if "scale_2" in names:
-        raise PlyFormatError(f"{path}: has scale_2: this is a 3DGS (3D Gaussian) PLY, not 2DGS.")
+    dims = 3 if "scale_2" in names else 2
     n_rest = sum(1 for p in names if p.startswith("f_rest_"))
     if n_rest % 3 or (n_rest // 3 + 1) not in SH_COEFFS_PER_DEGREE:
         raise PlyFormatError(f"{path}: {n_rest} f_rest properties; expected 3 (K - 1) with K in "
                              f"{SH_COEFFS_PER_DEGREE}.")
     K = n_rest // 3 + 1
-    missing = [p for p in ply_property_names(K) if p not in names and p not in ("nx", "ny", "nz")]
+    missing = [p for p in ply_property_names(K, dims) if p not in names and p not in ("nx", "ny", "nz")]
     if missing:
         raise PlyFormatError(f"{path}: missing vertex properties {missing}.")
 
@@ -240,7 +248,7 @@ def load_ply(path, capacity: int | None = None) -> Scene:
     rest = col(*[f"f_rest_{i}" for i in range(n_rest)]).reshape(n, 3, K - 1)
     sh = np.concatenate([dc[:, None, :], np.transpose(rest, (0, 2, 1))], axis=1)
     logits = col("opacity")[:, 0]
-    log_scales = col("scale_0", "scale_1")
+    log_scales = col(*[f"scale_{i}" for i in range(dims)])
     quats = col("rot_0", "rot_1", "rot_2", "rot_3")
     for name, a in (("positions", means), ("SH", sh), ("opacity", logits), ("scales", log_scales),
                     ("rotations", quats)):

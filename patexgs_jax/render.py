@@ -40,6 +40,10 @@ Conventions (fixed for the package)
     ``l = min(L, max(0, floor(log2(lambda_mip * n * D))))`` with n the texture side and
     L = ceil(log2 n). RGB and alpha textures pick their levels independently (their n may differ).
     ``mip="trilinear"`` blends the two nearest levels by the fractional level instead.
+  * 3D Gaussians (``Scene.log_scales`` (C, 3); 3DGS, Mip-Splatting) are projected by EWA with
+    3DGS's 0.3 px^2 dilation ("lowpass") or Mip-Splatting's 2D Mip filter ("prefilter") and
+    composited as above with the screen-space kernel; their pairs' depth is the centre's camera z,
+    their normal the axis of the smallest scale facing the camera; no textures (:mod:`.rendering.gaussian3d`).
   * Outputs: ``rgb`` composited over ``background``; ``alpha = 1 - T_final``; ``depth`` is the
     alpha-normalised expected ray-splat intersection depth (camera z), 0 where nothing is hit;
     ``normal`` is the alpha-weighted sum of the splats' camera-frame unit normals, each flipped to
@@ -100,6 +104,7 @@ from .rendering.config import (
     RenderConfig,
     RenderOutput,
 )
+from .rendering.gaussian3d import kernel_config, project3d
 from .rendering.projection import alpha_peak, constant_textures, project
 from .rendering.texture_lookup import meta_table
 from .rendering.tiling import resolve_tile_batch
@@ -150,7 +155,11 @@ def check_inputs(scene: Scene, camera: Camera) -> None:
       AssertionError (chex's) naming the field, its shape or dtype and the fix.
     """
     c = scene.means.shape[0] if scene.means.ndim else -1
-    fields = dict(means=(scene.means, (c, 3)), log_scales=(scene.log_scales, (c, 2)),
+    dims = scene.log_scales.shape[-1] if scene.log_scales.ndim == 2 and scene.log_scales.shape[-1] == 3 else 2
+    if dims == 3 and (scene.rgb is not None or scene.alpha is not None):  # (3D Gaussians, gaussian3d.py)
+        raise ValueError("render: textures are not supported on 3D Gaussians (log_scales (C, 3)); drop the "
+                         "scene's rgb / alpha banks, or use 2D splats (log_scales (C, 2)) for textures.")
+    fields = dict(means=(scene.means, (c, 3)), log_scales=(scene.log_scales, (c, dims)),
                   quats=(scene.quats, (c, 4)), opacity_logits=(scene.opacity_logits, (c,)),
                   sh=(scene.sh, (c, None, 3)), active=(scene.active, (c,)))
     for name, (x, shape) in fields.items():
@@ -182,7 +191,10 @@ def _project_and_range(scene: Scene, camera: Camera, config: RenderConfig, scree
     """The projection of a view, its splats' tile ranges (tx0, tx1, ty0, ty1, ok), the (splat, tile)
     pairs it needs (() float32) and the most splats any tile lists (() int32)."""
     tiles_x, tiles_y = _tile_grid(camera, config)
-    proj = project(scene, camera, config, screen_offset, active_sh_degree, peak, constant)
+    if scene.is_3d:
+        proj = project3d(scene, camera, config, screen_offset, active_sh_degree)
+    else:
+        proj = project(scene, camera, config, screen_offset, active_sh_degree, peak, constant)
     ranges = tile_ranges(proj.bounds, proj.visible, config.tile_size, tiles_x, tiles_y)
     hist = tile_histogram(*ranges, tiles_x, tiles_y)
     return proj, ranges, pair_count(*ranges), jnp.max(hist)
@@ -254,11 +266,12 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     rgb_atlas, alpha_atlas = textures.rgb_atlas, textures.alpha_atlas
     proj, ranges, pairs_needed, max_tile = _project_and_range(
         scene, camera, config, screen_offset, active_sh_degree, peak, (rgb_add, alpha_mul))
-    ids_sorted, tile_start, binned = bin_projection(proj, ranges, tiles_x, num_tiles, capacity.pairs, config)
+    kcfg = kernel_config(config, scene)  # 3D Gaussians: the compositor's screen-space (prefilter) kernel
+    ids_sorted, tile_start, binned = bin_projection(proj, ranges, tiles_x, num_tiles, capacity.pairs, kcfg)
     ok = ranges[4]
 
     batch = resolve_tile_batch(config.tile_batch, num_tiles, tile_size=ts, chunk=config.chunk)
-    st = Static(config=dataclasses.replace(config, tile_batch=batch), tiles_x=tiles_x, num_tiles=num_tiles,
+    st = Static(config=dataclasses.replace(kcfg, tile_batch=batch), tiles_x=tiles_x, num_tiles=num_tiles,
                 rgb=rgb_atlas is not None, alpha=alpha_atlas is not None)
     # One-texel textures are folded into the colour and opacity (constant_textures): not looked up.
     rgb_has = alpha_has = None

@@ -1,9 +1,11 @@
-"""The scene pytree: 2D Gaussians with fixed capacity, an active mask, and optional textures.
+"""The scene pytree: 2D (or 3D) Gaussians with fixed capacity, an active mask, and optional textures.
 
 Parameters are stored unconstrained, as training optimises them:
 
 * ``means`` (C, 3) world positions;
-* ``log_scales`` (C, 2) log of the two tangent-axis scales (standard deviations);
+* ``log_scales`` (C, 2) log of the two tangent-axis scales (standard deviations); (C, 3) for a
+  scene of 3D Gaussians (3DGS, Mip-Splatting): the scales along the rotation's three columns. The
+  static shape decides the primitive (:attr:`Scene.is_3d`), so a 2D scene compiles as it always did;
 * ``quats`` (C, 4) rotation quaternions (w, x, y, z), normalised when used; the splat's tangent
   axes are the rotation's first two columns and its normal the third;
 * ``opacity_logits`` (C,) logit of the opacity;
@@ -14,6 +16,10 @@ Parameters are stored unconstrained, as training optimises them:
 * ``rgb`` / ``alpha``: optional :class:`~patexgs_jax.textures.TextureBank` of RGB offsets
   (added to the SH colour) and alpha multipliers (``alpha = min(0.99, opacity * G * A)``).
   A Gaussian without an RGB texture adds 0; without an alpha texture it multiplies by 1.
+  3D scenes have no textures.
+* ``filter3d``: optional (C,) Mip-Splatting's 3D smoothing filter of a 3D scene, the variance
+  (world units^2) added to each Gaussian's covariance in all three axes, its opacity scaled so the
+  integral is kept (:mod:`patexgs_jax.filter3d`); not trained (its gradient is zero).
 
 Every leaf is a float array, so ``jax.grad`` of a loss of ``render(scene, ...)`` with respect to the
 whole scene works directly; the mask and texture indices get zero gradient.
@@ -47,16 +53,17 @@ class Scene:
     active: jax.Array
     rgb: TextureBank | None = None
     alpha: TextureBank | None = None
+    filter3d: jax.Array | None = None
 
     # ----------------------------------------------------------------------------------------
     @classmethod
     def from_arrays(cls, means, scales, quats, opacities, sh, rgb_textures=None, alpha_textures=None,
-                    capacity: int | None = None) -> Scene:
+                    capacity: int | None = None, filter3d=None) -> Scene:
         """Builds a scene from activated values.
 
         Args:
           means: (N, 3) world positions.
-          scales: (N, 2) positive scales of the two tangent axes.
+          scales: (N, 2) positive scales of the two tangent axes, or (N, 3) for 3D Gaussians.
           quats: (N, 4) quaternions (w, x, y, z), non-zero.
           opacities: (N,) in [0, 1] (clipped to [1e-7, 1 - 1e-7] for the logit).
           sh: (N, K, 3) SH coefficients with K in {1, 4, 9, 16}, or (N, 3) for degree 0.
@@ -64,6 +71,7 @@ class Scene:
             first index along the first tangent axis.
           alpha_textures: optional length-N list; entry i is None or an (m, m) alpha texture.
           capacity: fixed capacity C >= N (default N); slots beyond N are inactive.
+          filter3d: optional (N,) 3D filter variances of a 3D scene (see the module docstring).
         """
         means = np.asarray(means, np.float32)
         if means.ndim != 2 or means.shape[1] != 3:
@@ -75,7 +83,13 @@ class Scene:
         sh = np.asarray(sh, np.float32)
         if sh.ndim == 2:
             sh = sh[:, None, :]
-        for name, arr, shape in [("scales", scales, (n, 2)), ("quats", quats, (n, 4)),
+        dims = scales.shape[1] if scales.ndim == 2 and scales.shape[1] in (2, 3) else 2
+        if dims == 3 and (rgb_textures is not None or alpha_textures is not None):
+            raise ValueError("3D Gaussians (scales (N, 3)) take no textures; pass rgb_textures=None and "
+                             "alpha_textures=None, or two scales per Gaussian for textured 2D splats.")
+        if filter3d is not None and dims != 3:
+            raise ValueError("filter3d (Mip-Splatting's 3D filter) is for 3D Gaussians: scales must be (N, 3).")
+        for name, arr, shape in [("scales", scales, (n, dims)), ("quats", quats, (n, 4)),
                                  ("opacities", opacities, (n,))]:
             if arr.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {arr.shape}.")
@@ -121,7 +135,8 @@ class Scene:
         return cls(means=pad(means), log_scales=pad(np.log(scales)), quats=jnp.asarray(quats_p),
                    opacity_logits=pad(logits.astype(np.float32), -20.0), sh=pad(sh),
                    active=jnp.asarray(active), rgb=bank(rgb_textures, 3, 0.0),
-                   alpha=bank(alpha_textures, 1, 1.0))
+                   alpha=bank(alpha_textures, 1, 1.0),
+                   filter3d=None if filter3d is None else pad(np.asarray(filter3d, np.float32).reshape(n)))
 
     # ----------------------------------------------------------------------------------------
     @property
@@ -133,8 +148,13 @@ class Scene:
         return sh_degree_of(int(self.sh.shape[1]))
 
     @property
+    def is_3d(self) -> bool:
+        """Whether the Gaussians are 3D (``log_scales`` (C, 3)): static, from the shape."""
+        return int(self.log_scales.shape[-1]) == 3
+
+    @property
     def scales(self) -> jax.Array:
-        """(C, 2) activated scales."""
+        """(C, 2) activated scales ((C, 3) for 3D Gaussians)."""
         return jnp.exp(self.log_scales)
 
     @property
@@ -165,18 +185,18 @@ class Scene:
 def random_scene(seed: int, n: int, sh_degree: int = 0, extent: float = 1.0, scale_range=(0.02, 0.2),
                  center=(0.0, 0.0, 0.0), rgb_sizes: Sequence[int] | None = None,
                  alpha_sizes: Sequence[int] | None = None, opacity_range=(0.2, 0.95),
-                 capacity: int | None = None) -> Scene:
+                 capacity: int | None = None, scale_dims: int = 2) -> Scene:
     """A random scene for tests, demos and benchmarks (deterministic in ``seed``).
 
     Means uniform in a cube of half-side ``extent`` around ``center``; log-uniform scales; uniform
     random rotations; SH DC such that colours are in (0.1, 0.9), higher bands small. ``rgb_sizes``
     and ``alpha_sizes`` give per-Gaussian texture sides (0 for none), filled with random values
-    (RGB offsets in [-0.3, 0.3], alpha in [0.3, 1.2]).
+    (RGB offsets in [-0.3, 0.3], alpha in [0.3, 1.2]). ``scale_dims=3``: 3D Gaussians (no textures).
     """
     rng = np.random.default_rng(seed)
     means = rng.uniform(-extent, extent, (n, 3)) + np.asarray(center)
     lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
-    scales = np.exp(rng.uniform(lo, hi, (n, 2)))
+    scales = np.exp(rng.uniform(lo, hi, (n, scale_dims)))
     quats = rng.normal(size=(n, 4))
     opac = rng.uniform(opacity_range[0], opacity_range[1], n)
     K = (sh_degree + 1) ** 2

@@ -120,7 +120,7 @@ def directional_fd_check(sc, cam, cfg, seed, h=1e-6, rtol=2e-4):
         g = jax.grad(loss)(sc64)
         leaves, treedef = jax.tree_util.tree_flatten(sc64)
         gleaves = jax.tree_util.tree_leaves(g)
-        frozen = {id(x) for x in (sc64.active,) + tuple(
+        frozen = {id(x) for x in (sc64.active,) + (() if sc64.filter3d is None else (sc64.filter3d,)) + tuple(
             getattr(b, f) for b in (sc64.rgb, sc64.alpha) if b is not None for f in ("bucket", "slot", "size"))}
         dirs = [jnp.zeros_like(x) if id(x) in frozen else jnp.asarray(rng.normal(size=x.shape))
                 for x in leaves]

@@ -279,3 +279,97 @@ def scene_to_reference(scene):
                 quats=np.asarray(scene.quats, np.float64),
                 opacities=np.where(act, 1 / (1 + np.exp(-np.asarray(scene.opacity_logits, np.float64))), 0.0),
                 sh=np.asarray(scene.sh, np.float64), rgb=textures(scene.rgb, 3), alpha=textures(scene.alpha, 1))
+
+
+def reference_render_3d(g, K, w2c, width, height, background=(0.0, 0.0, 0.0), near=0.01, coverage="lowpass",
+                        pixel_var=0.1):
+    """Renders a dict of activated float64 3D Gaussians (3DGS / Mip-Splatting), written from the
+    papers' formulas, not the renderer's: the covariance R S^2 R^T (plus the 3D filter's variance
+    f I, opacity times sqrt(det / det filtered)), its EWA projection J W Sigma W^T J^T with the
+    centre clamped to 1.3 half fields of view in J, plus 0.3 I ("lowpass", 3DGS) or pixel_var I with
+    the opacity times sqrt(det Sigma' / det(Sigma' + pixel_var I)) ("prefilter", Mip-Splatting's 2D
+    filter), inverted with numpy; alpha = min(0.99, opacity G), skipped below 1/255; every pair's
+    depth the centre's camera z; normal the axis of the smallest scale, facing the camera.
+
+    g: dict with means (N,3), scales (N,3), quats (N,4), opacities (N,), sh (N,K,3), filter3d (N,)
+       or None. Returns as :func:`reference_render`.
+    """
+    K = np.asarray(K, np.float64)
+    w2c = np.asarray(w2c, np.float64)
+    Rc, tc = w2c[:3, :3], w2c[:3, 3]
+    origin = -np.linalg.inv(Rc) @ tc
+    jj, ii = np.meshgrid(np.arange(width), np.arange(height))
+    x, y = jj.ravel() + 0.5, ii.ravel() + 0.5
+    N = len(g["means"])
+    depths = np.array([(Rc @ g["means"][i] + tc)[2] for i in range(N)])
+    order = np.argsort(depths, kind="stable")
+    P = x.size
+    T = np.ones(P)
+    done = np.zeros(P, bool)
+    rgb, dep, nrm = np.zeros((P, 3)), np.zeros(P), np.zeros((P, 3))
+    best_w, best = np.zeros(P), -np.ones(P, int)
+    dA, dD1, dD2, dist = np.zeros(P), np.zeros(P), np.zeros(P), np.zeros(P)
+    for i in order:
+        if depths[i] <= near or g["opacities"][i] <= 0:
+            continue
+        R = quat_rot(g["quats"][i])
+        mean, s = g["means"][i], g["scales"][i]
+        opacity = g["opacities"][i]
+        Sigma = R @ np.diag(s * s) @ R.T
+        if g.get("filter3d") is not None:
+            f = g["filter3d"][i]
+            opacity = opacity * np.sqrt(np.prod(s * s) / np.prod(s * s + f))
+            Sigma = Sigma + f * np.eye(3)
+        pc = Rc @ mean + tc
+        z = pc[2]
+        # J at the centre, whose pixel is clamped to the principal point +- 0.65 of the image (3DGS's
+        # x/z within 1.3 tan(fov / 2)); K is upper triangular.
+        mx = K[0, 0] * pc[0] / z + K[0, 1] * pc[1] / z + K[0, 2]
+        my = K[1, 1] * pc[1] / z + K[1, 2]
+        mxc = np.clip(mx, K[0, 2] - 0.65 * width, K[0, 2] + 0.65 * width)
+        myc = np.clip(my, K[1, 2] - 0.65 * height, K[1, 2] + 0.65 * height)
+        J = np.array([[K[0, 0] / z, K[0, 1] / z, (K[0, 2] - mxc) / z],
+                      [0.0, K[1, 1] / z, (K[1, 2] - myc) / z]])
+        S = J @ Rc @ Sigma @ Rc.T @ J.T
+        if coverage == "prefilter":
+            Sf = S + pixel_var * np.eye(2)
+            opacity = opacity * np.sqrt(max(np.linalg.det(S), 0.0) / np.linalg.det(Sf))
+        else:
+            Sf = S + 0.3 * np.eye(2)
+        d = np.stack([x - mx, y - my])
+        q = np.sum(d * (np.linalg.inv(Sf) @ d), axis=0)
+        G = np.exp(-0.5 * q)
+        col = sh_color(g["sh"][i], (mean - origin) / np.linalg.norm(mean - origin))
+        nc = Rc @ R[:, int(np.argmin(s))]
+        if nc @ pc > 0:
+            nc = -nc
+        a = np.clip(opacity * G, 0.0, 0.99)
+        take = ~done & (a >= 1 / 255)
+        test_T = T * (1 - a)
+        stop = take & (test_T < 1e-4)
+        done |= stop
+        take &= ~stop
+        w = np.where(take, a * T, 0.0)
+        rgb += w[:, None] * col
+        mz = 1000.0 / (1000.0 - 0.2) * (1 - 0.2 / z)
+        dist += w * (mz * mz * dA + dD2 - 2 * mz * dD1)
+        dA, dD1, dD2 = dA + w, dD1 + w * mz, dD2 + w * mz * mz
+        dep += w * z
+        nrm += w[:, None] * nc[None]
+        better = w > best_w
+        best_w = np.where(better, w, best_w)
+        best = np.where(better, i, best)
+        T = np.where(take, test_T, T)
+    alpha = 1 - T
+    rgb += T[:, None] * np.asarray(background)[None]
+    depth = np.where(alpha > 1e-6, dep / np.maximum(alpha, 1e-6), 0.0)
+    return dict(rgb=rgb.reshape(height, width, 3), alpha=alpha.reshape(height, width),
+                depth=depth.reshape(height, width), normal=nrm.reshape(height, width, 3),
+                distortion=dist.reshape(height, width), best=best.reshape(height, width))
+
+
+def scene_to_reference_3d(scene):
+    """Activated float64 parameters of a 3D-Gaussian Scene (inactive ones get opacity 0)."""
+    g = scene_to_reference(scene)
+    g["filter3d"] = None if scene.filter3d is None else np.asarray(scene.filter3d, np.float64)
+    return g

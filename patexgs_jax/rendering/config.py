@@ -37,7 +37,9 @@ class RenderConfig:
         the opacity scaled so that the splat's integrated coverage is kept: a splat smaller than a
         pixel fades instead of growing (the PATexGS methods' mode). "billboard": G = 1 on the
         square ``|u|, |v| <= 3`` of the splat plane (the textures' span) and 0 outside, so the alpha
-        texture alone shapes the splat (BBSplat's primitive, :mod:`.billboard`).
+        texture alone shapes the splat (BBSplat's primitive, :mod:`.billboard`). For 3D Gaussians
+        (:mod:`.gaussian3d`): "lowpass" is 3DGS's 0.3 px^2 dilation, "prefilter" Mip-Splatting's
+        2D Mip filter of variance ``pixel_var`` (``min_var`` does not apply).
       pixel_var: the prefilter's pixel filter variance in px^2 (a box pixel has 1/12).
       min_var: with the prefilter, the smallest screen variance (px^2) of a filtered splat along
         any axis: where a splat is narrower, its filter is widened to reach it (its coverage still
@@ -139,8 +141,10 @@ class RenderOutput:
     Attributes:
       rgb: (H, W, 3) colour.
       alpha: (H, W) accumulated opacity, 1 - final transmittance.
-      depth: (H, W) alpha-normalised expected intersection depth (0 where alpha is 0).
-      normal: (H, W, 3) alpha-weighted camera-frame normals (facing the camera).
+      depth: (H, W) alpha-normalised expected intersection depth (0 where alpha is 0); for 3D
+        Gaussians, of their centres' camera z (they have no ray intersection).
+      normal: (H, W, 3) alpha-weighted camera-frame normals (facing the camera); for 3D Gaussians,
+        of the axis of each one's smallest scale.
       distortion: (H, W) the 2DGS depth-distortion term sum_{i<j} w_i w_j (m_i - m_j)^2, m the
         depth mapped to [0, 1) by m = f/(f-n) (1 - n/z) with n = 0.2, f = 1000 (as 2DGS).
       max_contrib_count: (C,) int32, pixels at which each splat has the largest weight

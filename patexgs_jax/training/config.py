@@ -52,6 +52,11 @@ class Method:
       mip, rgb_mip, alpha_mip, coverage: the stage-2 :class:`RenderConfig` fields (the ``patexgs``
         family prefilters, the ``bbsplat`` family renders billboards, the other baselines and
         ``patexgs-literal`` keep the 2DGS low-pass).
+      primitive: "2d" (2DGS splats) or "3d": 3D Gaussians from the first step (``3dgs``,
+        ``mip-splatting``; untextured, their own render config in both stages, no normal loss).
+      filter3d: Mip-Splatting's 3D smoothing filter (:mod:`patexgs_jax.filter3d`).
+      prune_opacity: the method's own densification prune threshold (3DGS's 0.005), or None for
+        ``TrainConfig.densify``'s.
     """
 
     textures: str | None = "adaptive"
@@ -60,6 +65,9 @@ class Method:
     rgb_mip: bool = True
     alpha_mip: bool = True
     coverage: str = "prefilter"
+    primitive: str = "2d"
+    filter3d: bool = False
+    prune_opacity: float | None = None
 
     @property
     def grows(self) -> bool:
@@ -108,6 +116,10 @@ METHODS: dict[str, Method] = {
     "bbsplat+mip": Method(textures="fixed", size=16, mip="nearest", coverage="billboard"),
     "bbsplat+adaptive": Method(mip="none", coverage="billboard"),
     "textured-gaussians": Method(textures="fixed", size=8, mip="none", coverage="lowpass"),
+    # 3D Gaussians (docs/baselines.md): 3DGS's 0.3 px^2 dilation; Mip-Splatting's 2D Mip and 3D filters.
+    "3dgs": Method(textures=None, mip="none", coverage="lowpass", primitive="3d", prune_opacity=0.005),
+    "mip-splatting": Method(textures=None, mip="none", coverage="prefilter", primitive="3d", filter3d=True,
+                            prune_opacity=0.005),
 }
 
 
@@ -123,7 +135,8 @@ class TrainConfig:
     Attributes:
       method: a method name (:meth:`Method.from_name`; see :mod:`patexgs_jax.training.cli`).
       iters_2dgs, iters_tex: steps of the two stages (``iters_tex`` unused by ``2dgs``).
-      continue_2dgs: ``2dgs`` only: steps that continue the 2DGS stage after ``iters_2dgs`` (its
+      continue_2dgs: untextured methods only (``2dgs``, ``3dgs``, ``mip-splatting``): steps that
+        continue the first stage after ``iters_2dgs`` (its
         schedules as at the end of the stage: no densification, the final position learning rate).
         Set to ``iters_tex`` for a 2DGS baseline that trains as many steps as the textured methods
         (the studies do).
@@ -207,9 +220,9 @@ class TrainConfig:
                              f"{self.log_every}.")
         if self.iters_2dgs < 1 or self.iters_tex < 0:
             raise ValueError("iters_2dgs must be >= 1 and iters_tex >= 0.")
-        if self.continue_2dgs < 0 or (self.continue_2dgs and self.method != "2dgs"):
-            raise ValueError(f"continue_2dgs (steps that continue the 2DGS stage) must be >= 0 and is for method "
-                             f"'2dgs' only, got {self.continue_2dgs} with method {self.method!r}.")
+        if self.continue_2dgs < 0 or (self.continue_2dgs and spec.textures is not None):
+            raise ValueError(f"continue_2dgs (steps that continue the first stage) must be >= 0 and is for the "
+                             f"untextured methods only, got {self.continue_2dgs} with method {self.method!r}.")
         if not 0 < self.budget_eq7_share <= 1:
             raise ValueError(f"budget_eq7_share (the share of the texture budget Eq. 7 spends) must be in (0, 1], got "
                              f"{self.budget_eq7_share}.")
@@ -232,12 +245,13 @@ class TrainConfig:
 
     @property
     def total_steps(self) -> int:
-        return self.iters_2dgs + (self.continue_2dgs if self.method == "2dgs" else self.iters_tex)
+        return self.iters_2dgs + (self.continue_2dgs if self.spec.textures is None else self.iters_tex)
 
     def render_config(self, stage: int = 2) -> RenderConfig:
         """The renderer's settings in ``stage`` (1: the 2DGS stage, the same for every method so that
-        it can be shared; 2: the method's own, also used to evaluate the trained scene)."""
-        if stage == 1:
+        it can be shared, but 3D methods' own; 2: the method's own, also used to evaluate the trained
+        scene)."""
+        if stage == 1 and self.spec.primitive == "2d":
             return RenderConfig(mip="none", background=tuple(self.background))
         return self.spec.render_config(lambda_mip=self.lambda_mip, background=self.background)
 
@@ -338,8 +352,10 @@ STAGE2_LR_FIELDS = ("texture_rgb", "texture_alpha")
 
 
 def stage1_part(saved: dict) -> dict:
-    """The part of a saved config that determines stage 1."""
+    """The part of a saved config that determines stage 1 (3D methods' own: their method is part)."""
     part = {k: v for k, v in comparable_config(saved).items() if k not in STAGE2_FIELDS}
+    if saved.get("method") in METHODS and METHODS[saved["method"]].primitive == "3d":
+        part["method"] = saved["method"]
     if isinstance(part.get("lr"), dict):
         part["lr"] = {k: v for k, v in part["lr"].items() if k not in STAGE2_LR_FIELDS}
     return part

@@ -116,7 +116,8 @@ def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = 
     size = "{}x{} px".format(*typical_size(dataset.train_views)) + (
         f" (and {n_sizes - 1} other size{'s' if n_sizes > 2 else ''})" if n_sizes > 1 else "")
     preset = preset or preset_name(config)
-    steps = (f"{config.iters_2dgs} 2DGS steps" if run.spec.textures is None and not config.continue_2dgs
+    stage1 = "3DGS" if run.spec.primitive == "3d" else "2DGS"
+    steps = (f"{config.iters_2dgs} {stage1} steps" if run.spec.textures is None and not config.continue_2dgs
              else f"{config.iters_2dgs} + {config.total_steps - config.iters_2dgs} steps")
     cap = "no Gaussian cap" if config.max_gaussians is None else f"at most {config.max_gaussians:,} Gaussians"
     where = "" if run.step == 0 else f", from step {run.step}"

@@ -1,5 +1,5 @@
-"""The host-side schedule of a training run as strategies: densification (stage 1) here, and the
-texture schedule (stage 2, :class:`patexgs_jax.schedule.TextureSchedule`).
+"""The host-side schedule of a training run as strategies: densification (stage 1) and Mip-Splatting's
+3D filter here, and the texture schedule (stage 2, :class:`patexgs_jax.schedule.TextureSchedule`).
 
 A strategy is a host-side object called between jitted steps, as gsplat's densification strategies
 are: ``before_step(state, step)`` and ``after_step(state, step)`` take the
@@ -14,10 +14,11 @@ import dataclasses
 import numpy as np
 
 from .. import densify as dens
+from .. import filter3d
 from ..schedule import TrainState
 from .config import TrainConfig
 
-__all__ = ["Densification"]
+__all__ = ["Densification", "SmoothingFilter"]
 
 
 class Densification:
@@ -26,7 +27,9 @@ class Densification:
     random choice is seeded by (seed, step)."""
 
     def __init__(self, config: TrainConfig, radius: float):
-        self.config = dataclasses.replace(config.densify, max_gaussians=config.max_gaussians)
+        own = config.spec.prune_opacity  # 3DGS's 0.005 for the 3D methods
+        self.config = dataclasses.replace(config.densify, max_gaussians=config.max_gaussians,
+                                          **({} if own is None else dict(prune_opacity=own)))
         self.iters_2dgs, self.seed, self.radius = config.iters_2dgs, config.seed, radius
 
     def before_step(self, state: TrainState, step: int) -> TrainState:
@@ -44,3 +47,32 @@ class Densification:
         if dc.reset_opacity_at(step):
             scene, opt_state = dens.reset_opacity(scene, opt_state, dc.opacity_reset_value)
         return TrainState(scene, opt_state, stats)
+
+
+class SmoothingFilter:
+    """Mip-Splatting's 3D filter (:mod:`patexgs_jax.filter3d`) of a ``mip-splatting`` run, from the
+    training cameras, at its reference code's steps: before the first step, after every
+    densification (this strategy runs after :class:`Densification`) and, once densification has
+    stopped, every densification interval up to one interval before the end. Does nothing for other
+    methods. No state of its own (the filter is part of the scene)."""
+
+    def __init__(self, config: TrainConfig, cameras):
+        self.on, self.cameras = config.spec.filter3d, list(cameras)
+        self.dc, self.iters, self.total = config.densify, config.iters_2dgs, config.total_steps
+
+    def recomputes_at(self, step: int) -> bool:
+        """Whether :meth:`after_step` recomputes the filter after ``step`` steps."""
+        dc = self.dc
+        if step < self.iters and dc.densify_at(step):
+            return True
+        return step % dc.interval == 0 and step > min(dc.stop, self.iters) and step < self.total - dc.interval
+
+    def before_step(self, state: TrainState, step: int) -> TrainState:
+        if not self.on or step != 0:
+            return state
+        return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))
+
+    def after_step(self, state: TrainState, step: int) -> TrainState:
+        if not self.on or not self.recomputes_at(step):
+            return state
+        return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))

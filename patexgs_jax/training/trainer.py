@@ -55,7 +55,7 @@ from .compile_ahead import CompileAhead, layout_of, single_step_jit
 from .config import TrainConfig, config_dict
 from .progress import Estimate
 from .step import STEP_TRACES, batch_step
-from .strategies import Densification
+from .strategies import Densification, SmoothingFilter
 
 __all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
 
@@ -76,8 +76,9 @@ StepEntry = tuple[Callable, set, dict[tuple[int, int], "ahead.Job | None"]]
 def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
     """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
 
-    Scales: the mean distance to the 3 nearest neighbours (both axes); random rotations; opacity
-    ``config.init_opacity``; SH DC from the colours, higher bands zero.
+    Scales: the mean distance to the 3 nearest neighbours (both axes; all three for the 3D methods,
+    whose Mip-Splatting filter starts at zero); random rotations; opacity ``config.init_opacity``;
+    SH DC from the colours, higher bands zero.
     """
     from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (missing from scipy's stubs)
 
@@ -100,8 +101,10 @@ def init_scene(points, colors, config: TrainConfig, capacity: int | None = None)
     col = np.full((n, 3), 0.5) if colors is None else np.clip(np.asarray(colors, np.float64), 0, 1)
     sh[:, 0] = (col - 0.5) / 0.28209479177387814
     cap = capacity or 1 << max(n - 1, 1).bit_length()
-    return Scene.from_arrays(points, np.repeat(dist[:, None], 2, axis=1), quats,
-                             np.full(n, config.init_opacity), sh, capacity=cap)
+    spec = config.spec
+    return Scene.from_arrays(points, np.repeat(dist[:, None], 3 if spec.primitive == "3d" else 2, axis=1), quats,
+                             np.full(n, config.init_opacity), sh, capacity=cap,
+                             filter3d=np.zeros(n) if spec.filter3d else None)
 
 
 class Trainer:
@@ -138,7 +141,8 @@ class Trainer:
         self.densification = Densification(config, self.radius)
         self.textures = TextureSchedule(config, self.optimizer, self.train_views, self.render_cfgs[1],
                                      log=self.log, say=self.say)
-        self.strategies = (self.densification, self.textures)
+        self.strategies = (self.densification, SmoothingFilter(config, [v.camera for v in self.train_views]),
+                           self.textures)
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
         # program per padded size; released when the layout changes (see _compiled_step).
         self._jit_cache: dict[Any, StepEntry] = {}
@@ -520,7 +524,8 @@ class Trainer:
                 t0 = time.perf_counter()
                 traces = sum(STEP_TRACES.values())
                 active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
-                w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from else 0.0)
+                w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from and self.spec.primitive == "2d"
+                                       else 0.0)  # (3D Gaussians have no surface normal)
                 data = ((view.camera, image) if cfg.batch_size == 1
                         else self.batch_inputs(views, images))
                 scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)

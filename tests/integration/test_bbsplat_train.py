@@ -9,8 +9,8 @@ import pytest
 
 from patexgs_jax.data import load
 from patexgs_jax.evaluation import evaluate
+from patexgs_jax.schedule import TextureSchedule
 from patexgs_jax.training.run import stage1_checkpoint, train
-from patexgs_jax.training.strategies import TextureStage
 from train_configs import tiny_config
 
 
@@ -28,7 +28,7 @@ def test_bbsplat_trains_from_the_shared_stage1(stage1, method, tmp_path):
     ds, ckpt, base = stage1
     cfg = tiny_config(method=method, iters_tex=12)  # Eq. 7 at step 33, growth at 36 and 39
     rec = {}
-    orig = TextureStage.start
+    orig = TextureSchedule.start
 
     def start(self, state):  # the 2DGS render and the first billboard render of the same splats
         rec["before"] = evaluate(state.scene, self.train_views, cfg.render_config(stage=1))["psnr"]
@@ -37,7 +37,7 @@ def test_bbsplat_trains_from_the_shared_stage1(stage1, method, tmp_path):
         return new
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(TextureStage, "start", start)
+        mp.setattr(TextureSchedule, "start", start)
         result = train(ds, cfg, tmp_path / "run", verbose=False, stage1=ckpt)
     s = result.summary
     assert s["skipped_steps"] == 0 and s["steps"] == cfg.total_steps

@@ -497,7 +497,7 @@ def test_method_names_parse(method):
 
 
 @pytest.mark.parametrize("method", ["textured-fixed-5", "textured-fixed-", "textured-fixed-x", "patexgs-no",
-                                    "3dgs", ""])
+                                    "4dgs", ""])
 def test_bad_method_names(method):
     with pytest.raises(ValueError, match="method|textured-fixed-N"):
         TrainConfig(method=method)
@@ -552,7 +552,7 @@ def test_2dgs_continues_its_stage_and_keeps_its_stage1_checkpoint(dataset, tmp_p
     assert s1 is not None and s1.parent.name == STAGE1_DIR and ckpt.read_metadata(s1)["step"] == 6
     tree, _ = ckpt.load_checkpoint(s1)
     assert 0 < float(tree["t_train"]) < res.summary["train_seconds"]
-    with pytest.raises(ValueError, match="continue_2dgs.*'2dgs' only"):
+    with pytest.raises(ValueError, match="continue_2dgs.*untextured methods only"):
         tiny_config(method="patexgs", continue_2dgs=4)
 
 

@@ -193,3 +193,30 @@ def test_check_writable(tmp_path, monkeypatch):
     monkeypatch.setattr(ckpt.tempfile, "mkstemp", ro)
     with pytest.raises(CheckpointError, match="not writable.*Read-only"):
         check_writable(tmp_path)
+
+
+def test_fields_added_since_take_their_defaults(tmp_path):
+    """A checkpoint written before a dataclass gained a field with a default (Scene.filter3d) loads
+    with the default; a stored field the class no longer has is still an error."""
+    import json
+    import zipfile
+
+    path = save_checkpoint(tmp_path / "a.ckpt", random_scene(0, 5))
+
+    def rewrite(edit):
+        with zipfile.ZipFile(path) as z:
+            members = {n: z.read(n) for n in z.namelist()}
+        spec = json.loads(members["spec.json"])
+        edit(spec["tree"]["f"])
+        members["spec.json"] = json.dumps(spec).encode()
+        out = tmp_path / "b.ckpt"
+        with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as z:
+            for n, data in members.items():
+                z.writestr(n, data)
+        return out
+
+    old = rewrite(lambda f: f.pop("filter3d"))
+    scene, _ = load_checkpoint(old)
+    assert scene.filter3d is None and scene.num_active() == 5
+    with pytest.raises(ckpt.CheckpointError, match="do not match"):
+        load_checkpoint(rewrite(lambda f: f.update(gone={"t": "none"})))

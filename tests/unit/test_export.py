@@ -1,4 +1,5 @@
-"""PLY export / import: exact round trips, the 2DGS header layout, and damaged files."""
+"""PLY export / import: exact round trips, the 2DGS and 3DGS header layouts, Mip-Splatting's baked
+3D filter, and damaged files."""
 
 from __future__ import annotations
 
@@ -97,11 +98,9 @@ def test_foreign_and_invalid_layouts(tmp_path):
     write_ply(p, names, vals)
     s = load_ply(p)                                   # a plain 2DGS file without sidecar
     assert s.num_active() == 2 and s.rgb is None and s.sh.shape == (2, 1, 3)
-    n3 = names[:-4] + ["scale_2"] + names[-4:]
     # (write the file, the error it gets)
     cases = [
         (lambda: write_ply(p, [n for n in names if n != "rot_3"], vals[:, :-1]), "missing vertex properties.*rot_3"),
-        (lambda: write_ply(p, n3, np.zeros((2, len(n3)))), "3DGS"),
         (lambda: write_ply(p, names + ["f_rest_0"], np.zeros((2, len(names) + 1))), "f_rest"),
         (lambda: write_ply(p, names, vals, extra=b"junk"), "unexpected bytes"),
         (lambda: p.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n"),
@@ -171,3 +170,42 @@ def load_ply_ok(ply_bytes, tmp_path):
     p = tmp_path / "ok.ply"
     p.write_bytes(ply_bytes)
     return load_ply(p)
+
+
+def test_3dgs_layout_round_trip_and_baked_filter(tmp_path):
+    """A 3D scene is written in 3DGS's layout (three scales, the order 3DGS's viewers read), read back
+    exactly; with Mip-Splatting's 3D filter the file holds the filtered scales and opacities, whose
+    render (no filter) equals the filtered scene's."""
+    import jax.numpy as jnp
+
+    from patexgs_jax import Capacity, RenderConfig, look_at, render_jit
+    from patexgs_jax.camera import Camera
+
+    scene = random_scene(3, 7, sh_degree=1, capacity=9, scale_dims=3, scale_range=(0.15, 0.5))
+    act = np.asarray(scene.active).copy()
+    act[2] = 0.0
+    scene = scene.replace(active=act)
+    path = export_ply(scene, tmp_path / "g3.ply")
+    lines, body = header_of(path)
+    assert [ln.split()[-1] for ln in lines if ln.startswith("property")] == (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    rows = np.frombuffer(body, "<f4").reshape(6, 26)   # read back by hand: the 3DGS vertex layout
+    keep = np.asarray(act[:7]) > 0
+    for cols, name in ((slice(0, 3), "means"), (slice(18, 19), "opacity_logits"), (slice(19, 22), "log_scales"),
+                       (slice(22, 26), "quats")):
+        np.testing.assert_array_equal(rows[:, cols], np.asarray(getattr(scene, name))[:7][keep].reshape(6, -1))
+    back = load_ply(path)
+    assert back.is_3d and back.filter3d is None and back.rgb is None
+    for name in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, name))[:6], np.asarray(getattr(scene, name))[:7][keep])
+
+    f = np.full(9, 0.05 ** 2, np.float32)
+    filtered = scene.replace(filter3d=jnp.asarray(f))
+    back = load_ply(export_ply(filtered, tmp_path / "mip.ply"), capacity=9)
+    cam = Camera.from_intrinsics([40.0, 40.0, 22.0, 18.0], look_at((0.3, -0.4, -2.6), (0.0, 0.0, 0.0)), 44, 36)
+    cfg = RenderConfig(mip="none", coverage="prefilter")
+    ref = render_jit(filtered, cam, config=cfg, capacity=Capacity(4096))
+    out = render_jit(back, cam, config=cfg, capacity=Capacity(4096))
+    assert float(jnp.mean(ref.alpha)) > 0.05
+    np.testing.assert_allclose(np.asarray(out.rgb), np.asarray(ref.rgb), atol=2e-5, rtol=0)
