@@ -180,10 +180,10 @@ class Study:
         runs = self.out / "runs" / name
         self._zoomed = None
         if self.cfg.zoom_in:
-            from experiments.study_zoom_in import zoom_in_views
+            from experiments import study_zoom_in as zi
 
             interrupt.set_phase(f"finding scene {name}'s test views zoomed in")
-            self._zoomed = zoom_in_views(ds, self._test_views(name, ds))
+            self._zoomed = zi.zoom_in_views(ds, self._test_views(name, ds), zi.ZOOM_IN_SCALES)
             for z, (views, source) in self._zoomed.items():
                 self.say(f"[{name}] zoom-in x{z}: " + (source if views else f"not measured: {source}"))
         ref_count = None
