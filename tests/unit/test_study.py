@@ -187,3 +187,28 @@ def test_zoom_in_views_and_their_evaluation(tmp_path):
         assert np.isfinite(got[z]["psnr"]) and -1 <= got[z]["ssim"] <= 1 and got[z]["views"] == 2
         assert got[z]["lpips"] is None
     assert got["8"] == dict(psnr=None, ssim=None, lpips=None, views=0, source="why not")
+
+
+def test_a_studys_entries_are_labelled_points_of_the_tradeoffs_plot(tmp_path, capsys):
+    """``python -m experiments.tradeoffs --from-study``: every entry of a study, whatever its method
+    (names this tree may not have included), is a labelled point and a table row; one colour a budget."""
+    from experiments import study_tradeoffs, tradeoffs
+    from experiments.provenance import write_json
+
+    keys = ["3dgs", "2dgs", "mip-splatting", "patexgs", "patexgs(10%)"]
+    results = {"a": {k: _entry(20.0 + i) | dict(method=k.partition("(")[0], steps=20)
+                     for i, k in enumerate(keys)}}
+    data = {"version": {"git": "abc"}, "config": {"preset": "tiny", "machine": "x86_64"}, "results": results}
+    record = study_tradeoffs.study_as_tradeoffs(data)
+    assert list(record["runs"]) == keys and record["runs"]["3dgs"]["psnr"]["8"] == 23.0
+    assert [e["label"] for e in record["knobs"]["methods"]] == keys[:4]
+    assert [e["label"] for e in record["knobs"]["budget 10%"]] == ["patexgs(10%)"]
+    md = tradeoffs.markdown(record)
+    for k in keys:
+        assert f"| {k} | {k.partition('(')[0]} | 3 | 4.0 |" in md
+    write_json(tmp_path / "study" / "results.json", data)
+    assert tradeoffs.main(["--from-study", str(tmp_path / "study"), "--out", str(tmp_path / "o")]) == 0
+    assert (tmp_path / "o" / "tradeoffs.png").read_bytes()[:4] == b"\x89PNG"
+    assert "| mip-splatting |" in (tmp_path / "o" / "tradeoffs.md").read_text()
+    assert tradeoffs.main(["--from-study", str(tmp_path / "nope")]) == 2
+    assert "cannot read --from-study" in capsys.readouterr().err
