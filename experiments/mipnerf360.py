@@ -19,9 +19,11 @@ one (4 outdoors, 2 indoors); other scenes' images wider than 1600 px are resized
 3DGS rule; ``--factor 1`` keeps the full size).
 
 For each scene:
-  1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every textured
-     method starts from its end-of-stage-1 checkpoint (:func:`patexgs_jax.training.stage1_checkpoint`),
-     so method comparisons start from the same 2DGS model, as in the paper. Every method trains
+  1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every method whose
+     stage 1 it is (the same ``stage1_key``: the textured methods) starts from its end-of-stage-1
+     checkpoint (:func:`patexgs_jax.training.stage1_checkpoint`), so method comparisons start from
+     the same 2DGS model, as in the paper; a method whose stage 1 differs (3D Gaussians) trains
+     from scratch in its own run folder, for the same total steps. Every method trains
      the same number of steps: ``2dgs`` continues its stage for the texture stage's steps
      (``TrainConfig.continue_2dgs``), so a textured method's gain is not extra training.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
