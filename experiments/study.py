@@ -307,8 +307,8 @@ class Study:
             if zoomed is not None:
                 from experiments.study_zoom_in import evaluate_zoom_in
 
-                interrupt.set_phase(f"evaluating {key} on {scene}'s test views zoomed in")
-                zoom_in = evaluate_zoom_in(renderer, zoomed, lpips=self.lpips)
+                zoom_in = evaluate_zoom_in(renderer, zoomed, lpips=self.lpips,
+                                           phase=f"evaluating {key} on {scene}'s test views zoomed in")
         images = ev.pop("images", {}) if self.main else {}
         for s in (str(SCALES[0]), str(SCALES[-1])):
             if images.get(s):

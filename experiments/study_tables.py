@@ -345,11 +345,13 @@ def zoom_in_table(results: dict) -> list[str]:
 
                 cells.append(_fmt(_mean_over_scenes(results, key, field), digits))
         out.append(f"| {key} | " + " | ".join(cells) + " |")
-    sources = {}
+    sources: dict[str, list[str]] = {}  # where each scene's finer images came from, and the zooms
     for scene, per in results.items():
         for e in per.values():
             for z, m in (e.get("zoom_in") or {}).items():
-                sources.setdefault(f"{scene} x{z}", m.get("source"))
+                at = sources.setdefault(str(m.get("source")), [])
+                if f"{scene} x{z}" not in at:
+                    at.append(f"{scene} x{z}")
     return out + ["", "Trained at the study's resolution, rendered at x times its pixel density (the camera "
                   "intrinsics of that resolution) against the finer images: "
-                  + "; ".join(f"{k}: {v}" for k, v in sources.items()) + ".", ""]
+                  + "; ".join(f"{', '.join(at)}: {src}" for src, at in sources.items()) + ".", ""]

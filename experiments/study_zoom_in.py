@@ -105,10 +105,11 @@ def zoom_in_views(ds, views: Sequence, zooms: Sequence[int] = ZOOM_IN_SCALES) ->
     return out
 
 
-def evaluate_zoom_in(renderer, zoomed: dict, *, lpips=None) -> dict:
+def evaluate_zoom_in(renderer, zoomed: dict, *, lpips=None, phase: str | None = None) -> dict:
     """``{str(zoom): {"psnr", "ssim", "lpips", "views", "source"}}`` (means over the views; metric
     fields None for a zoom without images, ``source`` then says why) of the scene ``renderer``
-    draws (a :class:`patexgs_jax.padding.ViewRenderer`), renders clipped to [0, 1]."""
+    draws (a :class:`patexgs_jax.padding.ViewRenderer`), renders clipped to [0, 1]. ``phase``: what
+    a stop line says is being done (``"... zoomed in"``; the zoom is added)."""
     import jax.numpy as jnp
 
     from patexgs_jax import compiled, interrupt
@@ -122,11 +123,13 @@ def evaluate_zoom_in(renderer, zoomed: dict, *, lpips=None) -> dict:
             result[str(z)] = dict(psnr=None, ssim=None, lpips=None, views=0, source=source)
             continue
         views = [v for v in views if usable(v)]
+        if phase:
+            interrupt.set_phase(f"{phase} x{z}")
         renderer.prepare([v.camera for v in views])
         ps, ss, ls = [], [], []
         for i, v in enumerate(views):
             interrupt.check()
-            interrupt.set_step(i, len(views), f"view zoomed in x{z}")
+            interrupt.set_step(i, len(views), "view")
             gt = np.asarray(v.image, np.float32)
             img = renderer.image(v.camera)
             ps.append(float(psnr(img, gt)))

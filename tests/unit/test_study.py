@@ -143,7 +143,7 @@ def test_tables_beside_the_paper_and_the_zoom_in_table():
                        "| x8 PSNR | SSIM | LPIPS |")
     zoomed_in = "| 28.00 | 0.900 | - | 26.00 | 0.900 | - | 22.00 | 0.900 | - |"
     assert rows[1:] == [f"| patexgs | 20.00 | 0.800 | 0.200 {zoomed_in}", f"| 2dgs | 21.00 | 0.800 | 0.200 {zoomed_in}"]
-    assert "a x2: images at factor 1" in zi
+    assert "a x2, a x4, a x8: images at factor 1" in zi
     # Studies without zoom-in entries (older files) have no zoom-in table.
     del data["results"]["a"]["2dgs"]["zoom_in"], data["results"]["a"]["patexgs"]["zoom_in"]
     assert "Zoom-in" not in tbl.tables_markdown(data)
