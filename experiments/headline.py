@@ -3,6 +3,7 @@
     python -m experiments.headline SOURCE [--save benchmarks/main_job_tiny.json --conditions TEXT]
     python -m experiments.headline STUDY --budgets LABEL [--save FILE --conditions TEXT]
     python -m experiments.headline STUDY --zoom LABEL [--save FILE --conditions TEXT]
+    python -m experiments.headline STUDY --tables LABEL [--save FILE --conditions TEXT]
 
 SOURCE is a main-job output folder (``python -m experiments.mipnerf360 --out DIR``: its
 ``results.json``) or a benchmark file written by ``--save``. The command prints the README's
@@ -12,9 +13,12 @@ results with their provenance (commit, date, machine: :mod:`experiments.provenan
 ``--conditions``, a few words on how the machine was loaded and whether the compile cache was warm,
 as a file under ``benchmarks/``: the README quotes that file, and ``tests/unit/test_repo.py`` fails
 when the README's sentence no longer matches it. ``--budgets LABEL`` prints instead the README's
-Gaussian-budget rows of a ``--budgets`` study (``benchmarks/budgets_*.json``), and ``--zoom LABEL``
-the README's zoom-out rows of any study (``benchmarks/zoom_*.json``), checked the same way; with
-``--save`` either keeps the study as a benchmark file first.
+Gaussian-budget rows of a ``--budgets`` study (``benchmarks/budgets_*.json``), ``--zoom LABEL``
+the README's zoom-out rows of any study (``benchmarks/zoom_*.json``), and ``--tables LABEL`` the
+README's rows of the paper's Tables 1 and 2 (ours beside the paper's figures) and, for a
+``--zoom-in`` study, of the zoom-in table (:func:`table1_rows`, :func:`table2_rows`,
+:func:`zoom_in_rows`; means over the study's scenes), each block under its header, checked the same
+way; with ``--save`` any of them keeps the study as a benchmark file first.
 
 Benchmark file schema (``schema`` 1)::
 
@@ -134,6 +138,102 @@ def zoom_rows(data: dict, scene_label: str) -> list[str]:
     return rows
 
 
+def _mean(data: dict, key: str, field):
+    from experiments.study_tables import _mean_over_scenes
+
+    return _mean_over_scenes(data["results"], key, field)
+
+
+def _f(v, digits: int = 2) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def _keys(data: dict, table) -> list[str]:
+    from experiments.paper import ordered
+    from experiments.study_tables import _labels
+
+    return ordered(_labels(data["results"]), table)
+
+
+#: The headers of the README's blocks (``--tables``).
+TABLE1_HEADER = ("| scene | method | paper row | PSNR | paper | SSIM | paper | LPIPS | paper | Gaussians | MB | "
+                 "train s |")
+TABLE2_HEADER = ("| scene | method | paper row | full | 1/2 | 1/4 | 1/8 | paper full | paper 1/2 | paper 1/4 | "
+                 "paper 1/8 |")
+ZOOM_IN_HEADER = "| scene | method | PSNR train res. | x2 | x4 | x8 | SSIM x8 |"
+
+
+def table1_rows(data: dict, scene_label: str) -> list[str]:
+    """The README's Table 1 rows of a study (``| scene_label | method | paper row | PSNR | paper |
+    SSIM | paper | LPIPS | paper | Gaussians | MB | train s |``, means over its scenes), every entry
+    evaluated at full size, the paper's rows first in its order; ``paper`` is the paper's Mip-NeRF 360
+    figure (blank without)."""
+    from experiments.paper import PAPER_TABLE1, TABLE1_METHODS, paper_name
+
+    rows = []
+    for key in _keys(data, TABLE1_METHODS):
+        if _mean(data, key, lambda e: e.get("1", {}).get("psnr")) is None:
+            continue
+        fig = PAPER_TABLE1.get(key, (None, None, None))
+        cells = []
+        for i, (name, digits) in enumerate((("psnr", 2), ("ssim", 3), ("lpips", 3))):
+            cells += [_f(_mean(data, key, lambda e, n=name: e.get("1", {}).get(n)), digits),
+                      "" if fig[i] is None else f"{fig[i]:.{digits}f}"]
+        g, mb, t = (_mean(data, key, lambda e, f=f: e.get(f)) for f in ("num_gaussians", "storage_mb", "train_seconds"))
+        cells += ["-" if g is None else f"{int(round(g)):,}", _f(mb), _f(t, 0)]
+        rows.append(f"| {scene_label} | {key} | {paper_name(key) or ''} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def table2_rows(data: dict, scene_label: str) -> list[str]:
+    """The README's Table 2 rows (``| scene_label | method | paper row | full | 1/2 | 1/4 | 1/8 | paper
+    full | paper 1/2 | paper 1/4 | paper 1/8 |``: PSNR, ours then the paper's) of the entries evaluated
+    at every zoom-out scale, the paper's rows first."""
+    from experiments.paper import PAPER_TABLE2, TABLE2_METHODS, paper_name
+
+    rows = []
+    for key in _keys(data, TABLE2_METHODS):
+        ours = [_mean(data, key, lambda e, s=s: e.get(str(s), {}).get("psnr")) for s in (1, 2, 4, 8)]
+        if any(v is None for v in ours):
+            continue
+        fig = PAPER_TABLE2.get(key, {})
+        theirs = ["" if s not in fig else f"{fig[s][0]:.2f}" for s in (1, 2, 4, 8)]
+        rows.append(f"| {scene_label} | {key} | {paper_name(key) or ''} | " + " | ".join(map(_f, ours)) + " | "
+                    + " | ".join(theirs) + " |")
+    return rows
+
+
+def zoom_in_rows(data: dict, scene_label: str) -> list[str]:
+    """The README's zoom-in rows (Mip-Splatting's protocol: ``| scene_label | method | PSNR train res. |
+    x2 | x4 | x8 | SSIM x8 |``) of the entries evaluated with ``--zoom-in``; none without."""
+    from experiments.paper import ZOOM_IN_METHODS
+
+    rows = []
+    for key in _keys(data, ZOOM_IN_METHODS):
+        if not any("zoom_in" in per.get(key, {}) for per in data["results"].values()):
+            continue
+        psnr = [_mean(data, key, lambda e: e.get("1", {}).get("psnr"))]
+        psnr += [_mean(data, key, lambda e, z=z: (e.get("zoom_in") or {}).get(z, {}).get("psnr")) for z in "248"]
+        ssim = _mean(data, key, lambda e: (e.get("zoom_in") or {}).get("8", {}).get("ssim"))
+        rows.append(f"| {scene_label} | {key} | " + " | ".join(map(_f, psnr)) + f" | {_f(ssim, 3)} |")
+    return rows
+
+
+def tables_blocks(data: dict, scene_label: str) -> list[str]:
+    """The ``--tables`` output: Table 1's, Table 2's and (when there are any) the zoom-in rows, each
+    block a title line, its header and separator, and its rows; empty when no entry has a full-size
+    figure."""
+    out = []
+    for title, head, text, rows in (("Table 1", TABLE1_HEADER, 3, table1_rows(data, scene_label)),
+                                      ("Table 2 (zoom-out PSNR)", TABLE2_HEADER, 3, table2_rows(data, scene_label)),
+                                      ("Zoom-in (Mip-Splatting's protocol, PSNR)", ZOOM_IN_HEADER, 2,
+                                       zoom_in_rows(data, scene_label))):
+        if rows:
+            sep = "| " + " | ".join("---" if i < text else "---:" for i in range(head.count("|") - 1)) + " |"
+            out += ([""] if out else []) + [f"{title}:", head, sep, *rows]
+    return out if table1_rows(data, scene_label) else []
+
+
 def read(source) -> dict:
     """The record of any study: a folder holding ``results.json``, a ``results.json`` or a benchmark
     file (no check of its scene or methods; :func:`load` checks them for the main job)."""
@@ -170,11 +270,18 @@ def main(argv=None) -> int:
     kind.add_argument("--zoom", default=None, metavar="LABEL",
                     help="SOURCE is any study (its first scene): print the README's zoom-out rows, with LABEL "
                     "in the scene column")
+    kind.add_argument("--tables", default=None, metavar="LABEL",
+                    help="SOURCE is any study (means over its scenes): print the README's rows of the paper's "
+                    "Tables 1 and 2, ours beside the paper's figures, and the zoom-in rows of a --zoom-in study, "
+                    "with LABEL in the scene column")
     args = ap.parse_args(argv)
-    if args.budgets is not None or args.zoom is not None:
+    if args.budgets is not None or args.zoom is not None or args.tables is not None:
         try:
             data = read(args.source)
-            rows = budget_rows(data, args.budgets) if args.budgets is not None else zoom_rows(data, args.zoom)
+            if args.tables is not None:
+                rows = tables_blocks(data, args.tables)
+            else:
+                rows = budget_rows(data, args.budgets) if args.budgets is not None else zoom_rows(data, args.zoom)
         except HeadlineError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
@@ -184,6 +291,7 @@ def main(argv=None) -> int:
             return 2
         if not rows:
             what = ("no budget with both 2dgs and patexgs" if args.budgets is not None
+                    else "no entry evaluated at full size" if args.tables is not None
                     else "no method evaluated at 1, 1/2, 1/4 and 1/8")
             print(f"error: {args.source} has {what}", file=sys.stderr)
             return 2

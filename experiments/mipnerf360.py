@@ -1,7 +1,7 @@
 """The paper's protocol end to end: train, evaluate at zoom-out scales, tabulate, plot.
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
-        [--preset tiny|cpu|small|paper] [--factor F] [--out DIR] [--budgets 100%,10%,1%|N] [--renders K]
+        [--preset tiny|cpu|small|paper] [--factor F] [--out DIR] [--budgets 100%,10%,1%|N] [--zoom-in] [--renders K]
         [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
         [--coordinator HOST:PORT --num-processes N --process-id I]
 
@@ -19,9 +19,11 @@ one (4 outdoors, 2 indoors); other scenes' images wider than 1600 px are resized
 3DGS rule; ``--factor 1`` keeps the full size).
 
 For each scene:
-  1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every textured
-     method starts from its end-of-stage-1 checkpoint (:func:`patexgs_jax.training.stage1_checkpoint`),
-     so method comparisons start from the same 2DGS model, as in the paper. Every method trains
+  1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every method whose
+     stage 1 it is (the same ``stage1_key``: the textured methods) starts from its end-of-stage-1
+     checkpoint (:func:`patexgs_jax.training.stage1_checkpoint`), so method comparisons start from
+     the same 2DGS model, as in the paper; a method whose stage 1 differs (3D Gaussians) trains
+     from scratch in its own run folder, for the same total steps. Every method trains
      the same number of steps: ``2dgs`` continues its stage for the texture stage's steps
      (``TrainConfig.continue_2dgs``), so a textured method's gain is not extra training.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
@@ -42,6 +44,24 @@ For each scene:
      ``DIR/renders/<scene>/compare.png`` (the first test view: ground truth | each method, at full
      size and at 1/8, the 1/8 row enlarged 8x with nearest-neighbour so its pixels show).
 
+``--methods`` takes method names and groups, alone or mixed (``table1,patexgs-no-mip``): ``table1``
+= the paper's Table 1 rows (3dgs, 2dgs, mip-splatting, bbsplat, bbsplat+adaptive, textured-gaussians,
+patexgs), ``table2`` = its Table 2 rows (2dgs, bbsplat, bbsplat+mip, textured-gaussians, patexgs),
+``tables`` = both, ``zoom-in`` = the zoom-in table's rows (3dgs, 2dgs, mip-splatting, patexgs) and
+``table4`` (below); a group naming a method this tree does not have fails before any work, naming it.
+Methods whose stage 1 differs from 2DGS's (``stage1_key``: 3D Gaussians, another densification)
+train from scratch in their own run folder, the same total steps; the others share it.
+``tables.md`` sets each row of Tables 1 and 2 beside the paper's own Mip-NeRF 360 figure for that
+method (:mod:`experiments.paper`: the row names and figures), with its Gaussians, storage, training
+and render time.
+
+``--zoom-in`` also evaluates every entry zoomed IN by 2, 4 and 8 (Mip-Splatting's protocol: trained at
+``--factor F``, tested at z times the resolution, e.g. ``--factor 8`` tested on the factor 4, 2 and 1
+images): the finer images are the scene's images at factor F / z (test views matched by name), or for
+the embedded synthetic scene its analytic ground truth at z times the size
+(:mod:`experiments.study_zoom_in`); ``tables.md`` gains the "Zoom-in (Mip-Splatting's protocol)"
+table. It may be added to a finished study: entries without it are evaluated again, not retrained.
+
 ``--budget 10%`` trains every method with at most 10% of the Gaussians the unbudgeted 2DGS run
 reached (the paper's "10% of the default optimized number of Gaussians"; the unbudgeted 2DGS run is
 trained first if it is not there yet); ``--budget 5000`` caps at 5000. Labels then read
@@ -60,6 +80,7 @@ work, the command that continues) and exit status 130 / 143 (see :mod:`patexgs_j
 
     {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 2},
      "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
+                "test_views", "train_overrides", "zoom_in": bool (absent from older files),
                 "train_config": {...}, "machine": str},   # budget: "10%", "100%,10%,1%" or null
      "elapsed_seconds": float (wall-clock time of the study, summed over the invocations that finished),
      "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
@@ -68,7 +89,7 @@ work, the command that continues) and exit status 130 / 143 (see :mod:`patexgs_j
          "1": {"psnr", "ssim", "lpips", "alias_psnr", "supersampled_psnr", "views"}, "2": {...}, ...,
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
          "max_gaussians", "steps", "eval_seconds", "sides_allocated", "sides_final", "sigma",
-         "growth_events"}}}}
+         "growth_events", "zoom_in"}}}}
 
 Scale keys are the zoom-out factors; ``psnr``, ``ssim`` and ``lpips`` compare with the ground truth
 (box-downsampled by the factor); ``alias_psnr`` compares the render at 1/s with the same model's
@@ -79,7 +100,11 @@ older files);
 ``sides_allocated`` / ``sides_final`` are the runs' texture-side histograms (``{side: Gaussians}``)
 after the allocation and at the end, ``sigma`` the Eq. 7 sigma (null for fixed sizes) and
 ``growth_events`` the Eqs. 8-10 events (summary.json's; absent from older files);
-``plots/texture_sides.png`` draws them. ``--methods table4`` runs the rows of the paper's Table 4
+``plots/texture_sides.png`` draws them. ``zoom_in`` (only with ``--zoom-in``; absent from other
+entries and older files, which load as they are) is ``{"2" | "4" | "8": {"psnr", "ssim", "lpips",
+"views", "source"}}``: the render at z times the training resolution against those images,
+``source`` where they came from (or, with null metrics, why the zoom was not measured).
+``--methods table4`` runs the rows of the paper's Table 4
 like with like: ``patexgs``, ``patexgs-fixed-4/8/16/32`` and ``patexgs-matched`` (the fixed size
 whose storage is closest to the ``patexgs`` run's). ``lpips`` is null where unavailable (no weights,
 or images under 31 pixels for AlexNet, 16 for VGG16), and the top-level ``"lpips"`` names the
@@ -97,6 +122,7 @@ import sys
 import time
 from pathlib import Path
 
+from experiments.paper import METHOD_GROUPS
 from experiments.study import Study, StudyConfig
 from experiments.study_tables import (
     MATCHED,
@@ -161,14 +187,32 @@ def find_scenes(root, names=None) -> dict[str, Path]:
     return scenes
 
 
-# ------------------------------------------------------------------------------------------------
-# The study
-# ------------------------------------------------------------------------------------------------
+def expand_methods(names) -> list[str]:
+    """The methods of ``--methods``: names, and groups (:data:`experiments.paper.METHOD_GROUPS`,
+    ``table4``) expanded in place, each method once. Raises StudyError for a name given twice, and
+    ValueError (``unknown method ...``, naming the group) for a method this tree does not have."""
+    from patexgs_jax.training import Method
 
-
-# ------------------------------------------------------------------------------------------------
-# Tables and plots
-# ------------------------------------------------------------------------------------------------
+    groups = {**METHOD_GROUPS, "table4": TABLE4_METHODS}
+    names = list(names)
+    given = [n for n in names if n not in groups]
+    if len(set(given)) != len(given) or len(set(names)) != len(names):
+        raise StudyError(f"--methods lists a method twice: {names}.")
+    out: list[str] = []
+    for n in names:
+        out += [m for m in groups.get(n, (n,)) if m not in out]
+    for m in out:  # unknown names fail before any work (before the embedded scene is made)
+        if m == MATCHED:
+            continue
+        try:
+            Method.from_name(m)
+        except ValueError as e:
+            group = next((g for g in names if m in groups.get(g, ())), None)
+            if group is None:
+                raise
+            raise StudyError(f"{e} (--methods {group} runs {', '.join(groups[group])}; this tree has no {m!r}: "
+                             "list the methods it has instead)") from None
+    return out
 
 
 # ------------------------------------------------------------------------------------------------
@@ -191,15 +235,9 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
       **config: :class:`StudyConfig` fields (preset, factor, budget, iters_2dgs, iters_tex,
         max_gaussians, seed, test_views, train_overrides).
     """
-    from patexgs_jax.training import Method
     from patexgs_jax.training.config import default_preset
 
-    methods = list(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
-    if methods == ["table4"]:
-        methods = list(TABLE4_METHODS)
-    for m in methods:  # unknown names fail before any work (before the embedded scene is made)
-        if m != MATCHED:
-            Method.from_name(m)
+    methods = expand_methods(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
     if MATCHED in methods and ("patexgs" not in methods or methods.index("patexgs") > methods.index(MATCHED)):
         raise StudyError(f"{MATCHED} matches the storage of the patexgs run: list patexgs before it in --methods.")
     if data is None:
@@ -209,8 +247,6 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     else:
         root = Path(data)
     config.setdefault("preset", default_preset(data))
-    if len(set(methods)) != len(methods):
-        raise StudyError(f"--methods lists a method twice: {methods}.")
     budgets = parse_budgets(config.get("budget"))
     config["budget"] = join_budgets(budgets)
     found = find_scenes(root, scenes)
@@ -238,7 +274,10 @@ def main(argv=None) -> int:
                     "synthetic scene)")
     ap.add_argument("--scenes", default=None, help="comma-separated scene names under --data")
     ap.add_argument("--methods", default=None, help="comma-separated methods (default: 2dgs,patexgs on the embedded "
-                    f"scene, {','.join(DEFAULT_METHODS)} with --data)")
+                    f"scene, {','.join(DEFAULT_METHODS)} with --data) and groups: table1, table2 (the paper's "
+                    "Tables 1 and 2 rows), tables (both), zoom-in (3dgs,2dgs,mip-splatting,patexgs), table4")
+    ap.add_argument("--zoom-in", action="store_true", help="also evaluate zoomed in x2, x4, x8 (Mip-Splatting's "
+                    "protocol: the images at factor F/2, F/4, F/8, or the synthetic scene's analytic ones)")
     ap.add_argument("--preset", default=None, choices=["tiny", "cpu", "small", "paper"],
                     help="iteration schedule (default: tiny without --data; with it, paper on a GPU and cpu on a CPU)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor; "
@@ -301,6 +340,8 @@ def _study(args) -> int:
                                     iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
                                     max_gaussians=args.max_gaussians, seed=args.seed,
                                     test_views=args.test_views).items() if v is not None}
+    if args.zoom_in:
+        config["zoom_in"] = True
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
     if jax.process_index() == 0:  # the process that writes; before any scene is loaded

@@ -58,15 +58,18 @@ class StudyConfig:
     max_gaussians: int | None = None
     seed: int = 0
     test_views: int | None = None   # evaluate at most this many test views (None: all)
+    zoom_in: bool = False           # also evaluate zoomed in x2, x4, x8 (Mip-Splatting's protocol; may be added later)
     train_overrides: dict | None = None  # further TrainConfig fields (JSON-able values), Python API only
 
     def train_config(self, method: str, max_gaussians: int | None = None):
-        from patexgs_jax.training import preset_config
+        from patexgs_jax.training import Method, preset_config
 
         cfg = preset_config(self.preset, method=method, iters_2dgs=self.iters_2dgs, iters_tex=self.iters_tex,
                             max_gaussians=max_gaussians if max_gaussians is not None else self.max_gaussians,
                             seed=self.seed, **(self.train_overrides or {}))
-        if method == "2dgs":  # equal steps: the baseline continues its stage for the texture stage's steps
+        if method != MATCHED and Method.from_name(method).textures is None:
+            # Equal steps: an untextured method (2dgs, 3dgs, mip-splatting) continues its first stage
+            # for the texture stage's steps.
             cfg = dataclasses.replace(cfg, continue_2dgs=cfg.iters_tex)
         return cfg
 
@@ -94,6 +97,7 @@ class Study:
         if self.main:
             ckpt.check_writable(self.out)
         self.cfg = config
+        self._zoomed = None  # the scene's test views zoomed in, {zoom: (views, source)} (run_scene)
         self.renders = renders
         self.verbose = verbose
         self.path = self.out / "results.json"
@@ -103,9 +107,11 @@ class Study:
                 old = json.loads(self.path.read_text())
             except (OSError, json.JSONDecodeError) as e:
                 raise StudyError(f"{self.path} is unreadable ({e}); move it away or choose another --out.") from None
-            # Entries are keyed by method and budget (``patexgs(10%)``): a study may add budgets.
-            ours = {k: v for k, v in record.items() if k not in ("machine", "budget")}
-            theirs = {k: v for k, v in old.get("config", {}).items() if k not in ("machine", "budget")}
+            # Entries are keyed by method and budget (``patexgs(10%)``): a study may add budgets,
+            # and the zoom-in evaluation (entries without it are evaluated again, not retrained).
+            extra = ("machine", "budget", "zoom_in")
+            ours = {k: v for k, v in record.items() if k not in extra}
+            theirs = {k: v for k, v in old.get("config", {}).items() if k not in extra}
             if ours != theirs:
                 diff = sorted(k for k in set(ours) | set(theirs) if ours.get(k) != theirs.get(k))
                 raise StudyError(f"{self.path} holds results of a different protocol ({', '.join(diff)} differ); "
@@ -115,6 +121,7 @@ class Study:
             before = parse_budgets(old.get("config", {}).get("budget"))
             self.data["config"]["budget"] = join_budgets(
                 before + [b for b in parse_budgets(config.budget) if b not in before])
+            self.data["config"]["zoom_in"] = bool(old.get("config", {}).get("zoom_in")) or config.zoom_in
         else:
             self.data = dict(version=_version(), config=record, results={})
         from patexgs_jax.evaluation import LPIPS
@@ -138,7 +145,9 @@ class Study:
             progress.say(msg)
 
     def done(self, scene: str, key: str) -> bool:
-        return key in self.data["results"].get(scene, {})
+        """Whether the entry is in the results (with its zoom-in figures when the study asks for them)."""
+        entry = self.data["results"].get(scene, {}).get(key)
+        return entry is not None and (not self.cfg.zoom_in or "zoom_in" in entry)
 
     def save(self) -> None:
         if not self.main:
@@ -171,6 +180,14 @@ class Study:
         ds = check_images(ds, skip_hint="remove their views from the scene", on_view=lambda n: (
             interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))
         runs = self.out / "runs" / name
+        self._zoomed = None
+        if self.cfg.zoom_in:
+            from experiments import study_zoom_in as zi
+
+            interrupt.set_phase(f"finding scene {name}'s test views zoomed in")
+            self._zoomed = zi.zoom_in_views(ds, self._test_views(name, ds), zi.ZOOM_IN_SCALES)
+            for z, (views, source) in self._zoomed.items():
+                self.say(f"[{name}] zoom-in x{z}: " + (source if views else f"not measured: {source}"))
         ref_count = None
         for budget in budgets:
             if not todo[budget]:
@@ -190,17 +207,32 @@ class Study:
                 self.say(f"[{name}] budget {budget}: at most {max_g} Gaussians")
             self._run_budget(name, ds, runs, budget, max_g, todo[budget])
 
+    def shares_stage1(self, method: str, max_g: int | None = None) -> bool:
+        """Whether ``method`` starts from the shared 2DGS stage 1 (its :func:`stage1_key` is the
+        ``2dgs`` run's under the same cap); a method that differs in stage 1 (3D Gaussians, another
+        densification) trains from scratch. The storage-matched row is a ``patexgs-fixed-N``: it shares."""
+        from patexgs_jax.training.config import stage1_key
+
+        if method in ("2dgs", MATCHED):
+            return True
+        return stage1_key(self._train_config(method, max_g)) == stage1_key(self._train_config("2dgs", max_g))
+
     def _run_budget(self, name: str, ds, runs: Path, budget: str | None, max_g: int | None, todo) -> None:
-        """Stage 1 (2DGS) under the cap ``max_g``, shared by ``todo``; then each of them."""
+        """Stage 1 (2DGS) under the cap ``max_g``, shared by the methods of ``todo`` whose stage 1 it
+        is (:meth:`shares_stage1`); then each of ``todo``, the others trained from scratch."""
         from patexgs_jax.training import stage1_checkpoint, train
 
+        shared = [m for m in todo if self.shares_stage1(m, max_g)]
         s1_cfg = self._train_config("2dgs", max_g)
         s1_dir = runs / label("2dgs", budget)
-        self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(label(m, budget) for m in todo)}")
-        # The texture stages that start from it get their first programs compiled ahead, in the
-        # background, from the end of its 2DGS stage (patexgs_jax.ahead).
-        nxt = [self._train_config(m, max_g) for m in todo if m not in ("2dgs", MATCHED)]
-        s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True, prepare=nxt)
+        s1 = None
+        if shared:
+            self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(label(m, budget) for m in shared)}")
+            # The texture stages that start from it get their first programs compiled ahead, in the
+            # background, from the end of its 2DGS stage (patexgs_jax.ahead).
+            nxt = [self._train_config(m, max_g) for m in shared if m not in ("2dgs", MATCHED)]
+            s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True,
+                       prepare=nxt)
         for method in todo:
             key = run_key = label(method, budget)
             if method == MATCHED:
@@ -211,6 +243,9 @@ class Study:
             cfg = self._train_config(method, max_g)
             if method == "2dgs":
                 result = s1
+            elif method not in shared:
+                self.say(f"[{name}] {key} (its own stage 1: trained from scratch)")
+                result = train(ds, cfg, runs / run_key, resume=True, verbose=self.verbose, evaluate_everywhere=True)
             else:
                 ck = stage1_checkpoint(s1_dir, cfg)
                 if ck is None:
@@ -230,6 +265,10 @@ class Study:
                      f"SSIM {_fmt(full['ssim'], 3)}; LPIPS {_fmt(full['lpips'], 3)}; "
                      f"{entry['num_gaussians']} Gaussians, {entry['storage_mb']:.2f} MB, "
                      f"{entry['train_seconds']:.0f} s training, {_fmt(entry['render_ms'], 1)} ms/render")
+            if "zoom_in" in entry:
+                self.say(f"[{name}] {key} zoomed in: PSNR " + " / ".join(
+                    _fmt(m["psnr"], 2) for m in entry["zoom_in"].values()) + " dB at x" +
+                    ", x".join(entry["zoom_in"]))
 
     def matched_method(self, scene: str, budget: str | None = None) -> str:
         """``patexgs-fixed-N`` with N * N closest to the ``patexgs`` run's RGBA texels per Gaussian
@@ -244,15 +283,17 @@ class Study:
     def _train_config(self, method: str, max_gaussians: int | None = None):
         return dataclasses.replace(self.cfg.train_config(method, max_gaussians), devices=self.devices)
 
+    def _test_views(self, scene: str, ds) -> list:
+        views = list(ds.test_views)
+        if not views:
+            raise StudyError(f"scene {scene} has no test views (the protocol holds out every 8th image).")
+        return views if self.cfg.test_views is None else views[: self.cfg.test_views]
+
     def evaluate(self, scene: str, key: str, result, ds, cfg) -> dict:
         from patexgs_jax.evaluation import evaluate_scales, render_ms
         from patexgs_jax.padding import ViewRenderer
 
-        views = list(ds.test_views)
-        if not views:
-            raise StudyError(f"scene {scene} has no test views (the protocol holds out every 8th image).")
-        if self.cfg.test_views is not None:
-            views = views[: self.cfg.test_views]
+        views = self._test_views(scene, ds)
         from patexgs_jax import interrupt
 
         interrupt.set_phase(f"evaluating {key} on {scene}'s test views at every zoom-out scale")
@@ -263,6 +304,13 @@ class Study:
             ev = evaluate_scales(result.scene, views, rc, scales=SCALES, lpips=self.lpips, keep_images=self.renders,
                                  renderer=renderer)
             ms = render_ms(result.scene, views, rc, renderer=renderer)
+            zoom_in = None
+            zoomed = self._zoomed
+            if zoomed is not None:
+                from experiments.study_zoom_in import evaluate_zoom_in
+
+                zoom_in = evaluate_zoom_in(renderer, zoomed, lpips=self.lpips,
+                                           phase=f"evaluating {key} on {scene}'s test views zoomed in")
         images = ev.pop("images", {}) if self.main else {}
         for s in (str(SCALES[0]), str(SCALES[-1])):
             if images.get(s):
@@ -285,4 +333,6 @@ class Study:
                      eval_seconds=time.perf_counter() - t, sides_allocated=alloc.get("sides"),
                      sigma=alloc.get("sigma"), sides_final=s.get("sides_final"),
                      growth_events=s.get("growth_events"))
+        if zoom_in is not None:
+            entry["zoom_in"] = zoom_in
         return entry

@@ -8,6 +8,7 @@ import functools
 
 import numpy as np
 
+from experiments.paper import PAPER_TABLE1, PAPER_TABLE2, TABLE1_METHODS, TABLE2_METHODS, ordered, paper_name
 from patexgs_jax.camera import ZOOM_SCALES
 
 SCALES = ZOOM_SCALES
@@ -201,6 +202,8 @@ def tables_markdown(data: dict) -> str:
         out += ["", "Rows named `+ mip` and the adaptive row differ only in their texture sizes (same warm-up, "
                 "mipmaps and prefiltered coverage); the Textured Gaussians rows render without mipmaps, with the "
                 "2DGS low-pass.", ""]
+    out += paper_tables(results)
+    out += zoom_in_table(results)
     out += budget_table(results)
     out += ["## Cost: what the accuracy costs", "",
             "| method | PSNR | Gaussians | texels | storage MB | steps | train s | render ms |",
@@ -271,3 +274,84 @@ def budget_table(results: dict) -> list[str]:
         out.append(f"| {method} | {budget or '100%'} | " + " | ".join(cells) + " |")
     return out + ["", "A budget of p% caps every method at p% of the Gaussians the unbudgeted 2DGS run reached "
                   "(`cap`; the paper's Table 1); every method trains the same steps.", ""]
+
+
+def _paper(v, digits: int) -> str:
+    return "" if v is None else f"{v:.{digits}f}"
+
+
+def paper_tables(results: dict) -> list[str]:
+    """Tables 1 and 2 with every row that ran, ours (means over the study's scenes) beside the paper's
+    Mip-NeRF 360 figure for the same method (:mod:`experiments.paper`; blank where the paper has no
+    such row), the paper's rows first in its order; Table 1 with each row's cost."""
+    labels = _labels(results)
+    if not labels:
+        return []
+
+    def mean(key, field):
+        return _mean_over_scenes(results, key, field)
+
+    def at(scale, name):
+        return lambda e: e.get(str(scale), {}).get(name)
+
+    out = ["## Table 1 beside the paper", "",
+           "| method | paper row | PSNR | paper | SSIM | paper | LPIPS | paper | Gaussians | storage MB | train s | "
+           "render ms |", "| --- | --- |" + " ---: |" * 10]
+    for key in ordered(labels, TABLE1_METHODS):
+        fig = PAPER_TABLE1.get(key, (None, None, None))
+        cells = []
+        for i, (name, digits) in enumerate((("psnr", 2), ("ssim", 3), ("lpips", 3))):
+            cells += [_fmt(mean(key, at(1, name)), digits), _paper(fig[i], digits)]
+        cells += [_fmt(mean(key, lambda e, f=f: e.get(f)), digits)
+                  for f, digits in (("num_gaussians", 0), ("storage_mb", 2), ("train_seconds", 0), ("render_ms", 1))]
+        out.append(f"| {key} | {paper_name(key) or ''} | " + " | ".join(cells) + " |")
+    head = " | ".join(f"{'Full' if s == 1 else f'1/{s}'} PSNR | paper | SSIM | paper" for s in SCALES)
+    out += ["", "## Table 2 beside the paper (zoom-out)", "",
+            f"| method | paper row | {head} | alias PSNR 1/8 |", "| --- | --- |" + " ---: |" * (4 * len(SCALES) + 1)]
+    for key in ordered(labels, TABLE2_METHODS):
+        fig = PAPER_TABLE2.get(key, {})
+        cells = []
+        for s in SCALES:
+            p = fig.get(s, (None, None, None))
+            cells += [_fmt(mean(key, at(s, "psnr")), 2), _paper(p[0], 2), _fmt(mean(key, at(s, "ssim")), 3),
+                      _paper(p[1], 3)]
+        cells.append(_fmt(mean(key, at(SCALES[-1], "alias_psnr")), 2))
+        out.append(f"| {key} | {paper_name(key) or ''} | " + " | ".join(cells) + " |")
+    return out + ["", "`paper`: the paper's Mip-NeRF 360 means (nine scenes, its resolutions, 30k + 30k steps; "
+                  "Tables 1 and 2 of the paper); ours: this study's scenes, preset and steps. Compare the order "
+                  "of the rows and the gaps between them, not the absolute values.", ""]
+
+
+def zoom_in_table(results: dict) -> list[str]:
+    """The zoom-in table (Mip-Splatting's protocol) of the entries evaluated with ``--zoom-in``: PSNR,
+    SSIM and LPIPS at the training resolution and zoomed in x2, x4, x8; none without such entries."""
+    labels = [k for k in _labels(results) if any("zoom_in" in per.get(k, {}) for per in results.values())]
+    if not labels:
+        return []
+    zooms = []
+    for per in results.values():
+        for e in per.values():
+            zooms += [z for z in e.get("zoom_in", {}) if z not in zooms]
+    zooms.sort(key=int)
+    head = " | ".join(f"{'train res.' if z == '1' else f'x{z}'} PSNR | SSIM | LPIPS" for z in ["1"] + zooms)
+    out = ["## Zoom-in (Mip-Splatting's protocol)", "", f"| method | {head} |",
+           "| --- |" + " ---: |" * (3 * (len(zooms) + 1))]
+    for key in labels:
+        cells = []
+        for z in ["1"] + zooms:
+            for name, digits in (("psnr", 2), ("ssim", 3), ("lpips", 3)):
+                def field(e, z=z, n=name):
+                    return (e if z == "1" else e.get("zoom_in") or {}).get(z, {}).get(n)
+
+                cells.append(_fmt(_mean_over_scenes(results, key, field), digits))
+        out.append(f"| {key} | " + " | ".join(cells) + " |")
+    sources: dict[str, list[str]] = {}  # where each scene's finer images came from, and the zooms
+    for scene, per in results.items():
+        for e in per.values():
+            for z, m in (e.get("zoom_in") or {}).items():
+                at = sources.setdefault(str(m.get("source")), [])
+                if f"{scene} x{z}" not in at:
+                    at.append(f"{scene} x{z}")
+    return out + ["", "Trained at the study's resolution, rendered at x times its pixel density (the camera "
+                  "intrinsics of that resolution) against the finer images: "
+                  + "; ".join(f"{', '.join(at)}: {src}" for src, at in sources.items()) + ".", ""]

@@ -4,6 +4,7 @@
         [--knobs mip,texture,budget,iters,sh] [--iters-2dgs N] [--iters-tex N] [--max-gaussians N]
     python -m experiments.tradeoffs --effects --run RUN_DIR [--data SCENE] [--out DIR]
         [--drop-effects-below DB] [--export PATH]
+    python -m experiments.tradeoffs --from-study runs/mipnerf360/results.json [--out DIR]
 
 Study (the first form)
   Every knob that trades quality for speed is varied on its own around one base configuration (the
@@ -39,6 +40,12 @@ Study (the first form)
 
   Without ``--data`` the study runs on the embedded synthetic scene with the ``tiny`` preset, whose
   texture stage it shortens to 60 steps (``--iters-tex`` to change).
+
+From a study (the third form)
+  A ``python -m experiments.mipnerf360`` study's entries, whatever methods it ran (3D Gaussians and
+  BBSplat variants included), each a labelled point (means over its scenes; one colour per budget)
+  of the same plot and a row of the same tables (:mod:`experiments.study_tradeoffs`), written to
+  ``tradeoffs.md`` and ``tradeoffs.png`` in DIR (default the study's ``plots/``).
 
 Effects (the second form)
   For one trained run (its ``checkpoints/`` or ``scene.ply``; the render configuration of its method
@@ -272,7 +279,9 @@ def plot(study: dict, path) -> Path:
     for knob, entries in study["knobs"].items():
         for e in entries:
             knob_of.setdefault(e["run"], (knob, e["label"]))
-    colours = dict(zip(KNOBS, plt.rcParams["axes.prop_cycle"].by_key()["color"]))
+    names = list(KNOBS) + [k for k in study["knobs"] if k not in KNOBS]  # a study's: methods, budget 10%, ...
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colours = {k: cycle[i % len(cycle)] for i, k in enumerate(names)}
     fig, axes = plt.subplots(2, len(scales), figsize=(4.2 * len(scales), 7.5), squeeze=False)
     for row, cost in enumerate(("train_seconds", "render_ms")):
         for col, s in enumerate(scales):
@@ -480,6 +489,9 @@ def main(argv=None) -> int:
     e.add_argument("--run", default=None, help="a training run directory (checkpoints/ or scene.ply)")
     e.add_argument("--drop-effects-below", type=float, default=None, metavar="DB")
     e.add_argument("--export", default=None, help="reduced PLY path (default OUT/scene_reduced.ply)")
+    ap.add_argument("--from-study", default=None, metavar="RESULTS",
+                    help="plot a python -m experiments.mipnerf360 study's entries (its results.json or folder) "
+                    "as labelled points; nothing is trained")
     args = ap.parse_args(argv)
 
     from patexgs_jax import compiled
@@ -489,6 +501,16 @@ def main(argv=None) -> int:
     if not args.no_compile_cache:
         compiled.enable_compile_cache()
 
+    if args.from_study is not None:
+        from experiments.study_tradeoffs import write_from_study
+
+        try:
+            paths = write_from_study(args.from_study, args.out)
+        except (ValueError, OSError) as ex:
+            print(f"error: {ex}", file=sys.stderr)
+            return 2
+        print(f"written: {', '.join(map(str, paths))}")
+        return 0
     # Mistakes in the arguments are named before any scene is made or loaded.
     if args.effects and args.run is None:
         ap.error("--effects needs --run RUN_DIR")

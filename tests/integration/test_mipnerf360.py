@@ -349,3 +349,35 @@ def test_zoom_ab_agrees_with_the_study(study, synthetic_scene_dir, tmp_path, cap
     assert "patexgs" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         zoom_ab.main(["--study", str(out), "--variants", "nonsense"])
+
+
+@pytest.mark.slow
+def test_zoom_in_added_to_a_finished_study(study, synthetic_scene_dir, tmp_path, monkeypatch):
+    """``--zoom-in`` added to a finished study: every entry is evaluated again (not retrained) zoomed
+    in on the synthetic scene's analytic ground truth (its images are at factor 1), and tables.md
+    gains the zoom-in table. (x2 only, for time: tests/unit/test_study.py measures x4 too.)"""
+    import shutil
+
+    from experiments import study_zoom_in
+
+    monkeypatch.setattr(study_zoom_in, "ZOOM_IN_SCALES", (2,))
+
+    out, _ = study
+    copy = tmp_path / "study"
+    shutil.copytree(out, copy)
+    before = json.loads((copy / "results.json").read_text())
+    got = mn.run(str(synthetic_scene_dir), methods=METHODS, out=str(copy), renders=0, use_lpips=False, verbose=False,
+                 **dict(STUDY, zoom_in=True))
+    (scene,) = got["results"]
+    assert got["config"]["zoom_in"] is True
+    for key in METHODS:
+        e, old = got["results"][scene][key], before["results"][scene][key]
+        assert e["train_seconds"] == old["train_seconds"]  # evaluated again, not retrained
+        assert e["1"]["psnr"] == pytest.approx(old["1"]["psnr"], abs=1e-5)
+        assert list(e["zoom_in"]) == ["2"]
+        for z, m in e["zoom_in"].items():
+            assert _finite(m["psnr"]) and 5.0 < m["psnr"] < 60.0 and m["views"] == 2, (key, z, m)
+            assert m["source"].startswith("analytic ground truth")
+    md = (copy / "tables.md").read_text()
+    row = next(line for line in md.split("## Zoom-in")[1].splitlines() if line.startswith("| patexgs |"))
+    assert f"{got['results'][scene]['patexgs']['zoom_in']['2']['psnr']:.2f}" in row

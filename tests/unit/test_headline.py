@@ -51,3 +51,35 @@ def test_bad_sources_name_the_problem_and_write_nothing(tmp_path, capsys):
     assert headline.main([no_zoom]) == 2
     assert "is it the main job's" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_tables_rows_set_ours_beside_the_papers(tmp_path, capsys):
+    """``--tables LABEL``: the README's Table 1, Table 2 and zoom-in rows of a study (means over its
+    scenes), the paper's rows first in its order, the paper's Mip-NeRF 360 figures beside ours."""
+    def entry(psnr, zoom_in=False):
+        e = dict(_entry(psnr), train_seconds=12.0, num_gaussians=1200)
+        for s in "1248":
+            e[s].update(ssim=0.5, lpips=None)
+        if zoom_in:
+            e["zoom_in"] = {z: dict(psnr=psnr - int(z), ssim=0.4, lpips=None, views=1, source="x") for z in "248"}
+        return e
+
+    results = {"a": {"patexgs": entry(21.0, True), "2dgs": entry(20.0, True), "patexgs-no-mip": entry(19.0)},
+               "b": {"patexgs": entry(23.0, True), "2dgs": entry(22.0, True)}}
+    data = headline.read(_study(tmp_path, results))
+    assert headline.table1_rows(data, "tiny") == [
+        "| tiny | 2dgs | 2DGS* | 21.00 | 27.16 | 0.500 | 0.802 | - | 0.237 | 1,200 | 0.50 | 12 |",
+        "| tiny | patexgs | Ours | 22.00 | 27.71 | 0.500 | 0.816 | - | 0.197 | 1,200 | 0.50 | 12 |",
+        "| tiny | patexgs-no-mip |  | 19.00 |  | 0.500 |  | - |  | 1,200 | 0.50 | 12 |"]
+    assert headline.table2_rows(data, "tiny")[1] == (
+        "| tiny | patexgs | Ours | 22.00 | 22.20 | 22.40 | 22.80 | 27.71 | 28.63 | 28.49 | 27.12 |")
+    assert headline.zoom_in_rows(data, "tiny") == ["| tiny | 2dgs | 21.00 | 19.00 | 17.00 | 13.00 | 0.400 |",
+                                                   "| tiny | patexgs | 22.00 | 20.00 | 18.00 | 14.00 | 0.400 |"]
+    assert headline.main([str(tmp_path), "--tables", "tiny"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[:3] == ["Table 1:", headline.TABLE1_HEADER, "| --- | --- | --- |" + " ---: |" * 9]
+    assert "Zoom-in (Mip-Splatting's protocol, PSNR):" in out and out[-1] == headline.zoom_in_rows(data, "tiny")[1]
+    (tmp_path / "x").mkdir()
+    no_full = _study(tmp_path / "x", {"a": {"2dgs": {"2": dict(psnr=1.0)}}})
+    assert headline.main([no_full, "--tables", "tiny"]) == 2
+    assert "no entry evaluated at full size" in capsys.readouterr().err
