@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -212,7 +213,8 @@ def test_one_set_of_outputs(runs):
     assert steps == before + list(range(c + 1, STEPS + 1)), steps
     for name in ("killed", "resumed"):
         o1, _ = _outputs(runs["root"] / name, 1)
-        assert "step " not in o1 and "done:" not in o1  # process 1 prints no progress
+        # Process 1 prints no progress lines and no result (a heartbeat of a slow compile may show).
+        assert not re.search(r"^step +\d+/\d+", o1, re.M) and "done:" not in o1, o1
     o0, _ = _outputs(runs["root"] / "resumed", 0)
     assert "done:" in o0 and f"step      {STEPS}/{STEPS}" in o0
 

@@ -216,7 +216,7 @@ def test_effects_and_reduced_export(study, dataset, tmp_path):
     run_dir = st.out / "runs" / rid
     scene, rc, _ = effects.load_trained(run_dir)
     assert effects.present_effects(scene, rc) == list(effects.EFFECTS)
-    res = tr.run_effects(run_dir, dataset, tmp_path, scales=(1,), drop_below=1e9, verbose=False, max_views=1)
+    res = effects.run_effects(run_dir, dataset, tmp_path, scales=(1,), drop_below=1e9, verbose=False, max_views=1)
     assert json.loads((tmp_path / "effects.json").read_text())["reduced"]["dropped"] == list(effects.EFFECTS)
     full = res["full"]["psnr"]["1"]
     for v in res["effects"].values():
@@ -227,8 +227,8 @@ def test_effects_and_reduced_export(study, dataset, tmp_path):
     sc = load_ply(red["path"])
     assert sc.rgb is None and sc.alpha is None and sc.sh.shape[1] == 1
     assert effects.load_render_config(red["path"]).mip == "none"
-    off_scene, off_rc = tr.without(scene, rc, effects.EFFECTS)
-    direct = tr.measure(off_scene, dataset.test_views, off_rc, scales=(1,), max_views=1)
+    off_scene, off_rc = effects.without(scene, rc, effects.EFFECTS)
+    direct = effects.measure(off_scene, dataset.test_views, off_rc, scales=(1,), max_views=1)
     assert red["measure"]["psnr"]["1"] == pytest.approx(direct["psnr"]["1"], abs=1e-3)
     assert red["flops"]["reduced"] is not None and red["flops"]["reduced"] <= red["flops"]["full"]
     # Nothing contributes less than -inf dB: nothing is dropped.
