@@ -80,6 +80,7 @@ from jax import lax
 from .. import textures as tex
 from ..camera import Camera
 from ..scene import Scene
+from . import pallas_composite
 from .binning import bin_projection, pair_count, tile_histogram, tile_ranges
 from .chunks import Static
 from .composite import composite_tiles
@@ -271,7 +272,10 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
                alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,
                flag=binned[0] >= 0)  # a True XLA cannot prove (see chunks.barrier)
     # jax.custom_vjp's type hides composite_tiles' return type, a tuple of three arrays.
-    acc, t_final, best = composite_tiles(  # pyright: ignore[reportGeneralTypeIssues]
+    composite = composite_tiles
+    if pallas_composite.resolve_compositor(config) == "pallas":  # one Pallas kernel (issue 48)
+        composite = pallas_composite.composite_tiles
+    acc, t_final, best = composite(  # pyright: ignore[reportGeneralTypeIssues]
         st, proj.packed, None if rgb_atlas is None else rgb_atlas.texels,
         None if alpha_atlas is None else alpha_atlas.texels, ctx)
     bg = jnp.asarray(config.background, acc.dtype)

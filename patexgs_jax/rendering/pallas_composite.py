@@ -1,0 +1,340 @@
+"""The compositor as one Pallas GPU kernel (Triton lowering): one program per tile, one lane per pixel.
+
+``RenderConfig(compositor="pallas")`` composites with :func:`composite_tiles` here instead of
+:func:`.composite.composite_tiles`; both take and return the same arrays, so the rest of the
+renderer is shared. The kernel is written for the GPU backend; on a CPU it runs in Pallas's
+interpret mode (a test and reference path, far slower than the XLA compositor).
+
+Forward (:func:`_forward_kernel`): the grid is the image's tiles. A tile's program holds its P
+pixels as (P,) vectors and walks its own depth-ordered list one splat at a time, a loop whose trip
+count is the tile's list length, ended early once every pixel stopped (transmittance would fall
+below 1e-4). Each step reads the splat's packed row (:data:`projection.COLS`), evaluates the
+kernel, alpha, depth and the distortion terms for the tile's pixels in registers, and blends them:
+nothing per (splat, pixel) pair goes to memory. It writes the 9 accumulators, the final
+transmittance and the dominant splat of every pixel, as the XLA compositor does, and how far into
+the tile's list each pixel's last included pair is.
+
+Backward (:func:`_backward_kernel`): the tile's list replayed back to front from the furthest of
+its pixels' last pairs, each pixel from its own; the transmittance in front of a pair recovered by
+division, ``T_i = T_{i+1} / (1 - a_i)`` (a_i <= 0.99), and with ``S_i = sum_{j>i} w_j (ct . f_j) +
+ct_T T_final`` summed as the walk goes, ``d/da_i = T_i (ct . f_i) - S_i / (1 - a_i)`` (the XLA
+compositor's formula, :func:`.composite._chunk_contrib_bwd`; summed from the back, S_i has no
+cancellation where the XLA compositor forms it as a total minus the pairs in front). The
+per-pair cotangents of the packed columns are summed over the tile's pixels and added to the
+splat's gradient row with one atomic add per (splat, tile). The projection's VJP carries that row
+on to the scene and to ``screen_offset``.
+
+Scope: the 2DGS low-pass kernel and the prefiltered (EWA) kernel, untextured scenes. Scenes with
+RGB or alpha textures (the atlas lookups with per-pixel mip levels) are not in the kernel yet:
+:func:`composite_tiles` raises for them (docs/benchmarks.md).
+
+Triton's rules: every array value is a power-of-two vector (a tile's pixels, so ``tile_size`` is
+a power of two); ``any`` is ``max`` of an int (no boolean reductions in the lowering); the
+gradient buffer is zeros aliased to the output (atomic adds accumulate into it).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
+
+from .chunks import Static
+from .config import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderConfig
+from .kernel import UV_LIMIT
+from .projection import COLS
+
+_DIST_NEAR, _DIST_FAR = 0.2, 1000.0  # the 2DGS distortion's NDC depth mapping, as .composite
+_M_SCALE = _DIST_FAR / (_DIST_FAR - _DIST_NEAR)
+_F_ACC = 9  # rgb (3), depth, normal (3), D1, D2: the rows of the accumulator output
+_ROW = 32  # the gradient row: the packed columns (at most COLS.width_prefilter = 29), padded
+
+#: What ``RenderConfig(compositor=None)`` picks on a GPU. "xla" until a GPU benchmark in
+#: benchmarks/ shows the kernel faster there (then "pallas"); the CPU always takes "xla".
+GPU_DEFAULT = "xla"
+
+
+def resolve_compositor(config: RenderConfig) -> str:
+    """"xla" or "pallas": ``config.compositor``, or for None the default of the backend being traced
+    for (:data:`GPU_DEFAULT` on a GPU, "xla" elsewhere)."""
+    if config.compositor is not None:
+        return config.compositor
+    return GPU_DEFAULT if jax.default_backend() == "gpu" else "xla"
+
+
+def _interpret() -> bool:
+    """Run the kernel in Pallas's interpreter: on any backend but a GPU."""
+    return jax.default_backend() != "gpu"
+
+
+class _Pixels:
+    """A tile's pixel centres (P,) and their offsets from the tile's centre (for the per-splat sums
+    of the backward: smaller terms than the absolute coordinates, less cancellation)."""
+
+    def __init__(self, st: Static, t, dtype):
+        ts = st.config.tile_size
+        p = lax.iota(jnp.int32, ts * ts)
+        ix, iy = p % ts, p // ts
+        half = 0.5 * ts
+        self.cx = ((t % st.tiles_x) * ts).astype(dtype) + half   # the tile's centre
+        self.cy = ((t // st.tiles_x) * ts).astype(dtype) + half
+        self.xo = ix.astype(dtype) + (0.5 - half)                 # offsets from it
+        self.yo = iy.astype(dtype) + (0.5 - half)
+        self.x = self.cx + self.xo
+        self.y = self.cy + self.yo
+
+
+def _row(pk_ref, g, prefilter: bool):
+    """The packed columns of splat g, as scalars (a dict of name -> scalar or tuple)."""
+
+    def col(i):
+        return pk_ref[g, i]
+
+    def cs(sl):
+        return tuple(col(i) for i in range(sl.start, sl.stop))
+
+    r: dict[str, Any] = dict(a=cs(COLS.a), b=cs(COLS.b), c=cs(COLS.c), m2=cs(COLS.m2), mu=cs(COLS.mu),
+             opacity=col(COLS.opacity), colour=cs(COLS.colour), normal=cs(COLS.normal), depth=col(COLS.depth))
+    if prefilter:
+        r.update(conic=cs(COLS.conic), coverage=col(COLS.coverage), support=cs(COLS.support))
+    return r
+
+
+def _geometry(r, px: _Pixels, prefilter: bool):
+    """The pair terms of one splat (row r) at the tile's pixels, each (P,): as
+    :func:`.kernel.geometry_terms` (G, z, u, v, ok, inv, use3) for one splat."""
+    s0, s1, s2 = (px.x * r["a"][i] + px.y * r["b"][i] + r["c"][i] for i in range(3))
+    ok = jnp.abs(s2) * UV_LIMIT > jnp.maximum(jnp.abs(s0), jnp.abs(s1))
+    inv = 1.0 / jnp.where(ok, s2, 1.0)
+    u = jnp.where(ok, s0 * inv, 0.0)
+    v = jnp.where(ok, s1 * inv, 0.0)
+    dx, dy = px.x - r["mu"][0], px.y - r["mu"][1]
+    if prefilter:
+        p, q, t = r["conic"]
+        sa, sb, sc = r["support"]
+        use3 = ok & ((sa * dx + 2.0 * sb * dy) * dx + sc * dy * dy <= 1.0)
+        G = jnp.exp(-0.5 * jnp.where(use3, (p * u + 2.0 * q * v) * u + t * v * v, 1e8))
+    else:
+        rho3d = jnp.where(ok, u * u + v * v, 1e8)
+        rho2d = 2.0 * (dx * dx + dy * dy)
+        use3 = rho3d <= rho2d
+        G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
+    m = r["m2"]
+    z = jnp.where(use3, m[0] * u + m[1] * v + m[2], r["depth"])
+    return G, z, u, v, ok, inv, use3
+
+
+def _alpha(st: Static, r, px: _Pixels):
+    """One splat's alpha at the tile's pixels: the geometry (:func:`_geometry`), alpha before the
+    cap, alpha (0 where not kept), whether kept, and the distortion's safe depth and NDC depth (all
+    (P,)); as :func:`.composite._contrib_terms`."""
+    geo = _geometry(r, px, st.prefilter)
+    G, z = geo[0], geo[1]
+    a_raw = r["opacity"] * G
+    amin = ALPHA_MIN * r["coverage"] if st.prefilter else ALPHA_MIN
+    a = jnp.minimum(a_raw, ALPHA_MAX)
+    keep = (a >= amin) & (z > st.config.near)
+    a = jnp.where(keep, a, 0.0)
+    zs = jnp.where(keep, z, 1.0)
+    m = _M_SCALE * (1.0 - _DIST_NEAR / zs)
+    return geo, a_raw, a, keep, zs, m
+
+
+def _any(mask):
+    """Whether any lane of a boolean (P,) vector is set (Triton lowers no boolean reductions)."""
+    return jnp.max(mask.astype(jnp.int32)) > 0
+
+
+def _forward_kernel(st: Static, start_ref, count_ref, ids_ref, pk_ref, out_ref, idx_ref):
+    t = pl.program_id(0)
+    dt = out_ref.dtype
+    P = st.config.tile_size ** 2
+    px = _Pixels(st, t, dt)
+    start, count = start_ref[t], count_ref[t]
+
+    def cond(state):
+        return (state[0] < count) & _any(~state[2])
+
+    def body(state):
+        i, T, done, last, acc, best_w, best_id = state
+        g = ids_ref[start + i]
+        r = _row(pk_ref, g, st.prefilter)
+        geo, _, a, _, _, m = _alpha(st, r, px)
+        t_next = T * (1.0 - a)
+        stop = t_next < T_MIN
+        include = ~done & ~stop
+        w = jnp.where(include, a * T, 0.0)
+        feats = (*r["colour"], geo[1], *r["normal"], m, m * m)
+        acc = tuple(s + w * f for s, f in zip(acc, feats, strict=True))
+        better = w > best_w
+        return (i + 1, jnp.where(include, t_next, T), done | stop, jnp.where(include, i + 1, last), acc,
+                jnp.maximum(best_w, w), jnp.where(better, g, best_id))
+
+    zeros = jnp.zeros((P,), dt)
+    init = (jnp.int32(0), jnp.ones((P,), dt), jnp.zeros((P,), jnp.bool_), jnp.zeros((P,), jnp.int32),
+            (zeros,) * _F_ACC, zeros, jnp.full((P,), -1, jnp.int32))
+    _, T, _, last, acc, _, best = lax.while_loop(cond, body, init)
+    for k in range(_F_ACC):
+        out_ref[t, k, :] = acc[k]
+    out_ref[t, _F_ACC, :] = T
+    idx_ref[t, 0, :] = best
+    idx_ref[t, 1, :] = last
+
+
+def _pallas_call(st: Static, interpret: bool, kernel, out_shape, aliases=None):
+    """``kernel`` (partial of ``st``) over the image's tiles, one program each."""
+    warps = max(1, min(8, st.config.tile_size ** 2 // 32))  # one lane per pixel, at most 8 warps
+    return pl.pallas_call(functools.partial(kernel, st), out_shape=out_shape, grid=(st.num_tiles,),
+                          input_output_aliases=aliases or {}, interpret=interpret,
+                          compiler_params=plgpu.CompilerParams(num_warps=warps, num_stages=1))
+
+
+def _forward(st: Static, interpret: bool, packed, tile_start, binned, ids_sorted):
+    """(out (T, 10, P): the 9 accumulators and the final transmittance; idx (T, 2, P) int32: the
+    dominant splat and how far into the tile's list the pixel's last included pair is)."""
+    P = st.config.tile_size ** 2
+    out_shape = (jax.ShapeDtypeStruct((st.num_tiles, _F_ACC + 1, P), packed.dtype),
+                 jax.ShapeDtypeStruct((st.num_tiles, 2, P), jnp.int32))
+    return _pallas_call(st, interpret, _forward_kernel, out_shape)(tile_start, binned, ids_sorted, packed)
+
+
+def _backward_kernel(st: Static, start_ref, count_ref, ids_ref, pk_ref, ct_ref, fin_ref, last_ref, g_in_ref,
+                     g_ref):
+    del count_ref, g_in_ref  # g_in_ref is aliased to g_ref: the zeros the atomic adds accumulate into
+    t = pl.program_id(0)
+    dt = ct_ref.dtype
+    px = _Pixels(st, t, dt)
+    start = start_ref[t]
+    ct = [ct_ref[t, k, :] for k in range(_F_ACC)]
+    ct_rgb, ct_z, ct_nrm, ct_m, ct_m2 = ct[0:3], ct[3], ct[4:7], ct[7], ct[8]
+    t_final, ct_t = fin_ref[t, 0, :], fin_ref[t, 1, :]
+    last = last_ref[t, 1, :]
+    end = jnp.max(last)
+    lane = lax.iota(jnp.int32, _ROW)
+
+    def body(j, state):
+        T, behind = state
+        i = end - 1 - j
+        g = ids_ref[start + i]
+        r = _row(pk_ref, g, st.prefilter)
+        geo, a_raw, a, keep, zs, m = _alpha(st, r, px)
+        G, z, u, v, ok, inv, use3 = geo
+        live = i < last                             # the pixel's pairs up to its last included one
+        a = jnp.where(live, a, 0.0)
+        T = T / (1.0 - a)                           # the transmittance in front of the pair
+        w = a * T
+        # The pair's features against the cotangents, and the compositing's backward.
+        g_w = (sum(c * f for c, f in zip(ct_rgb, r["colour"], strict=True)) + ct_z * z
+               + sum(c * f for c, f in zip(ct_nrm, r["normal"], strict=True)) + (ct_m + ct_m2 * m) * m)
+        g_a = g_w * T - behind / (1.0 - a)
+        g_a = jnp.where(live & keep & (a_raw < ALPHA_MAX), g_a, 0.0)
+        behind = behind + w * g_w
+        g_G = g_a * r["opacity"]
+        dm_dz = _M_SCALE * _DIST_NEAR / (zs * zs)
+        g_z = w * (ct_z + (ct_m + 2.0 * ct_m2 * m) * dm_dz)
+        # The kernel's backward (as .kernel.chunk_geometry_bwd, for one splat).
+        g_rho = -0.5 * g_G * G
+        g_rho3 = jnp.where(use3 & ok, g_rho, 0.0)
+        g_z3 = jnp.where(use3, g_z, 0.0)
+        m2 = r["m2"]
+        if st.prefilter:
+            p, q, tt = r["conic"]
+            qu, qv = p * u + q * v, q * u + tt * v
+        else:
+            qu, qv = u, v
+        g_u = jnp.where(ok, 2.0 * qu * g_rho3 + m2[0] * g_z3, 0.0)
+        g_v = jnp.where(ok, 2.0 * qv * g_rho3 + m2[1] * g_z3, 0.0)
+        g_s = (g_u * inv, g_v * inv, -(g_u * u + g_v * v) * inv)
+        cols = {}
+        for k in range(3):  # s_k = x a_k + y b_k + c_k: the sums of g_s[k] weighted by x, y and 1
+            s1 = jnp.sum(g_s[k])
+            cols[COLS.a.start + k] = jnp.sum(g_s[k] * px.xo) + px.cx * s1
+            cols[COLS.b.start + k] = jnp.sum(g_s[k] * px.yo) + px.cy * s1
+            cols[COLS.c.start + k] = s1
+        cols[COLS.m2.start] = jnp.sum(g_z3 * u)
+        cols[COLS.m2.start + 1] = jnp.sum(g_z3 * v)
+        cols[COLS.m2.start + 2] = jnp.sum(g_z3)
+        if not st.prefilter:  # d rho2d / d mu = -4 (x - mu)
+            h = jnp.where(use3, 0.0, g_rho)
+            s1 = jnp.sum(h)
+            cols[COLS.mu.start] = -4.0 * (jnp.sum(h * px.xo) + (px.cx - r["mu"][0]) * s1)
+            cols[COLS.mu.start + 1] = -4.0 * (jnp.sum(h * px.yo) + (px.cy - r["mu"][1]) * s1)
+        cols[COLS.opacity] = jnp.sum(g_a * G)
+        for k in range(3):
+            cols[COLS.colour.start + k] = jnp.sum(w * ct_rgb[k])
+            cols[COLS.normal.start + k] = jnp.sum(w * ct_nrm[k])
+        cols[COLS.depth] = jnp.sum(g_z - g_z3)
+        if st.prefilter:
+            cols[COLS.conic.start] = jnp.sum(g_rho3 * u * u)
+            cols[COLS.conic.start + 1] = jnp.sum(2.0 * g_rho3 * u * v)
+            cols[COLS.conic.start + 2] = jnp.sum(g_rho3 * v * v)
+        row = jnp.zeros((_ROW,), dt)
+        for k, s in cols.items():
+            row = row + jnp.where(lane == k, s, 0.0)
+        plgpu.atomic_add(g_ref, (g, pl.ds(jnp.int32(0), _ROW)), row)
+        return T, behind
+
+    lax.fori_loop(0, end, body, (t_final, ct_t * t_final))
+
+
+def _backward(st: Static, interpret: bool, packed, tile_start, binned, ids_sorted, ct, fin, idx):
+    """The packed splats' cotangent (C, F) for accumulator cotangents ct (T, 9, P), fin (T, 2, P)
+    the final transmittance and its cotangent, idx (T, 2, P) the forward's (:func:`_forward`)."""
+    C, F = packed.shape
+    zeros = jnp.zeros((C, _ROW), packed.dtype)
+    call = _pallas_call(st, interpret, _backward_kernel, jax.ShapeDtypeStruct((C, _ROW), packed.dtype),
+                        aliases={7: 0})
+    g = call(tile_start, binned, ids_sorted, packed, ct, fin, idx, zeros)
+    return g[:, :F]
+
+
+def _outputs(out, idx):
+    """The kernel's (T, 10, P) rows as composite_tiles' (acc (T, P, 9), t_final (T, P), best)."""
+    return jnp.swapaxes(out[:, :_F_ACC], 1, 2), out[:, _F_ACC], idx[:, 0]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def _composite(st: Static, interpret: bool, packed, tile_start, binned, ids_sorted):
+    return _outputs(*_forward(st, interpret, packed, tile_start, binned, ids_sorted))
+
+
+def _composite_fwd(st, interpret, packed, tile_start, binned, ids_sorted):
+    out, idx = _forward(st, interpret, packed, tile_start, binned, ids_sorted)
+    acc, t_final, best = _outputs(out, idx)
+    return (acc, t_final, best), (packed, tile_start, binned, ids_sorted, t_final, idx)
+
+
+def _composite_bwd(st, interpret, res, cts):
+    packed, tile_start, binned, ids_sorted, t_final, idx = res
+    ct_acc, ct_t, _ = cts
+    fin = jnp.stack([t_final, ct_t], axis=1)
+    g = _backward(st, interpret, packed, tile_start, binned, ids_sorted, jnp.swapaxes(ct_acc, 1, 2), fin, idx)
+    return g, None, None, None
+
+
+_composite.defvjp(_composite_fwd, _composite_bwd)
+
+
+def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx, interpret: bool | None = None):
+    """:func:`.composite.composite_tiles` as one Pallas kernel: the same arguments and outputs
+    (acc (T, P, 9), t_final (T, P), best (T, P) int32), differentiable in ``packed``.
+
+    Args:
+      interpret: run in Pallas's interpreter; None: on any backend but a GPU.
+    Raises:
+      NotImplementedError: the scene has RGB or alpha textures (not in the kernel yet; render it
+        with ``compositor="xla"``).
+    """
+    if st.rgb or st.alpha or rgb_texels is not None or alpha_texels is not None:
+        raise NotImplementedError(
+            "RenderConfig(compositor='pallas') composites untextured scenes only (2DGS and prefilter "
+            "coverage); the textured lookups are not in the Pallas kernel yet. Use compositor='xla' "
+            "(or None) for scenes with RGB or alpha textures.")
+    if interpret is None:
+        interpret = _interpret()
+    return _composite(st, interpret, packed, ctx["tile_start"], ctx["binned"], ctx["ids_sorted"])
