@@ -19,9 +19,8 @@ the forward reaches, ``pairs/s x FLOPs per pair / peak``.
 ``--compositor xla,pallas`` times every configuration with each compositor
 (``RenderConfig.compositor``: the XLA compositor, the Pallas kernel), side by side in one process
 and round-robin; each row names its compositor, and ``x2DGS`` is against the 2DGS row of the same
-compositor. The Pallas kernel composites untextured configurations only: textured ones are left
-out of its rows (said on the output). Off a GPU it runs in Pallas's interpreter (a test path: its
-CPU times measure the interpreter, not the kernel).
+compositor. Off a GPU the Pallas kernel runs in Pallas's interpreter (a test path: its CPU times
+measure the interpreter, not the kernel).
 
 FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.rendering`` (adds, multiplies,
 divisions, comparisons feeding arithmetic, exp/log/sqrt each 1; selects and integer address
@@ -174,19 +173,14 @@ def prepare(name, n, width, height, compositor="xla"):
     return row, calls, float(needed) * cfg.tile_size ** 2
 
 
-def supported(name, compositor) -> bool:
-    """Whether ``compositor`` renders configuration ``name`` (the Pallas kernel: untextured only)."""
-    return compositor != "pallas" or CONFIGS[name][0] is None
-
-
 def bench_interleaved(names, n, width, height, repeats, compositors=("xla",)):
-    """Rows of :func:`prepare`, one per configuration and compositor (:func:`supported` ones), with
+    """Rows of :func:`prepare`, one per configuration and compositor, with
     timings taken round-robin: each of ``repeats`` rounds times every case's forward, then every
     one's forward+backward, then binning, so a drift of the machine's speed (this VM's runs vary by
     up to 2x) falls on all cases alike. Times are medians over the rounds; ``forward_over_2dgs``
     and ``forward_backward_over_2dgs`` (when "2dgs" is among ``names``) are medians of the
     per-round ratios to the 2dgs case of the same compositor."""
-    cases = [(name, comp) for comp in compositors for name in names if supported(name, comp)]
+    cases = [(name, comp) for comp in compositors for name in names]
     prepared = [prepare(name, n, width, height, comp) for name, comp in cases]
     times = {key: [[] for _ in cases] for key in ("fwd", "fb", "bin")}
     for _ in range(repeats):
@@ -231,9 +225,6 @@ def main(argv=None):
     compositors = args.compositor.split(",")
     if any(c not in ("xla", "pallas") for c in compositors):
         ap.error(f"--compositor takes xla and/or pallas, got {args.compositor!r}")
-    left_out = [n for n in names if not all(supported(n, c) for c in compositors)]
-    if left_out:
-        print(f"the Pallas compositor composites untextured configurations only: no pallas rows for {left_out}")
     unknown = [n for n in names if n not in CONFIGS]
     if unknown:
         ap.error(f"unknown config(s) {unknown}; choose from {', '.join(CONFIGS)}")

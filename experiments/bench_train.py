@@ -24,8 +24,8 @@ must be 0). With ``--devices N`` every case also runs the data-parallel step on 
 ``--batch-size`` views (default N) split over N devices (CPU devices are forced to N; on a CPU
 they share the same cores, so expect no speed-up there: the figure is the overhead of the
 sharded step). ``--compositor xla,pallas`` runs every case with each compositor
-(``RenderConfig.compositor``) in this process, a row each (the Pallas kernel: untextured
-configurations only; interpreted off a GPU). Results go to ``--json`` (as
+(``RenderConfig.compositor``) in this process, a row each (the Pallas kernel is interpreted off
+a GPU). Results go to ``--json`` (as
 ``experiments.bench_render``) and a Markdown table.
 
 ``--memory`` measures memory instead: each (size, Gaussian count, configuration) runs in a fresh
@@ -266,7 +266,7 @@ def main(argv=None):
     ap.add_argument("--json", default=None)
     ap.add_argument("--compositor", default="xla",
                     help="comma-separated compositors to time side by side in this process: xla, pallas "
-                         "(RenderConfig.compositor; pallas: untextured configs only, interpreted off a GPU)")
+                         "(RenderConfig.compositor; pallas is interpreted off a GPU)")
     ap.add_argument("--memory", action="store_true",
                     help="measure each case's peak resident memory in a fresh process instead (default sizes "
                          "1152x864, 2304x1728, 4032x3024; 4000 Gaussians)")
@@ -302,9 +302,6 @@ def main(argv=None):
         views = make_views(w, h)
         for n in args.gaussians:
             for comp, name in ((c, m) for c in compositors for m in names):
-                if comp == "pallas" and CONFIGS[name][0] is not None:
-                    print(f"{name}: textured, not in the Pallas compositor: no pallas row", flush=True)
-                    continue
                 cases = [(1, None)] + ([(batch, args.devices)] if args.devices else [])
                 label = name + ("" if comp == "xla" else f"@{comp}")
                 for b, d in cases:

@@ -18,7 +18,7 @@ without pycolmap. The device command then reads (``.device`` carried with the wo
 
 The render and train stages time every configuration with each of ``--compositors`` (default
 both: the XLA compositor and the Pallas kernel, ``RenderConfig.compositor``) side by side in one
-process, a row each (the kernel's rows: untextured configurations only); their figures are named
+process, a row each; their figures are named
 ``<stage>.<config>@pallas.<figure>`` beside the XLA compositor's ``<stage>.<config>.<figure>``,
 with ``..._over_xla`` the kernel's time over the XLA compositor's. ``--render-configs`` and
 ``--train-configs`` narrow the configurations (a short device session: ``2dgs`` alone).
@@ -79,7 +79,7 @@ TARGETS = [
     ("viewer 640x480, tiny model (fps)", "viewer.tiny.fps", 30.0, "min"),
     ("bench_train 2dgs, 100k 1280x960 (ms/step)", "train.2dgs.ms_per_step", 60.0, "max"),
     ("bench_train patexgs / 2dgs (ms/step)", "train.patexgs.over_2dgs", 3.0, "max"),
-    # Issue 48, the Pallas compositor (its rows; the textured renderer is not in the kernel yet).
+    # Issue 48, the Pallas compositor (its rows).
     ("pallas 2dgs fwd+bwd, 1M 1920x1080 (ms)", "render_1m.2dgs@pallas.forward_backward_ms", 40.0, "max"),
     ("pallas patexgs / 2dgs fwd+bwd, 1M 1920x1080", "render_1m.patexgs@pallas.forward_backward_over_2dgs", 3.0,
      "max"),

@@ -70,8 +70,8 @@ class RenderConfig:
         reach alpha 1/255 in (:func:`binning.tile_touches`): the same image and gradients (to
         float32 rounding), less compositing where footprints are large or unbounded on screen.
       compositor: "xla" (the chunked XLA compositor), "pallas" (one Pallas kernel per image, one
-        program per tile: :mod:`.pallas_composite`; interpreted, slowly, off a GPU; untextured
-        scenes only; needs a power-of-two ``tile_size``) or None (default): "xla", until a GPU
+        program per tile: :mod:`.pallas_composite`; interpreted off a GPU; needs a power-of-two
+        ``tile_size``) or None (default): "xla", until a GPU
         benchmark in benchmarks/ shows the kernel faster on GPUs
         (:data:`.pallas_composite.GPU_DEFAULT`).
     """

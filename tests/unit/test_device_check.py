@@ -163,4 +163,4 @@ def test_compositor_rows_side_by_side(tmp_path):
     assert fig["train.2dgs@pallas.over_xla"] == pytest.approx(0.5)
     targets = {t["name"]: t for t in dc.check_targets(fig, None)}
     assert targets["pallas 2dgs fwd+bwd, 1M 1920x1080 (ms)"]["met"] is True
-    assert targets["pallas patexgs / 2dgs fwd+bwd, 1M 1920x1080"]["met"] is None  # no textured kernel rows
+    assert targets["pallas patexgs / 2dgs fwd+bwd, 1M 1920x1080"]["met"] is None  # not measured

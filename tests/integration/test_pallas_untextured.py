@@ -1,7 +1,7 @@
 """The Pallas compositor (``RenderConfig(compositor="pallas")``, interpreted on the CPU) against the
-XLA compositor on the renderer's shared cases and the hard cases, untextured (the kernel's scope):
-every output, and the gradients (tests/pallas_cases.py says to what tolerance and why). The quick
-checks are in tests/unit/test_pallas_composite.py."""
+XLA compositor on the renderer's shared cases and the hard cases, without textures: every output,
+and the gradients (tests/pallas_cases.py says to what tolerance and why). The quick checks are in
+tests/unit/test_pallas_composite.py, the textured renderer in test_pallas_textures.py."""
 
 from __future__ import annotations
 
@@ -23,8 +23,8 @@ HARD_CAP = Capacity(pairs=8192)
 
 @pytest.mark.parametrize("name", ["prefilter-2dgs"])
 def test_shared_cases(name):
-    """Outputs and the gradients of the scene and screen_offset (the unit test has "2dgs"; the
-    kernel composites untextured scenes, so these two are the shared cases in its scope)."""
+    """Outputs and the gradients of the scene and screen_offset (the unit test has "2dgs", the
+    textured cases are in test_pallas_textures.py)."""
     _, degree, cfg = CONFIGS[name]
     compare(scene(7 + len(name), False, degree), camera(), dataclasses.replace(cfg, mip="none"), CAP)
 
