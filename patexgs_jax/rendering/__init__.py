@@ -80,7 +80,6 @@ from jax import lax
 from .. import textures as tex
 from ..camera import Camera
 from ..scene import Scene
-from . import pallas_composite
 from .binning import bin_projection, pair_count, tile_histogram, tile_ranges
 from .chunks import Static
 from .composite import composite_tiles
@@ -95,6 +94,7 @@ from .config import (
     Capacity,
     RenderConfig,
     RenderOutput,
+    resolve_compositor,
 )
 from .projection import alpha_peak, constant_textures, project
 from .schedule import resolve_tile_batch
@@ -273,7 +273,8 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
                flag=binned[0] >= 0)  # a True XLA cannot prove (see chunks.barrier)
     # jax.custom_vjp's type hides composite_tiles' return type, a tuple of three arrays.
     composite = composite_tiles
-    if pallas_composite.resolve_compositor(config) == "pallas":  # one Pallas kernel (issue 48)
+    if resolve_compositor(config) == "pallas":  # one Pallas kernel (issue 48), imported when used
+        from . import pallas_composite
         composite = pallas_composite.composite_tiles
     acc, t_final, best = composite(  # pyright: ignore[reportGeneralTypeIssues]
         st, proj.packed, None if rgb_atlas is None else rgb_atlas.texels,

@@ -13,8 +13,11 @@ MIP_MODES = ("none", "nearest", "trilinear")
 #: RenderConfig.coverage: the 2DGS low-pass kernel, or the prefiltered (EWA) kernel.
 COVERAGE_MODES = ("lowpass", "prefilter")
 #: RenderConfig.compositor: the XLA compositor (:mod:`.composite`) or the Pallas GPU kernel
-#: (:mod:`.pallas_composite`); None picks per backend (:func:`.pallas_composite.resolve_compositor`).
+#: (:mod:`.pallas_composite`); None picks per backend (:func:`resolve_compositor`).
 COMPOSITORS = ("xla", "pallas")
+#: What ``RenderConfig(compositor=None)`` picks on a GPU: "xla" until a GPU benchmark in
+#: benchmarks/ shows the Pallas kernel faster there (then "pallas"); the CPU always takes "xla".
+GPU_DEFAULT_COMPOSITOR = "xla"
 #: Eq. 11's lambda_mip per coverage mode when RenderConfig.lambda_mip is None (see RenderConfig).
 LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0}
 ALPHA_MAX = 0.99  # a pair's alpha is capped here
@@ -71,9 +74,8 @@ class RenderConfig:
         float32 rounding), less compositing where footprints are large or unbounded on screen.
       compositor: "xla" (the chunked XLA compositor), "pallas" (one Pallas kernel per image, one
         program per tile: :mod:`.pallas_composite`; interpreted off a GPU; needs a power-of-two
-        ``tile_size``) or None (default): "xla", until a GPU
-        benchmark in benchmarks/ shows the kernel faster on GPUs
-        (:data:`.pallas_composite.GPU_DEFAULT`).
+        ``tile_size``) or None (default): "xla", until a GPU benchmark in benchmarks/ shows the
+        kernel faster on GPUs (:func:`resolve_compositor`).
     """
 
     mip: str = "nearest"
@@ -120,6 +122,14 @@ class RenderConfig:
         if self.compositor == "pallas" and self.tile_size & (self.tile_size - 1):
             raise ValueError(f"compositor='pallas' needs a power-of-two tile_size (a tile's pixels are one "
                              f"power-of-two vector), got {self.tile_size}.")
+
+
+def resolve_compositor(config: RenderConfig) -> str:
+    """"xla" or "pallas": ``config.compositor``, or for None the default of the backend being traced
+    for (:data:`GPU_DEFAULT_COMPOSITOR` on a GPU, "xla" elsewhere)."""
+    if config.compositor is not None:
+        return config.compositor
+    return GPU_DEFAULT_COMPOSITOR if jax.default_backend() == "gpu" else "xla"
 
 
 @dataclasses.dataclass(frozen=True)

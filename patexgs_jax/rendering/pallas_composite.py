@@ -50,7 +50,7 @@ from jax.experimental.pallas import triton as plgpu
 
 from . import pallas_texture as ptex
 from .chunks import Static
-from .config import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderConfig
+from .config import ALPHA_MAX, ALPHA_MIN, T_MIN
 from .kernel import UV_LIMIT
 from .projection import COLS
 
@@ -58,19 +58,6 @@ _DIST_NEAR, _DIST_FAR = 0.2, 1000.0  # the 2DGS distortion's NDC depth mapping, 
 _M_SCALE = _DIST_FAR / (_DIST_FAR - _DIST_NEAR)
 _F_ACC = 9  # rgb (3), depth, normal (3), D1, D2: the rows of the accumulator output
 _ROW = 32  # the gradient row: the packed columns (at most COLS.width_prefilter = 29), padded
-
-#: What ``RenderConfig(compositor=None)`` picks on a GPU. "xla" until a GPU benchmark in
-#: benchmarks/ shows the kernel faster there (then "pallas"); the CPU always takes "xla".
-GPU_DEFAULT = "xla"
-
-
-def resolve_compositor(config: RenderConfig) -> str:
-    """"xla" or "pallas": ``config.compositor``, or for None the default of the backend being traced
-    for (:data:`GPU_DEFAULT` on a GPU, "xla" elsewhere)."""
-    if config.compositor is not None:
-        return config.compositor
-    return GPU_DEFAULT if jax.default_backend() == "gpu" else "xla"
-
 
 def _interpret() -> bool:
     """Run the kernel in Pallas's interpreter: on any backend but a GPU."""

@@ -13,14 +13,15 @@ from pallas_cases import compare
 from patexgs_jax import RenderConfig
 from patexgs_jax.rendering import pallas_composite
 from patexgs_jax.rendering.chunks import Static
+from patexgs_jax.rendering.config import resolve_compositor
 from patexgs_jax.rendering.projection import COLS
 from render_cases import CAP, CONFIGS, camera, scene
 
 
 def test_config():
     assert RenderConfig().compositor is None
-    assert pallas_composite.resolve_compositor(RenderConfig()) == "xla"  # None: XLA off a GPU
-    assert pallas_composite.resolve_compositor(RenderConfig(compositor="pallas")) == "pallas"
+    assert resolve_compositor(RenderConfig()) == "xla"  # None: XLA off a GPU
+    assert resolve_compositor(RenderConfig(compositor="pallas")) == "pallas"
     assert pallas_composite._interpret()  # off a GPU the kernel runs in Pallas's interpreter
     with pytest.raises(ValueError, match="compositor"):
         RenderConfig(compositor="triton")
