@@ -8,11 +8,12 @@ interpret mode (a test path).
 Forward (:func:`_forward_kernel`): the grid is the image's tiles. A tile's program holds its P
 pixels as (P,) vectors and walks its own depth-ordered list one splat at a time, a loop whose trip
 count is the tile's list length, ended early once every pixel stopped (transmittance would fall
-below 1e-4). Each step reads the splat's packed row (:data:`projection.COLS`), evaluates the
-kernel, alpha, depth and the distortion terms for the tile's pixels in registers, and blends them:
-nothing per (splat, pixel) pair goes to memory. It writes the 9 accumulators, the final
-transmittance and the dominant splat of every pixel, as the XLA compositor does, and how far into
-the tile's list each pixel's last included pair is.
+below 1e-4; checked every 16 splats, a block-wide reduction, as gsplat checks once per batch).
+Each step reads the splat's packed row (:data:`projection.COLS`), evaluates the kernel, alpha,
+depth and the distortion terms for the tile's pixels in registers, and blends them: nothing per
+(splat, pixel) pair goes to memory. It writes the 9 accumulators, the final transmittance and the
+dominant splat of every pixel, as the XLA compositor does, and how far into the tile's list each
+pixel's last included pair is.
 
 Backward (:func:`_backward_kernel`): the tile's list replayed back to front from the furthest of
 its pixels' last pairs, each pixel from its own; the transmittance in front of a pair recovered by
@@ -57,6 +58,7 @@ from .projection import COLS
 _DIST_NEAR, _DIST_FAR = 0.2, 1000.0  # the 2DGS distortion's NDC depth mapping, as .composite
 _M_SCALE = _DIST_FAR / (_DIST_FAR - _DIST_NEAR)
 _F_ACC = 9  # rgb (3), depth, normal (3), D1, D2: the rows of the accumulator output
+_STOP_EVERY = 16  # splats between the forward's checks whether every pixel of a tile has stopped
 _ROW = 32  # the gradient row: the packed columns (at most COLS.width_prefilter = 29), padded
 
 def _interpret() -> bool:
@@ -261,20 +263,25 @@ def _forward_kernel(st: Static, *all_refs):
     def cond(state):
         return (state[0] < count) & _any(~state[2])
 
-    def body(state):
+    def step(_, state):  # one splat of the list (none past its end)
         i, T, done, last, acc, best_w, best_id = state
-        g = refs.ids[start + i]
+        valid = i < count
+        g = refs.ids[start + jnp.minimum(i, count - 1)]
         r = _row(st, refs, g)
-        geo, _, tx, _, a, _, _, m = _alpha(st, refs, r, px, ~done)
+        geo, _, tx, _, a, _, _, m = _alpha(st, refs, r, px, ~done & valid)
+        a = jnp.where(valid, a, 0.0)
         t_next = T * (1.0 - a)
         stop = t_next < T_MIN
-        include = ~done & ~stop
+        include = ~done & ~stop & valid
         w = jnp.where(include, a * T, 0.0)
         feats = (*_colour(st, r, tx), geo[1], *r["normal"], m, m * m)
         acc = tuple(s + w * f for s, f in zip(acc, feats, strict=True))
         better = w > best_w
         return (i + 1, jnp.where(include, t_next, T), done | stop, jnp.where(include, i + 1, last), acc,
                 jnp.maximum(best_w, w), jnp.where(better, g, best_id))
+
+    def body(state):  # the tile's pixels synchronise (a block-wide reduction) once per this many
+        return lax.fori_loop(0, _STOP_EVERY, step, state)
 
     zeros = jnp.zeros((P,), dt)
     init = (jnp.int32(0), jnp.ones((P,), dt), jnp.zeros((P,), jnp.bool_), jnp.zeros((P,), jnp.int32),
