@@ -11,9 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from pallas_cases import compare, render_and_grad
 
 import hard_scenes as hs
+from pallas_cases import compare, render_and_grad
 from patexgs_jax import Capacity, RenderConfig
 from render_cases import CAP, CONFIGS, camera, scene
 

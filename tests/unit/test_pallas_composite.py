@@ -8,8 +8,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import pytest
-from pallas_cases import compare
 
+from pallas_cases import compare
 from patexgs_jax import RenderConfig
 from patexgs_jax.rendering import pallas_composite
 from patexgs_jax.rendering.chunks import Static
