@@ -65,8 +65,9 @@ STAGES = {"tests": 1.0, "render": 1.4, "train": 1.0, "viewer": 0.6, "beer": 2.0,
 #: batches pay where tiles' lists differ in length (a batch loops until its longest list is done).
 SCHEDULE_BATCHES = (2048, 512)
 
-#: The renderer's float32 tests that must pass on the accelerator at the CPU's tolerances.
-TEST_FILES = ("tests/unit/test_render.py", "tests/unit/test_device_path.py")
+#: The renderer's float32 tests that must pass on the accelerator at the CPU's tolerances (the
+#: Pallas compositor's compiled for the GPU there, against the XLA compositor).
+TEST_FILES = ("tests/unit/test_render.py", "tests/unit/test_device_path.py", "tests/unit/test_pallas_composite.py")
 
 #: The GPU targets (issue 38): (name, figure, limit, "max" or "min"); a figure may be a ratio.
 TARGETS = [

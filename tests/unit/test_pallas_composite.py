@@ -1,7 +1,8 @@
 """The Pallas compositor (``RenderConfig(compositor="pallas")``, :mod:`patexgs_jax.rendering.pallas_composite`),
 quick checks: its configuration, one shared case against the XLA compositor in Pallas's interpret
-mode (values and gradients), and its forward and backward lowered for CUDA (Triton) on this CPU
-machine. The other cases are in tests/integration/test_pallas_untextured.py."""
+mode (values and gradients; on a GPU, which the device check runs this file on, the compiled
+kernel), and its forward and backward lowered for CUDA (Triton) on a machine without a GPU. The
+other cases are in tests/integration/test_pallas_untextured.py and test_pallas_textures.py."""
 
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ def test_config():
     assert RenderConfig().compositor is None
     assert resolve_compositor(RenderConfig()) == "xla"  # None: XLA off a GPU
     assert resolve_compositor(RenderConfig(compositor="pallas")) == "pallas"
-    assert pallas_composite._interpret()  # off a GPU the kernel runs in Pallas's interpreter
+    # Off a GPU the kernel runs in Pallas's interpreter; on one (the device check) compiled.
+    assert pallas_composite._interpret() == (jax.default_backend() != "gpu")
     with pytest.raises(ValueError, match="compositor"):
         RenderConfig(compositor="triton")
     with pytest.raises(ValueError, match="power-of-two"):
