@@ -61,6 +61,7 @@ _F_ACC = 9  # rgb (3), depth, normal (3), D1, D2: the rows of the accumulator ou
 _STOP_EVERY = 16  # splats between the forward's checks whether every pixel of a tile has stopped
 _ROW = 32  # the gradient row: the packed columns (at most COLS.width_prefilter = 29), padded
 
+
 def _interpret() -> bool:
     """Run the kernel in Pallas's interpreter: on any backend but a GPU."""
     return jax.default_backend() != "gpu"
