@@ -2,6 +2,7 @@
 
     python -m experiments.bench_render [--gaussians 50000 ...] [--sizes 640x480 ...] [--repeats 3]
                                        [--configs 2dgs,tex8,tex8-mip,tex8-trilinear] [--json out.json]
+                                       [--compositor xla,pallas]
 
 A fixed random scene (seeded) seen by a fixed camera, for every Gaussian count and image size
 given. For each configuration it prints: forward ms; its ratio to the 2DGS forward (``x2DGS``,
@@ -14,6 +15,12 @@ do; ours stops saturated tiles early); binned (splat, tile) pairs; the longest t
 time; recompiles during the timed calls (must be 0); XLA's temporary-buffer size of the backward
 (its peak working memory beyond inputs/outputs); and the share of the machine's arithmetic peak
 the forward reaches, ``pairs/s x FLOPs per pair / peak``.
+
+``--compositor xla,pallas`` times every configuration with each compositor
+(``RenderConfig.compositor``: the XLA compositor, the Pallas kernel), side by side in one process
+and round-robin; each row names its compositor, and ``x2DGS`` is against the 2DGS row of the same
+compositor. Off a GPU the Pallas kernel runs in Pallas's interpreter (a test path: its CPU times
+measure the interpreter, not the kernel).
 
 FLOPs per (pixel, splat) pair, counted by hand from ``patexgs_jax.rendering`` (adds, multiplies,
 divisions, comparisons feeding arithmetic, exp/log/sqrt each 1; selects and integer address
@@ -35,6 +42,7 @@ throughput of a large ``jnp.dot`` on all cores, the best this machine's XLA does
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import platform
 import time
 
@@ -108,10 +116,12 @@ def timeit(fn, repeats):
     return float(np.median([_time_once(fn) for _ in range(repeats)]))
 
 
-def prepare(name, n, width, height):
-    """Scene, camera and compiled forward / forward+backward / binning of one configuration, with
-    its compile times, memory, recompile count and pair counts (everything but the timings)."""
+def prepare(name, n, width, height, compositor="xla"):
+    """Scene, camera and compiled forward / forward+backward / binning of one configuration with
+    ``compositor``, with its compile times, memory, recompile count and pair counts (everything but
+    the timings)."""
     tex, banks, cfg = CONFIGS[name]
+    cfg = dataclasses.replace(cfg, compositor=compositor)
     scene = make_scene(n, tex, banks=banks)
     cam = Camera.from_intrinsics([0.9 * width, 0.9 * width, width / 2, height / 2],
                                  look_at((0.0, 0.0, -5.0), (0.0, 0.0, 0.0)), width, height)
@@ -155,8 +165,8 @@ def prepare(name, n, width, height):
     recompiles = sum(TRACE_COUNTS.values()) - before
     tiles = -(-width // cfg.tile_size) * -(-height // cfg.tile_size)
     batch = tiling.resolve_tile_batch(cfg.tile_batch, tiles, tile_size=cfg.tile_size, chunk=cfg.chunk)
-    row = dict(config=name, gaussians=n, width=width, height=height, tiles=tiles, tile_batch=batch,
-               recompiles=recompiles,
+    row = dict(config=name, compositor=compositor, gaussians=n, width=width, height=height, tiles=tiles,
+               tile_batch=batch, recompiles=recompiles,
                flops_per_pair=FLOPS_PER_PAIR[name], binned_pairs=float(needed), max_tile=int(max_tile),
                compile_forward_s=compile_fwd, compile_backward_s=compile_bwd,
                temp_forward_mib=temp_fwd / 2**20, temp_backward_mib=temp_bwd / 2**20)
@@ -164,25 +174,27 @@ def prepare(name, n, width, height):
     return row, calls, float(needed) * cfg.tile_size ** 2
 
 
-def bench_interleaved(names, n, width, height, repeats):
-    """Rows of :func:`prepare` with timings taken round-robin: each of ``repeats`` rounds times every
-    configuration's forward, then every one's forward+backward, then binning, so a drift of the
-    machine's speed (this VM's runs vary by up to 2x) falls on all configurations alike. Times are
-    medians over the rounds; ``forward_over_2dgs`` and ``forward_backward_over_2dgs`` (when "2dgs"
-    is among ``names``) are medians of the per-round ratios."""
-    prepared = [prepare(name, n, width, height) for name in names]
-    times = {key: [[] for _ in names] for key in ("fwd", "fb", "bin")}
+def bench_interleaved(names, n, width, height, repeats, compositors=("xla",)):
+    """Rows of :func:`prepare`, one per configuration and compositor, with
+    timings taken round-robin: each of ``repeats`` rounds times every case's forward, then every
+    one's forward+backward, then binning, so a drift of the machine's speed (this VM's runs vary by
+    up to 2x) falls on all cases alike. Times are medians over the rounds; ``forward_over_2dgs``
+    and ``forward_backward_over_2dgs`` (when "2dgs" is among ``names``) are medians of the
+    per-round ratios to the 2dgs case of the same compositor."""
+    cases = [(name, comp) for comp in compositors for name in names]
+    prepared = [prepare(name, n, width, height, comp) for name, comp in cases]
+    times = {key: [[] for _ in cases] for key in ("fwd", "fb", "bin")}
     for _ in range(repeats):
         for key in times:
             for i, (_, calls, _) in enumerate(prepared):
                 times[key][i].append(_time_once(calls[key]))
-    ref = names.index("2dgs") if "2dgs" in names else None
     rows = []
     for i, (row, _, listed) in enumerate(prepared):
         f_ms, b_ms = float(np.median(times["fwd"][i])), float(np.median(times["fb"][i]))
         row.update(forward_ms=f_ms, forward_backward_ms=b_ms, backward_over_forward=b_ms / f_ms,
                    bin_ms=float(np.median(times["bin"][i])),
                    listed_pixel_pairs_per_s=listed / (f_ms / 1e3))
+        ref = cases.index(("2dgs", cases[i][1])) if ("2dgs", cases[i][1]) in cases else None
         if ref is not None:
             for key, out in (("fwd", "forward_over_2dgs"), ("fb", "forward_backward_over_2dgs")):
                 row[out] = float(np.median(np.asarray(times[key][i]) / np.asarray(times[key][ref])))
@@ -207,8 +219,13 @@ def main(argv=None):
                     help=f"comma-separated, from {', '.join(CONFIGS)}")
     ap.add_argument("--no-peak", action="store_true", help="skip measuring the matmul peak")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--compositor", default="xla",
+                    help="comma-separated compositors to time side by side: xla, pallas (RenderConfig.compositor)")
     args = ap.parse_args(argv)
     names = args.configs.split(",")
+    compositors = args.compositor.split(",")
+    if any(c not in ("xla", "pallas") for c in compositors):
+        ap.error(f"--compositor takes xla and/or pallas, got {args.compositor!r}")
     unknown = [n for n in names if n not in CONFIGS]
     if unknown:
         ap.error(f"unknown config(s) {unknown}; choose from {', '.join(CONFIGS)}")
@@ -218,21 +235,21 @@ def main(argv=None):
     peak = None if args.no_peak else peak_gflops()
     if peak is not None:
         print(f"peak (float32 2048^2 matmul): {peak:.1f} GFLOP/s")
-    hdr = (f"{'config':15s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'x2DGS':>6s} {'f+b ms':>8s} {'b/f':>5s} "
+    hdr = (f"{'config':22s} {'N':>8s} {'size':>9s} {'fwd ms':>8s} {'x2DGS':>6s} {'f+b ms':>8s} {'b/f':>5s} "
            f"{'bin ms':>7s} {'binned':>9s} {'maxtile':>7s} {'Mpair/s':>8s} {'%peak':>6s} {'compile s':>9s} "
            f"{'recomp':>6s} {'bwd tmp MiB':>11s}")
     print(hdr)
     for (w, h) in args.sizes:
         for n in args.gaussians:
-            for r in bench_interleaved(names, n, w, h, args.repeats):
-                name = r["config"]
+            for r in bench_interleaved(names, n, w, h, args.repeats, compositors):
+                name = r["config"] + ("" if r["compositor"] == "xla" else f"@{r['compositor']}")
                 r["peak_gflops"] = peak
                 r["fraction_of_peak"] = (None if peak is None else
                                          r["listed_pixel_pairs_per_s"] * r["flops_per_pair"] / (peak * 1e9))
                 rows.append(r)
                 frac = "-" if peak is None else f"{100 * r['fraction_of_peak']:.1f}"
                 x2 = f"{r['forward_over_2dgs']:.2f}" if "forward_over_2dgs" in r else "-"
-                print(f"{name:15s} {n:8d} {f'{w}x{h}':>9s} {r['forward_ms']:8.1f} {x2:>6s} "
+                print(f"{name:22s} {n:8d} {f'{w}x{h}':>9s} {r['forward_ms']:8.1f} {x2:>6s} "
                       f"{r['forward_backward_ms']:8.1f} {r['backward_over_forward']:5.2f} {r['bin_ms']:7.1f} "
                       f"{r['binned_pairs']:9.0f} {r['max_tile']:7d} "
                       f"{r['listed_pixel_pairs_per_s'] / 1e6:8.1f} {frac:>6s} "

@@ -3,7 +3,7 @@ and the step's peak memory at real image sizes.
 
     python -m experiments.bench_train [--gaussians 1000 4000] [--sizes 128x96] [--steps 5]
                                       [--configs 2dgs,tex8,tex8-mip] [--devices N [--batch-size B]]
-                                      [--json out.json]
+                                      [--compositor xla,pallas] [--json out.json]
     python -m experiments.bench_train --memory [--gaussians 4000] [--sizes 1152x864 2304x1728 4032x3024]
                                       [--configs 2dgs,tex8-mip-prefilter] [--steps 3] [--json out.json]
 
@@ -23,7 +23,10 @@ minus a steady one); and the recompiles in those steady steps (traces of the ste
 must be 0). With ``--devices N`` every case also runs the data-parallel step on batches of
 ``--batch-size`` views (default N) split over N devices (CPU devices are forced to N; on a CPU
 they share the same cores, so expect no speed-up there: the figure is the overhead of the
-sharded step). Results go to ``--json`` (as ``experiments.bench_render``) and a Markdown table.
+sharded step). ``--compositor xla,pallas`` runs every case with each compositor
+(``RenderConfig.compositor``) in this process, a row each (the Pallas kernel is interpreted off
+a GPU). Results go to ``--json`` (as
+``experiments.bench_render``) and a Markdown table.
 
 ``--memory`` measures memory instead: each (size, Gaussian count, configuration) runs in a fresh
 process, started through ``sh`` so that it does not inherit this process's resident-set high-water
@@ -92,9 +95,9 @@ def make_scene(n, tex, seed=0):
                         rgb_sizes=sizes, alpha_sizes=sizes)
 
 
-def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None):
-    """Times ``steps + 1`` training steps; returns one result row. ``on_step()`` is called after
-    each step, once its results are ready."""
+def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compositor="xla"):
+    """Times ``steps + 1`` training steps rendering with ``compositor`` (``RenderConfig.compositor``);
+    returns one result row. ``on_step()`` is called after each step, once its results are ready."""
 
     import jax
     import numpy as np
@@ -122,7 +125,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None):
                 on_step()
 
     run = Run(ds, cfg, None, verbose=False)
-    run.render_cfgs = (RenderConfig(mip=mip, coverage=coverage),) * 2
+    run.render_cfgs = (RenderConfig(mip=mip, coverage=coverage, compositor=compositor),) * 2
     run.scene = make_scene(n, tex)
     run.opt_state = run.optimizer.init(run.scene)
     run.stats = DensifyStats.zeros(run.scene.capacity)
@@ -143,7 +146,8 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None):
     ms = 1e3 * float(np.median(steady)) if len(steady) else float("nan")  # steps=0: the first step only
     recompiles = sum(STEP_TRACES.values()) - traces[1] if 1 in traces else 0
     n_dev = 1 if batch_size == 1 else len(run.data_mesh().devices.flat)
-    return dict(config=name, gaussians=n, width=views[0].camera.width, height=views[0].camera.height,
+    return dict(config=name, compositor=compositor, gaussians=n, width=views[0].camera.width,
+                height=views[0].camera.height,
                 batch_size=batch_size, devices=n_dev, ms_per_step=ms, ms_per_view=ms / batch_size,
                 compile_s=first - ms / 1e3, first_step_s=first, steps=len(steady),
                 recompiles_steady=recompiles, skipped=run.skipped, capacity=run.capacity.pairs)
@@ -260,6 +264,9 @@ def main(argv=None):
                     help="also time the data-parallel step over this many devices (CPU devices are forced)")
     ap.add_argument("--batch-size", type=int, default=None, help="views per data-parallel step (default --devices)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--compositor", default="xla",
+                    help="comma-separated compositors to time side by side in this process: xla, pallas "
+                         "(RenderConfig.compositor; pallas is interpreted off a GPU)")
     ap.add_argument("--memory", action="store_true",
                     help="measure each case's peak resident memory in a fresh process instead (default sizes "
                          "1152x864, 2304x1728, 4032x3024; 4000 Gaussians)")
@@ -276,6 +283,9 @@ def main(argv=None):
     unknown = [c for c in names if c not in CONFIGS]
     if unknown:
         ap.error(f"unknown configs {unknown}; choose from {', '.join(CONFIGS)}")
+    compositors = args.compositor.split(",")
+    if any(c not in ("xla", "pallas") for c in compositors):
+        ap.error(f"--compositor takes xla and/or pallas, got {args.compositor!r}")
     if args.memory:
         return main_memory(args, names)
     if args.devices is not None:
@@ -291,22 +301,24 @@ def main(argv=None):
     for w, h in args.sizes:
         views = make_views(w, h)
         for n in args.gaussians:
-            for name in names:
+            for comp, name in ((c, m) for c in compositors for m in names):
                 cases = [(1, None)] + ([(batch, args.devices)] if args.devices else [])
+                label = name + ("" if comp == "xla" else f"@{comp}")
                 for b, d in cases:
-                    r = bench(name, n, views, args.steps, b, d)
+                    r = bench(name, n, views, args.steps, b, d, compositor=comp)
                     rows.append(r)
-                    print(f"{name:9s} N={n:6d} {w}x{h} batch {b} on {r['devices']} device(s): "
+                    print(f"{label:9s} N={n:6d} {w}x{h} batch {b} on {r['devices']} device(s): "
                           f"{r['ms_per_step']:8.1f} ms/step, {r['ms_per_view']:8.1f} ms/view, "
                           f"compile {r['compile_s']:5.1f} s, steady recompiles {r['recompiles_steady']}",
                           flush=True)
                     if args.json:  # after every case: a run cut short keeps what it measured
                         write_benchmark_json(args.json, rows, SCHEMA, steps=args.steps)
     print()
-    print("| config | Gaussians | size | batch | devices | ms/step | ms/view | compile s | recompiles |")
-    print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
+    print("| config | compositor | Gaussians | size | batch | devices | ms/step | ms/view | compile s | recompiles |")
+    print("|---|---|---:|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['config']} | {r['gaussians']} | {r['width']}x{r['height']} | {r['batch_size']} | "
+        print(f"| {r['config']} | {r['compositor']} | {r['gaussians']} | {r['width']}x{r['height']} | "
+              f"{r['batch_size']} | "
               f"{r['devices']} | {r['ms_per_step']:.1f} | {r['ms_per_view']:.1f} | {r['compile_s']:.1f} | "
               f"{r['recompiles_steady']} |")
     if args.json:

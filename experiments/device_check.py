@@ -4,6 +4,7 @@ figures written as JSON (with provenance) and compared with the GPU targets.
 
     python -m experiments.device_check --out DIR [--budget-s 540] [--beer PATH] [--viewer-run RUN]
                                        [--stages tests,render,train,viewer,beer,schedule] [--quick]
+                                       [--compositors xla,pallas] [--render-configs C,..] [--train-configs C,..]
     python -m experiments.device_check --report DIR/device_check.json   # the Markdown tables again
     python -m experiments.device_check --bundle .device [--beer ../shared/data/beer]
 
@@ -14,6 +15,13 @@ embedded scene), ``viewer_run/`` (the tiny ``patexgs`` model bench_viewer draws)
 without pycolmap. The device command then reads (``.device`` carried with the working tree)::
 
     PATEXGS_CACHE=.device/cache BEER=.device/beer VIEWER_RUN=.device/viewer_run scripts/gpu_check.sh "$OUT"
+
+The render and train stages time every configuration with each of ``--compositors`` (default
+both: the XLA compositor and the Pallas kernel, ``RenderConfig.compositor``) side by side in one
+process, a row each; their figures are named
+``<stage>.<config>@pallas.<figure>`` beside the XLA compositor's ``<stage>.<config>.<figure>``,
+with ``..._over_xla`` the kernel's time over the XLA compositor's. ``--render-configs`` and
+``--train-configs`` narrow the configurations (a short device session: ``2dgs`` alone).
 
 ``scripts/gpu_check.sh`` runs it on a GPU machine. Every stage is a subprocess with its own share of
 the budget (:data:`STAGES`); a stage that fails or runs out of time is recorded as such and the
@@ -57,8 +65,9 @@ STAGES = {"tests": 1.0, "render": 1.4, "train": 1.0, "viewer": 0.6, "beer": 2.0,
 #: batches pay where tiles' lists differ in length (a batch loops until its longest list is done).
 SCHEDULE_BATCHES = (2048, 512)
 
-#: The renderer's float32 tests that must pass on the accelerator at the CPU's tolerances.
-TEST_FILES = ("tests/unit/test_render.py", "tests/unit/test_device_path.py")
+#: The renderer's float32 tests that must pass on the accelerator at the CPU's tolerances (the
+#: Pallas compositor's compiled for the GPU there, against the XLA compositor).
+TEST_FILES = ("tests/unit/test_render.py", "tests/unit/test_device_path.py", "tests/unit/test_pallas_composite.py")
 
 #: The GPU targets (issue 38): (name, figure, limit, "max" or "min"); a figure may be a ratio.
 TARGETS = [
@@ -71,10 +80,22 @@ TARGETS = [
     ("viewer 640x480, tiny model (fps)", "viewer.tiny.fps", 30.0, "min"),
     ("bench_train 2dgs, 100k 1280x960 (ms/step)", "train.2dgs.ms_per_step", 60.0, "max"),
     ("bench_train patexgs / 2dgs (ms/step)", "train.patexgs.over_2dgs", 3.0, "max"),
+    # Issue 48, the Pallas compositor (its rows).
+    ("pallas 2dgs fwd+bwd, 1M 1920x1080 (ms)", "render_1m.2dgs@pallas.forward_backward_ms", 40.0, "max"),
+    ("pallas patexgs / 2dgs fwd+bwd, 1M 1920x1080", "render_1m.patexgs@pallas.forward_backward_over_2dgs", 3.0,
+     "max"),
+    ("pallas 2dgs fwd, 50k 640x480 (ms)", "render_50k.2dgs@pallas.forward_ms", 1.0, "max"),
 ]
 
 #: bench configuration names -> the names used in the figures.
 _CONFIG_NAMES = {"2dgs": "2dgs", "tex8-mip-prefilter": "patexgs", "tex8-mip-prefilter-dense": "patexgs-dense"}
+
+
+def _name(row) -> str:
+    """A row's figure name: its configuration's, with ``@pallas`` for the Pallas compositor's rows
+    (rows without a compositor are the XLA compositor's)."""
+    comp = row.get("compositor") or "xla"
+    return _CONFIG_NAMES.get(row["config"], row["config"]) + ("" if comp == "xla" else f"@{comp}")
 
 
 def _sizes(quick: bool) -> dict:
@@ -92,19 +113,22 @@ def stage_commands(stage: str, out: Path, args) -> list[list[str]]:
     py = [sys.executable, "-m"]
     s = _sizes(args.quick)
     configs = "2dgs,tex8-mip-prefilter"
+    comps = ["--compositor", getattr(args, "compositors", None) or "xla,pallas"]
     if stage == "tests":
         files = TEST_FILES if not args.quick else (TEST_FILES[1],)
         return [py + ["pytest", "-q", "-n", "0", "-p", "no:cacheprovider", f"--junitxml={out / 'tests.xml'}",
                       *files]]
     if stage == "render":
         # The dense lookups as well: which of the two texture paths a GPU runs faster.
+        render = getattr(args, "render_configs", None) or configs + ",tex8-mip-prefilter-dense"
         return [py + ["experiments.bench_render", "--gaussians", str(s[key][0]), "--sizes", s[key][1],
-                      "--configs", configs + ",tex8-mip-prefilter-dense", "--no-peak", "--repeats", "3",
+                      "--configs", render, "--no-peak", "--repeats", "3", *comps,
                       "--json", str(out / f"{key}.json")]
                 for key in ("render_50k", "render_1m")]
     if stage == "train":
         return [py + ["experiments.bench_train", "--gaussians", str(s["train"][0]), "--sizes", s["train"][1],
-                      "--configs", configs, "--steps", "5", "--json", str(out / "train.json")]]
+                      "--configs", getattr(args, "train_configs", None) or configs, "--steps", "5", *comps,
+                      "--json", str(out / "train.json")]]
     if stage == "viewer":
         cmd = py + ["experiments.bench_viewer", "--models", "tiny", "--sizes", s["viewer"], "--repeats", "5",
                     "--json", str(out / "viewer.json")]
@@ -161,8 +185,14 @@ def collect(out: Path) -> tuple[dict, dict | None]:
     """The figures (flat name -> value) from the stages' JSON in ``out``, and the test counts."""
     fig: dict = {}
     for key in ("render_50k", "render_1m"):
-        for r in _rows(out / f"{key}.json"):
-            name = _CONFIG_NAMES.get(r["config"], r["config"])
+        rows = _rows(out / f"{key}.json")
+        xla = {r["config"]: r for r in rows if (r.get("compositor") or "xla") == "xla"}
+        for r in rows:
+            name = _name(r)
+            base = xla.get(r["config"])
+            if base is not None and base is not r:  # the Pallas kernel against the XLA compositor
+                for f in ("forward_ms", "forward_backward_ms"):
+                    fig[f"{key}.{name}.{f[:-3]}_over_xla"] = r[f] / base[f]
             for f in ("forward_ms", "forward_backward_ms", "forward_over_2dgs", "forward_backward_over_2dgs",
                       "compile_forward_s", "compile_backward_s", "temp_backward_mib", "binned_pairs", "max_tile",
                       "tile_batch"):
@@ -171,17 +201,22 @@ def collect(out: Path) -> tuple[dict, dict | None]:
             fig[f"{key}.size"] = f"{r['gaussians']} Gaussians, {r['width']}x{r['height']}"
     for tb in SCHEDULE_BATCHES:
         for r in _rows(out / f"schedule_{tb}.json"):
-            name = _CONFIG_NAMES.get(r["config"], r["config"])
+            name = _name(r)
             for f in ("forward_ms", "forward_backward_ms", "tile_batch"):
                 if f in r:
                     fig[f"schedule_{tb}.{name}.{f}"] = r[f]
-    train = {_CONFIG_NAMES.get(r["config"], r["config"]): r for r in _rows(out / "train.json")}
+    train = {_name(r): r for r in _rows(out / "train.json")}
     for name, r in train.items():
         fig[f"train.{name}.ms_per_step"] = r["ms_per_step"]
         fig[f"train.{name}.compile_s"] = r["compile_s"]
         fig["train.size"] = f"{r['gaussians']} Gaussians, {r['width']}x{r['height']}"
-    if "2dgs" in train and "patexgs" in train:
-        fig["train.patexgs.over_2dgs"] = train["patexgs"]["ms_per_step"] / train["2dgs"]["ms_per_step"]
+        xla = train.get(name.split("@")[0])
+        if "@" in name and xla is not None:
+            fig[f"train.{name}.over_xla"] = r["ms_per_step"] / xla["ms_per_step"]
+    for suffix in ("", "@pallas"):
+        if f"2dgs{suffix}" in train and f"patexgs{suffix}" in train:
+            fig[f"train.patexgs{suffix}.over_2dgs"] = (train[f"patexgs{suffix}"]["ms_per_step"]
+                                                     / train[f"2dgs{suffix}"]["ms_per_step"])
     for r in _rows(out / "viewer.json"):
         for f in ("frame_ms", "fps", "preview_ms", "first_frame_ms"):
             fig[f"viewer.{r['model']}.{f}"] = r[f]
@@ -290,6 +325,13 @@ def main(argv=None) -> int:
     ap.add_argument("--viewer-run", type=Path, default=None,
                     help="the tiny model's run folder for the viewer stage (default: bench_viewer trains it)")
     ap.add_argument("--quick", action="store_true", help="toy sizes: checks the script, not the device")
+    ap.add_argument("--compositors", default="xla,pallas",
+                    help="the compositors the render and train stages time side by side (default xla,pallas)")
+    ap.add_argument("--render-configs", default=None,
+                    help="bench_render configurations of the render stage (default 2dgs,tex8-mip-prefilter,"
+                         "tex8-mip-prefilter-dense)")
+    ap.add_argument("--train-configs", default=None,
+                    help="bench_train configurations of the train stage (default 2dgs,tex8-mip-prefilter)")
     ap.add_argument("--report", type=Path, default=None, help="print the Markdown of a device_check.json and stop")
     ap.add_argument("--bundle", type=Path, default=None, help="prepare this folder for a machine without pycolmap")
     args = ap.parse_args(argv)

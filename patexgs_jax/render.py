@@ -65,6 +65,10 @@ Structure: one stage a module of :mod:`patexgs_jax.rendering`
   hand-derived backward), :mod:`.texture_lookup` (the mip footprint, the atlas lookups of only the
   pairs that can contribute, their backward) and :mod:`.composite` (front-to-back compositing, its
   hand-written backward, ``jax.custom_vjp``, which re-walks the chunks and stores nothing per pair).
+  ``RenderConfig(compositor="pallas")`` composites with one Pallas GPU kernel instead
+  (:mod:`.rendering.pallas_composite`, :mod:`.rendering.pallas_texture`: one program per tile, the
+  same outputs and gradients; None, the default, is the XLA compositor until a GPU benchmark shows
+  the kernel faster).
   This module: :func:`render`, :data:`render_jit`, :data:`count_pairs`, :data:`prepare_textures`
   and :func:`check_inputs`.
 
@@ -103,6 +107,7 @@ from .rendering.config import (
     Capacity,
     RenderConfig,
     RenderOutput,
+    resolve_compositor,
 )
 from .rendering.gaussian3d import kernel_config, project3d
 from .rendering.projection import alpha_peak, constant_textures, project
@@ -290,7 +295,11 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
                alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,
                flag=binned[0] >= 0)  # a True XLA cannot prove (see chunks.barrier)
     # jax.custom_vjp's type hides composite_tiles' return type, a tuple of three arrays.
-    acc, t_final, best = composite_tiles(  # pyright: ignore[reportGeneralTypeIssues]
+    composite = composite_tiles
+    if resolve_compositor(config) == "pallas":  # one Pallas kernel (issue 48), imported when used
+        from .rendering import pallas_composite
+        composite = pallas_composite.composite_tiles
+    acc, t_final, best = composite(  # pyright: ignore[reportGeneralTypeIssues]
         st, proj.packed, None if rgb_atlas is None else rgb_atlas.texels,
         None if alpha_atlas is None else alpha_atlas.texels, ctx)
     bg = jnp.asarray(config.background, acc.dtype)

@@ -7,6 +7,13 @@
 #
 #   BEER=../shared/data/beer VIEWER_RUN=runs/bench_viewer/patexgs scripts/gpu_check.sh "$OUT"
 #
+# The render and train stages time both compositors side by side in one process (the XLA one and the
+# Pallas kernel, RenderConfig.compositor; --compositors xla narrows it). A short session, the
+# kernel checked on the GPU and the render side by side (about 4 minutes of device time):
+#
+#   python -m pytest -q tests/unit/test_pallas_composite.py && \
+#     BUDGET_S=180 scripts/gpu_check.sh "$OUT" --stages render --render-configs 2dgs,tex8-mip-prefilter
+#
 # Extra arguments go to `python -m experiments.device_check` (e.g. --stages render,train).
 set -uo pipefail
 cd "$(dirname "$0")/.."

@@ -13,6 +13,12 @@ MIP_MODES = ("none", "nearest", "trilinear")
 #: RenderConfig.coverage: the 2DGS low-pass kernel, the prefiltered (EWA) kernel, or the billboard
 #: square (:mod:`.billboard`).
 COVERAGE_MODES = ("lowpass", "prefilter", "billboard")
+#: RenderConfig.compositor: the XLA compositor (:mod:`.composite`) or the Pallas GPU kernel
+#: (:mod:`.pallas_composite`); None picks per backend (:func:`resolve_compositor`).
+COMPOSITORS = ("xla", "pallas")
+#: What ``RenderConfig(compositor=None)`` picks on a GPU: "xla" until a GPU benchmark in
+#: benchmarks/ shows the Pallas kernel faster there (then "pallas"); the CPU always takes "xla".
+GPU_DEFAULT_COMPOSITOR = "xla"
 #: Eq. 11's lambda_mip per coverage mode when RenderConfig.lambda_mip is None (see RenderConfig).
 LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0, "billboard": 0.4 / 3.0}
 ALPHA_MAX = 0.99  # a pair's alpha is capped here
@@ -73,6 +79,10 @@ class RenderConfig:
       tile_cull: leave out the (splat, tile) pairs of a splat's screen box whose tile it cannot
         reach alpha 1/255 in (:func:`binning.tile_touches`): the same image and gradients (to
         float32 rounding), less compositing where footprints are large or unbounded on screen.
+      compositor: "xla" (the chunked XLA compositor), "pallas" (one Pallas kernel per image, one
+        program per tile: :mod:`.pallas_composite`; interpreted off a GPU; needs a power-of-two
+        ``tile_size``) or None (default): "xla", until a GPU benchmark in benchmarks/ shows the
+        kernel faster on GPUs (:func:`resolve_compositor`).
     """
 
     mip: str = "nearest"
@@ -89,6 +99,7 @@ class RenderConfig:
     tile_batch: int | None = None
     texture_pairs: float = 1 / 32
     tile_cull: bool = True
+    compositor: str | None = None
 
     def __post_init__(self):
         if self.mip not in MIP_MODES:
@@ -113,6 +124,22 @@ class RenderConfig:
             raise ValueError(f"near must be positive, got {self.near}.")
         if not 0 < self.texture_pairs <= 1:
             raise ValueError(f"texture_pairs must be in (0, 1], got {self.texture_pairs}.")
+        if self.compositor is not None and self.compositor not in COMPOSITORS:
+            raise ValueError(f"RenderConfig.compositor must be one of {COMPOSITORS} or None, got {self.compositor!r}.")
+        if self.compositor == "pallas" and self.coverage == "billboard":
+            raise ValueError("compositor='pallas' composites the lowpass and prefilter kernels (2D splats and 3D "
+                             "Gaussians), not the billboard square; use compositor='xla' (or None) for billboards.")
+        if self.compositor == "pallas" and self.tile_size & (self.tile_size - 1):
+            raise ValueError(f"compositor='pallas' needs a power-of-two tile_size (a tile's pixels are one "
+                             f"power-of-two vector), got {self.tile_size}.")
+
+
+def resolve_compositor(config: RenderConfig) -> str:
+    """"xla" or "pallas": ``config.compositor``, or for None the default of the backend being traced
+    for (:data:`GPU_DEFAULT_COMPOSITOR` on a GPU, "xla" elsewhere)."""
+    if config.compositor is not None:
+        return config.compositor
+    return GPU_DEFAULT_COMPOSITOR if jax.default_backend() == "gpu" else "xla"
 
 
 @dataclasses.dataclass(frozen=True)

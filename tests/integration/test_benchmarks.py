@@ -35,6 +35,18 @@ def test_bench_render_reports_each_configuration(tmp_path, capsys):
     assert all(name in printed for name in ("2dgs", "tex8-mip"))
 
 
+def test_bench_render_compositors_side_by_side(tmp_path, capsys):
+    """--compositor xla,pallas: a row per configuration and compositor, timed in one process."""
+    out = tmp_path / "render.json"
+    bench_render.main(["--gaussians", "200", "--sizes", "32x32", "--repeats", "1", "--no-peak",
+                       "--configs", "2dgs", "--compositor", "xla,pallas", "--json", str(out)])
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["config"], r["compositor"]) for r in rows] == [("2dgs", "xla"), ("2dgs", "pallas")]
+    assert rows[1]["forward_over_2dgs"] == 1.0  # against the 2dgs row of its own compositor
+    assert rows[1]["binned_pairs"] == rows[0]["binned_pairs"] and rows[1]["recompiles"] == 0
+    assert "2dgs@pallas" in capsys.readouterr().out
+
+
 def test_bench_render_rejects_unknown_config(capsys):
     with pytest.raises(SystemExit):
         bench_render.main(["--configs", "2dgs,tex9", "--no-peak"])

@@ -142,3 +142,25 @@ def test_stages_run_within_their_limits(stage_files, tmp_path, monkeypatch, caps
     assert report["figures"]["render_50k.2dgs.forward_ms"] > 0 and report["device"]
     assert (out / "device_check.md").read_text() == dc.markdown(report)
     assert "[device_check] train: rc 124" in capsys.readouterr().out
+
+
+def test_compositor_rows_side_by_side(tmp_path):
+    """The render and train stages time both compositors; the Pallas kernel's rows get their own
+    figures (``@pallas``) and their time over the XLA compositor's."""
+    args = argparse.Namespace(quick=False, beer=None, viewer_run=None, compositors="xla,pallas",
+                              render_configs="2dgs", train_configs="2dgs")
+    for cmd in dc.stage_commands("render", tmp_path, args) + dc.stage_commands("train", tmp_path, args):
+        assert cmd[cmd.index("--compositor") + 1] == "xla,pallas" and cmd[cmd.index("--configs") + 1] == "2dgs"
+    xla = dict(config="2dgs", gaussians=10, width=64, height=48, forward_ms=4.0, forward_backward_ms=12.0)
+    _write(tmp_path / "render_1m.json", [xla,
+                                         dict(xla, compositor="pallas", forward_ms=1.0, forward_backward_ms=3.0)])
+    step = dict(config="2dgs", gaussians=10, width=64, height=48, compile_s=1.0)
+    _write(tmp_path / "train.json", [dict(step, ms_per_step=20.0), dict(step, compositor="pallas", ms_per_step=10.0)])
+    fig, _ = dc.collect(tmp_path)
+    assert fig["render_1m.2dgs.forward_backward_ms"] == 12.0  # rows without a compositor: the XLA one's
+    assert fig["render_1m.2dgs@pallas.forward_backward_ms"] == 3.0
+    assert fig["render_1m.2dgs@pallas.forward_backward_over_xla"] == pytest.approx(0.25)
+    assert fig["train.2dgs@pallas.over_xla"] == pytest.approx(0.5)
+    targets = {t["name"]: t for t in dc.check_targets(fig, None)}
+    assert targets["pallas 2dgs fwd+bwd, 1M 1920x1080 (ms)"]["met"] is True
+    assert targets["pallas patexgs / 2dgs fwd+bwd, 1M 1920x1080"]["met"] is None  # not measured
