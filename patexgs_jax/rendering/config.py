@@ -16,9 +16,11 @@ COVERAGE_MODES = ("lowpass", "prefilter", "billboard")
 #: RenderConfig.compositor: the XLA compositor (:mod:`.composite`) or the Pallas GPU kernel
 #: (:mod:`.pallas_composite`); None picks per backend (:func:`resolve_compositor`).
 COMPOSITORS = ("xla", "pallas")
-#: What ``RenderConfig(compositor=None)`` picks on a GPU: "xla" until a GPU benchmark in
-#: benchmarks/ shows the Pallas kernel faster there (then "pallas"); the CPU always takes "xla".
-GPU_DEFAULT_COMPOSITOR = "xla"
+#: What ``RenderConfig(compositor=None)`` picks on a GPU: the Pallas kernel, faster than the XLA
+#: compositor in every configuration measured on a GPU (benchmarks/render_compositors_h200_*.json,
+#: train_compositors_h200.json: 1M Gaussians at 1920x1080 forward+backward 3.4x (2DGS) and 3.6x
+#: (textured) faster); the CPU always takes "xla".
+GPU_DEFAULT_COMPOSITOR = "pallas"
 #: Eq. 11's lambda_mip per coverage mode when RenderConfig.lambda_mip is None (see RenderConfig).
 LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0, "billboard": 0.4 / 3.0}
 ALPHA_MAX = 0.99  # a pair's alpha is capped here
@@ -136,9 +138,12 @@ class RenderConfig:
 
 def resolve_compositor(config: RenderConfig) -> str:
     """"xla" or "pallas": ``config.compositor``, or for None the default of the backend being traced
-    for (:data:`GPU_DEFAULT_COMPOSITOR` on a GPU, "xla" elsewhere)."""
+    for (:data:`GPU_DEFAULT_COMPOSITOR` on a GPU, "xla" elsewhere, and for what the kernel does not
+    composite: billboards, tiles whose side is not a power of two)."""
     if config.compositor is not None:
         return config.compositor
+    if config.coverage == "billboard" or config.tile_size & (config.tile_size - 1):
+        return "xla"  # (what the kernel does not composite)
     return GPU_DEFAULT_COMPOSITOR if jax.default_backend() == "gpu" else "xla"
 
 
