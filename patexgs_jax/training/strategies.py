@@ -56,8 +56,9 @@ class SmoothingFilter:
     stopped, every densification interval up to one interval before the end. Does nothing for other
     methods. No state of its own (the filter is part of the scene)."""
 
-    def __init__(self, config: TrainConfig, cameras):
-        self.on, self.cameras = config.spec.filter3d, list(cameras)
+    def __init__(self, config: TrainConfig, views):
+        self.on = config.spec.filter3d
+        self.cameras = [v.camera for v in views] if self.on else []
         self.dc, self.iters, self.total = config.densify, config.iters_2dgs, config.total_steps
 
     def recomputes_at(self, step: int) -> bool:

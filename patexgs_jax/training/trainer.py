@@ -141,7 +141,7 @@ class Trainer:
         self.densification = Densification(config, self.radius)
         self.textures = TextureSchedule(config, self.optimizer, self.train_views, self.render_cfgs[1],
                                      log=self.log, say=self.say)
-        self.strategies = (self.densification, SmoothingFilter(config, [v.camera for v in self.train_views]),
+        self.strategies = (self.densification, SmoothingFilter(config, self.train_views),
                            self.textures)
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
         # program per padded size; released when the layout changes (see _compiled_step).

@@ -5,6 +5,7 @@ reset) and the initial scene. Host-side numpy: no renderer compile."""
 from __future__ import annotations
 
 import math
+import types
 
 import jax
 import numpy as np
@@ -102,7 +103,8 @@ def test_filter_opacity_factor_bake_and_reset():
 def test_smoothing_filter_schedule_and_recompute():
     """The reference's steps at the paper's scale: after each densification (600 .. 14,900), then
     every 100 steps after densification stops, not in the last 100 steps."""
-    f = SmoothingFilter(TrainConfig(method="mip-splatting", continue_2dgs=30_000), [cam((0.0, 0.0, -4.0))])
+    view = types.SimpleNamespace(camera=cam((0.0, 0.0, -4.0)))
+    f = SmoothingFilter(TrainConfig(method="mip-splatting", continue_2dgs=30_000), [view])
     steps = [t for t in range(1, 60_001) if f.recomputes_at(t)]
     assert steps[:2] == [600, 700] and 14_900 in steps and 15_000 not in steps and 15_100 in steps
     assert steps[-1] == 59_800 and all(t % 100 == 0 for t in steps)
@@ -111,5 +113,5 @@ def test_smoothing_filter_schedule_and_recompute():
     st = f.before_step(TrainState(sc, None, None), 0)
     np.testing.assert_array_equal(np.asarray(st.scene.filter3d), filter_variance(sc.means, f.cameras))
     assert np.all(np.asarray(st.scene.filter3d)[:20] > 0)
-    off = SmoothingFilter(TrainConfig(method="3dgs"), f.cameras)
+    off = SmoothingFilter(TrainConfig(method="3dgs"), [view])
     assert off.before_step(TrainState(sc, None, None), 0).scene is sc
