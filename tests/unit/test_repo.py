@@ -61,6 +61,25 @@ def test_readme_zoom_rows_match_their_benchmark_files():
             assert row in section, row
 
 
+def test_readme_paper_tables_match_their_benchmark_files():
+    """The README's Tables 1 and 2 (every row, ours beside the paper's) and zoom-in rows are
+    `python -m experiments.headline FILE --tables LABEL`'s rows of the study they were taken from,
+    and the section names its commit."""
+    from experiments import headline
+
+    readme = (ROOT / "README.md").read_text()
+    section = readme[readme.index("## Results: the paper's Tables 1 and 2"):]
+    section = section[:section.index("\n## ", 1)]
+    for name, label in (("tables_tiny.json", "embedded"),):
+        data = json.loads((ROOT / "benchmarks" / name).read_text())
+        assert data["date"] and data["conditions"] and data["version"]["git"], "the benchmark file lacks its provenance"
+        assert f"commit `{data['version']['git'].split('-')[0]}`" in section, name
+        rows = [r for r in headline.tables_blocks(data, label) if r.startswith(f"| {label} |")]
+        assert len(rows) >= 8 + 5, (name, len(rows))  # Table 1's seven rows and bbsplat+mip; Table 2's five
+        for row in rows:
+            assert row in section, row
+
+
 def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
     assert _readme_commands()[1] in ci
