@@ -18,7 +18,8 @@ from hypothesis import strategies as st
 import hard_scenes as hs
 from gaussian3d_cases import CONFIGS, hard_scene3d, scene3d
 from patexgs_jax import Capacity, RenderConfig, render_jit
-from patexgs_jax.rendering import ALPHA_MIN, binning, chunks, kernel
+from patexgs_jax.render import ALPHA_MIN
+from patexgs_jax.rendering import binning, chunks, kernel
 from patexgs_jax.rendering.gaussian3d import project3d
 from patexgs_jax.rendering.projection import COLS, FOOTPRINT
 from patexgs_jax.scene import Scene

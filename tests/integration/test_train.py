@@ -449,8 +449,8 @@ def run_cli(*args, cache):
 
 def test_cli(synthetic_scene_dir, tmp_path, compile_cache):
     cache, out = compile_cache, tmp_path / "out"
-    bad = run_cli("--data", synthetic_scene_dir, "--method", "3dgs", "--out", tmp_path / "bad", cache=cache)
-    assert bad.returncode == 2 and "unknown method '3dgs'" in bad.stderr and "Traceback" not in bad.stderr
+    bad = run_cli("--data", synthetic_scene_dir, "--method", "4dgs", "--out", tmp_path / "bad", cache=cache)
+    assert bad.returncode == 2 and "unknown method '4dgs'" in bad.stderr and "Traceback" not in bad.stderr
     first = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
     assert first.returncode == 0, first.stderr
     summary = json.loads((out / "summary.json").read_text())
