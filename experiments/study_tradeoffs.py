@@ -9,7 +9,6 @@ methods the study ran (3D Gaussians and BBSplat variants included).
 from __future__ import annotations
 
 import functools
-import json
 from pathlib import Path
 
 from experiments.study_tables import SCALES, _labels, _mean_over_scenes, split_label
@@ -53,18 +52,17 @@ def study_as_tradeoffs(data: dict, source: str = "study") -> dict:
 def write_from_study(results_path, out_dir=None) -> tuple[Path, Path]:
     """Writes ``tradeoffs.md`` and ``tradeoffs.png`` of a study's ``results.json`` (or its folder)
     into ``out_dir`` (default: the study's ``plots/``); returns their paths."""
+    from experiments.headline import HeadlineError, read
     from experiments.tradeoffs import markdown, plot
 
     path = Path(results_path)
     if path.is_dir():
         path = path / "results.json"
     try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        data = read(path)
+    except HeadlineError as e:
         raise ValueError(f"cannot read --from-study {path} ({e}): pass a results.json that "
                          "python -m experiments.mipnerf360 wrote.") from None
-    if not isinstance(data, dict) or not data.get("results"):
-        raise ValueError(f"{path} holds no study results (results.json of python -m experiments.mipnerf360).")
     record = study_as_tradeoffs(data, source=str(path.parent))
     out = Path(out_dir) if out_dir is not None else path.parent / "plots"
     out.mkdir(parents=True, exist_ok=True)

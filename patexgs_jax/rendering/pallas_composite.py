@@ -202,20 +202,18 @@ def _textures(st: Static, refs: _Refs, r, geo, s, active, amin) -> _Tex | None:
     lfp = None if fp is None else fp.log2_fp
     cfg = st.config
     rgb = alpha = offs = a_tex = None
-    if st.rgb:
-        bank = r["rgb_tex"]
+
+    def looked_up(bank, texels_ref, channels, mip):  # (lookup, texels, has) of the pairs that need one
         has = need & bank["has"]
-        lk = ptex.lookup(bank, u, v, lfp, cfg, st.rgb_mip)
-        texels = ptex.gather(refs.rgb, lk, 3, has)
-        rgb = (lk, texels, has)
+        lk = ptex.lookup(bank, u, v, lfp, cfg, mip)
+        return lk, ptex.gather(texels_ref, lk, channels, has), has
+
+    if st.rgb:
+        rgb = lk, texels, has = looked_up(r["rgb_tex"], refs.rgb, 3, st.rgb_mip)
         offs = [jnp.where(has, o, 0.0) for o in ptex.value(texels, lk, 3)]
     if st.alpha:
-        bank = r["alpha_tex"]
-        has = need & bank["has"]
-        lk = ptex.lookup(bank, u, v, lfp, cfg, st.alpha_mip)
-        texels = ptex.gather(refs.alpha, lk, 1, has)
-        alpha = (lk, texels, has)
-        a_tex = jnp.where(bank["has"], ptex.value(texels, lk, 1)[0], 1.0)  # 0 where not needed
+        alpha = lk, texels, _ = looked_up(r["alpha_tex"], refs.alpha, 1, st.alpha_mip)
+        a_tex = jnp.where(r["alpha_tex"]["has"], ptex.value(texels, lk, 1)[0], 1.0)  # 0 where not needed
     return _Tex(fp, rgb, alpha, offs, a_tex)
 
 
