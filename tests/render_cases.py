@@ -219,9 +219,10 @@ def cull_check(sc, cam, config, g, px, py, real):
     return keep & real, reach
 
 
-def cull_pairs(sc, cam, config):
+def cull_pairs(sc, cam, config, check=None):
     """(kept, reached, boxed): tile_touches' verdicts and the kernel's over every pair of the screen
-    boxes of a view (kept, reached (N,) bool; N = boxed)."""
+    boxes of a view (kept, reached (N,) bool; N = boxed); ``check``: the pair test, :func:`cull_check`
+    unless given (same arguments)."""
     proj = projection.project(sc, cam, config, None, None, projection.alpha_peak(sc))
     ts = config.tile_size
     tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in binning.tile_ranges(
@@ -230,7 +231,7 @@ def cull_pairs(sc, cam, config):
     n = len(pairs)
     assert 0 < n <= CULL_PAIRS
     g, px, py = (np.pad(np.asarray(v, np.int32), (0, CULL_PAIRS - n)) for v in zip(*pairs))
-    keep, reach = cull_check(sc, cam, config, g, px, py, np.arange(CULL_PAIRS) < n)
+    keep, reach = (check or cull_check)(sc, cam, config, g, px, py, np.arange(CULL_PAIRS) < n)
     return np.asarray(keep)[:n], np.asarray(reach)[:n], n
 
 

@@ -17,9 +17,9 @@ from patexgs_jax.rendering import billboard, binning, chunks, kernel, projection
 from patexgs_jax.rendering.projection import COLS
 from render_cases import (
     CONFIGS,
-    CULL_PAIRS,
     camera,
     check_matches_reference,
+    cull_pairs,
     directional_fd_check,
     hard_scene,
     ref_render,
@@ -133,15 +133,7 @@ def test_tile_cull_keeps_every_pair_that_can_contribute(case):
     dropped = 0
     for seed, knob in [(0, 0.0), (1, 0.5), (2, 1.0)]:
         sc, cam, _ = hs.build(case, seed, knob)
-        proj = projection.project(sc, cam, cfg, None, None, projection.alpha_peak(sc))
-        ts = cfg.tile_size
-        tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in binning.tile_ranges(
-            proj.bounds, proj.visible, ts, -(-cam.width // ts), -(-cam.height // ts)))
-        pairs = [(i, x, y) for i in np.flatnonzero(ok) for y in range(ty0[i], ty1[i]) for x in range(tx0[i], tx1[i])]
-        n = len(pairs)
-        assert 0 < n <= CULL_PAIRS
-        g, px, py = (np.pad(np.asarray(v, np.int32), (0, CULL_PAIRS - n)) for v in zip(*pairs))
-        keep, reach = (np.asarray(a)[:n] for a in _cull_check(sc, cam, cfg, g, px, py, np.arange(CULL_PAIRS) < n))
+        keep, reach, _ = cull_pairs(sc, cam, cfg, check=_cull_check)
         assert not np.any(reach & ~keep), (case, seed, knob)
         dropped += int(np.sum(~keep))
     if case in ("edge_on", "needle"):
