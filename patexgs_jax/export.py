@@ -17,6 +17,10 @@ common 3DGS viewers read: the same properties with ``scale_0 scale_1 scale_2``. 
 filter is baked in as its reference code's fused PLY does (:func:`patexgs_jax.filter3d.bake`:
 scales sqrt(s^2 + f), opacity times sqrt(det Sigma / det(Sigma + f I))), so a viewer without the
 filter shows the trained model (the 2D Mip filter, a renderer setting, is not in the file).
+2D splats with the filter (``patexgs+filter3d``) cannot have it baked (widened scales would stretch
+their textures, which span +-3 scales): their PLY has one more property after ``rot_3``,
+``filter_3D`` (the variance f, as Mip-Splatting's unfused PLY stores it), which :func:`load_ply`
+reads back and other 2DGS readers skip.
 
 Texture sidecar ``path.with_suffix(".textures.npz")`` (e.g. ``scene.ply`` ->
 ``scene.textures.npz``), always written by :func:`export_ply`, a numpy ``.npz`` with
@@ -118,11 +122,18 @@ def export_ply(scene: Scene, path) -> Path:
     sh = np.asarray(scene.sh, np.float32)[rows]                  # (N, K, 3)
     K = sh.shape[1]
     rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (K - 1))
-    log_scales, logits = filter3d.bake(scene)  # the scene's own without a 3D filter
+    plane_filter = scene.filter3d is not None and not scene.is_3d  # (stored, not baked: module docstring)
+    if plane_filter:
+        log_scales, logits = np.asarray(scene.log_scales, np.float32), np.asarray(scene.opacity_logits, np.float32)
+    else:
+        log_scales, logits = filter3d.bake(scene)  # the scene's own without a 3D filter
     cols = [np.asarray(scene.means, np.float32)[rows], np.zeros((n, 3), np.float32), sh[:, 0, :], rest,
             logits[rows][:, None], log_scales[rows], np.asarray(scene.quats, np.float32)[rows]]
-    data = np.ascontiguousarray(np.concatenate(cols, axis=1).astype("<f4"))
     names = ply_property_names(K, log_scales.shape[1])
+    if plane_filter:
+        cols.append(np.asarray(scene.filter3d, np.float32)[rows][:, None])
+        names.append("filter_3D")
+    data = np.ascontiguousarray(np.concatenate(cols, axis=1).astype("<f4"))
     assert data.shape[1] == len(names)
     header = (f"ply\nformat binary_little_endian 1.0\ncomment patexgs-jax {'3DGS' if scene.is_3d else '2DGS'} export\n"
               f"element vertex {n}\n" + "".join(f"property float {p}\n" for p in names)
@@ -250,8 +261,9 @@ def load_ply(path, capacity: int | None = None) -> Scene:
     logits = col("opacity")[:, 0]
     log_scales = col(*[f"scale_{i}" for i in range(dims)])
     quats = col("rot_0", "rot_1", "rot_2", "rot_3")
+    f3d = col("filter_3D")[:, 0] if dims == 2 and "filter_3D" in names else None
     for name, a in (("positions", means), ("SH", sh), ("opacity", logits), ("scales", log_scales),
-                    ("rotations", quats)):
+                    ("rotations", quats), ("filter_3D", np.zeros(0) if f3d is None else f3d)):
         if not np.all(np.isfinite(a)):
             raise PlyFormatError(f"{path}: non-finite {name} (corrupt file?).")
 
@@ -271,7 +283,7 @@ def load_ply(path, capacity: int | None = None) -> Scene:
     return Scene(means=pad(means), log_scales=pad(log_scales),
                  quats=pad(quats, np.asarray([1.0, 0.0, 0.0, 0.0], np.float32)),
                  opacity_logits=pad(logits, -20.0), sh=pad(sh), active=jax.device_put(active),
-                 rgb=rgb, alpha=alpha)
+                 rgb=rgb, alpha=alpha, filter3d=None if f3d is None else pad(np.maximum(f3d, 0.0)))
 
 
 def _load_sidecar(path: Path, n: int, crc: int, capacity: int):

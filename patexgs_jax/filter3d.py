@@ -10,6 +10,12 @@ Gaussian: ``Sigma + f I``, the opacity times ``sqrt(det Sigma / det(Sigma + f I)
 is kept (:mod:`patexgs_jax.rendering.gaussian3d` applies it from ``Scene.filter3d``). A Gaussian no
 view sees gets the lowest rate of those seen, as the reference code.
 
+2D splats (``patexgs+filter3d``) take the same f in their plane: a surfel has no extent along its
+normal, so its coverage kernel's scales become sqrt(s^2 + f) and its opacity is scaled by
+prod_i s_i / sqrt(s_i^2 + f) (:func:`patexgs_jax.rendering.projection.plane_filter`, with the
+prefiltered coverage only), while its textures keep their extent of +-3 scales. Their stage 1 is
+the shared 2DGS one, so the filter starts with the texture stage.
+
 The reference code (autonomousvision/mip-splatting, ``compute_3D_filter``) takes the smallest depth
 over the views and divides by the largest focal length of all of them; here the rate is the
 largest focal / depth over the views, the paper's definition (the same for views of one focal
@@ -63,13 +69,14 @@ def filter_variance(means, cameras: Sequence[Camera]) -> np.ndarray:
 
 
 def opacity_factor(log_scales, filter3d) -> np.ndarray:
-    """(C,) float64 ``sqrt(det Sigma / det(Sigma + f I))`` = prod_i s_i / sqrt(s_i^2 + f) (host side)."""
+    """(C,) float64 ``sqrt(det Sigma / det(Sigma + f I))`` = prod_i s_i / sqrt(s_i^2 + f) (host side;
+    log scales (C, 3), or (C, 2) for 2D splats: the factor in their plane)."""
     ls = np.asarray(log_scales, np.float64)
     return np.exp(np.sum(ls - _filtered(ls, filter3d), axis=-1))
 
 
 def _filtered(ls: np.ndarray, filter3d) -> np.ndarray:
-    """log sqrt(s^2 + f) of log scales ``ls`` (C, 3) (ls itself where f is 0)."""
+    """log sqrt(s^2 + f) of log scales ``ls`` (C, 3) or (C, 2) (ls itself where f is 0)."""
     f = np.asarray(filter3d, np.float64)[:, None]
     return np.where(f > 0, 0.5 * np.logaddexp(2.0 * ls, np.log(np.where(f > 0, f, 1.0))), ls)
 

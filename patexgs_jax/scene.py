@@ -17,9 +17,11 @@ Parameters are stored unconstrained, as training optimises them:
   (added to the SH colour) and alpha multipliers (``alpha = min(0.99, opacity * G * A)``).
   A Gaussian without an RGB texture adds 0; without an alpha texture it multiplies by 1.
   3D scenes have no textures.
-* ``filter3d``: optional (C,) Mip-Splatting's 3D smoothing filter of a 3D scene, the variance
-  (world units^2) added to each Gaussian's covariance in all three axes, its opacity scaled so the
-  integral is kept (:mod:`patexgs_jax.filter3d`); not trained (its gradient is zero).
+* ``filter3d``: optional (C,) Mip-Splatting's 3D smoothing filter, the variance f (world units^2)
+  added to each Gaussian's covariance in all three axes (3D scenes), or in its plane for 2D splats
+  (each scale s becomes sqrt(s^2 + f) in the coverage kernel; the texture keeps its extent; coverage
+  "prefilter" only), its opacity scaled so the integral is kept (:mod:`patexgs_jax.filter3d`); not
+  trained (its gradient is zero).
 
 Every leaf is a float array, so ``jax.grad`` of a loss of ``render(scene, ...)`` with respect to the
 whole scene works directly; the mask and texture indices get zero gradient.
@@ -71,7 +73,7 @@ class Scene:
             first index along the first tangent axis.
           alpha_textures: optional length-N list; entry i is None or an (m, m) alpha texture.
           capacity: fixed capacity C >= N (default N); slots beyond N are inactive.
-          filter3d: optional (N,) 3D filter variances of a 3D scene (see the module docstring).
+          filter3d: optional (N,) 3D filter variances (see the module docstring).
         """
         means = np.asarray(means, np.float32)
         if means.ndim != 2 or means.shape[1] != 3:
@@ -87,8 +89,6 @@ class Scene:
         if dims == 3 and (rgb_textures is not None or alpha_textures is not None):
             raise ValueError("3D Gaussians (scales (N, 3)) take no textures; pass rgb_textures=None and "
                              "alpha_textures=None, or two scales per Gaussian for textured 2D splats.")
-        if filter3d is not None and dims != 3:
-            raise ValueError("filter3d (Mip-Splatting's 3D filter) is for 3D Gaussians: scales must be (N, 3).")
         for name, arr, shape in [("scales", scales, (n, dims)), ("quats", quats, (n, 4)),
                                  ("opacities", opacities, (n,))]:
             if arr.shape != shape:

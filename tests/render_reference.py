@@ -143,8 +143,11 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
     "billboard": the kernel is 1 where the ray meets the plane in the closed square |u|, |v| <= 3
     (BILLBOARD_HALF) and 0 elsewhere, with the intersection's depth.
 
+    With ``g["filter3d"]`` (prefilter only), each splat is first convolved in its plane with an
+    isotropic Gaussian of variance f (world units^2; Mip-Splatting's 3D filter on a surfel).
+
     g: dict with means (N,3), scales (N,2), quats (N,4), opacities (N,) (0 for inactive), sh (N,K,3),
-       rgb (list of None or (n,n,3)), alpha (list of None or (m,m,1)).
+       rgb (list of None or (n,n,3)), alpha (list of None or (m,m,1)), optionally filter3d (N,).
     Returns dict rgb (H,W,3), alpha (H,W), depth (H,W), normal (H,W,3), best (H,W) int (-1 none).
     """
     K = np.asarray(K, np.float64)
@@ -201,10 +204,23 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
             z = np.where(inside, t, pc[2])
         elif coverage == "prefilter":
             J = screen_jacobian(K, Rc, tc, mean, (tu * s[0], tv * s[1]))
-            S = J @ J.T
-            Sf = S + max(pixel_var, min_var - np.linalg.eigvalsh(S)[0]) * np.eye(2)
-            Pm = J.T @ np.linalg.inv(Sf) @ J
-            cov = abs(np.linalg.det(J)) / np.sqrt(np.linalg.det(Sf))
+            f = 0.0 if g.get("filter3d") is None else g["filter3d"][i]
+            if f > 0:
+                # The 3D filter in the plane: the splat's plane covariance (units of the scales)
+                # D = diag(1 + f / s^2), the pixel filter's e (J^T J)^-1 added, inverted directly;
+                # the peak sqrt(det I / det(sum)) keeps the integral of the unit Gaussian.
+                D = np.diag(1.0 + f / np.square(s))
+                S = J @ D @ J.T
+                e = max(pixel_var, min_var - np.linalg.eigvalsh(S)[0])
+                Sf = S + e * np.eye(2)
+                Sig = D + e * np.linalg.inv(J.T @ J)
+                Pm = np.linalg.inv(Sig)
+                cov = 1.0 / np.sqrt(np.linalg.det(Sig))
+            else:
+                S = J @ J.T
+                Sf = S + max(pixel_var, min_var - np.linalg.eigvalsh(S)[0]) * np.eye(2)
+                Pm = J.T @ np.linalg.inv(Sf) @ J
+                cov = abs(np.linalg.det(J)) / np.sqrt(np.linalg.det(Sf))
             opacity, a_min = opacity * cov, a_min * cov
             uc, vc = np.where(bad, 0.0, u), np.where(bad, 0.0, v)
             q = Pm[0, 0] * uc * uc + 2 * Pm[0, 1] * uc * vc + Pm[1, 1] * vc * vc
@@ -278,7 +294,8 @@ def scene_to_reference(scene):
     return dict(means=np.asarray(scene.means, np.float64), scales=np.exp(np.asarray(scene.log_scales, np.float64)),
                 quats=np.asarray(scene.quats, np.float64),
                 opacities=np.where(act, 1 / (1 + np.exp(-np.asarray(scene.opacity_logits, np.float64))), 0.0),
-                sh=np.asarray(scene.sh, np.float64), rgb=textures(scene.rgb, 3), alpha=textures(scene.alpha, 1))
+                sh=np.asarray(scene.sh, np.float64), rgb=textures(scene.rgb, 3), alpha=textures(scene.alpha, 1),
+                filter3d=None if scene.filter3d is None else np.asarray(scene.filter3d, np.float64))
 
 
 def reference_render_3d(g, K, w2c, width, height, background=(0.0, 0.0, 0.0), near=0.01, coverage="lowpass",
@@ -370,6 +387,4 @@ def reference_render_3d(g, K, w2c, width, height, background=(0.0, 0.0, 0.0), ne
 
 def scene_to_reference_3d(scene):
     """Activated float64 parameters of a 3D-Gaussian Scene (inactive ones get opacity 0)."""
-    g = scene_to_reference(scene)
-    g["filter3d"] = None if scene.filter3d is None else np.asarray(scene.filter3d, np.float64)
-    return g
+    return scene_to_reference(scene)

@@ -110,7 +110,7 @@ def _cross(a, b):
                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
 
 
-def _prefilter(M, mu, depth, pixel_var, min_var):
+def _prefilter(M, mu, depth, pixel_var, min_var, plane=None):
     """The prefiltered kernel of each splat (coverage "prefilter").
 
     With K = d(x, y)/d(u, v) the splat's screen Jacobian at its centre (pixels per scale unit), the
@@ -126,15 +126,23 @@ def _prefilter(M, mu, depth, pixel_var, min_var):
     Both forms stay finite for an edge-on splat (K singular: coverage 0). K is normalised by its
     largest entry first, so that neither tiny nor huge splats overflow float32.
 
+    With ``plane`` (the 3D smoothing filter in the splat's plane, :func:`plane_filter`), the splat is
+    first convolved in its plane with a Gaussian of variance D - I (D = diag(d_u, d_v), in units of
+    the scales): the plane covariance is D + e (K^T K)^-1. With h = D^1/2 h' that is the form above
+    of K' = K D^1/2, so P = D^-1/2 P' D^-1/2 and the coverage is coverage' / sqrt(det D): the
+    integral is kept again, and the screen covariance S is the filtered splat's (K' K'^T + e I).
+
     Args:
       M: (C, 3, 3) splat plane (u, v, 1) to image homogeneous coordinates; mu: (C, 2) the centres
-        on screen; depth: (C,) the centres' depth (positive).
+        on screen; depth: (C,) the centres' depth (positive); plane: None or (C, 2) d_u, d_v >= 1.
     Returns:
       (C, 3) (p, r, t) of P, (C,) the coverage factor in [0, 1], (C, 2) the diagonal (xx, yy) of
       the filtered splat's screen covariance S = K K^T + e I (px^2), e the filter's variance, and
       (C, 3) S^-1 (xx, xy, yy).
     """
     K = (M[:, :2, :2] - mu[:, :, None] * M[:, 2, None, :2]) / depth[:, None, None]
+    if plane is not None:
+        K = K * jnp.sqrt(plane)[:, None, :]
     k = jnp.maximum(jnp.max(jnp.abs(K), axis=(1, 2)), 1e-6 * math.sqrt(pixel_var))
     K = K / k[:, None, None]
     k00, k01, k10, k11 = K[:, 0, 0], K[:, 0, 1], K[:, 1, 0], K[:, 1, 1]
@@ -161,7 +169,26 @@ def _prefilter(M, mu, depth, pixel_var, min_var):
     inv_screen = jnp.stack([k10 * k10 + k11 * k11 + e, -(k00 * k10 + k01 * k11), k00 * k00 + k01 * k01 + e],
                            axis=-1) / (k2 * den)[:, None]
     screen = jnp.stack([k2 * (k00 * k00 + k01 * k01 + e), k2 * (k10 * k10 + k11 * k11 + e)], axis=-1)
+    if plane is not None:
+        du, dv = plane[:, 0], plane[:, 1]
+        duv = jnp.sqrt(du) * jnp.sqrt(dv)  # (du * dv can overflow float32 for a degenerate splat)
+        p, r, t, coverage = p / du, r / duv, t / dv, coverage / duv
     return jnp.stack([p, r, t], axis=-1), coverage, screen, inv_screen
+
+
+def plane_filter(scene: Scene):
+    """(C, 2) d = 1 + f / s^2 per tangent axis of a 2D scene's 3D smoothing filter (``Scene.filter3d``,
+    variance f in world units^2; :mod:`patexgs_jax.filter3d`): the filter restricted to the splat's
+    plane, in units of its scales, for :func:`_prefilter` (a surfel has no extent along its normal,
+    so the filter widens it in its plane only). None without a filter. In log space, so that
+    degenerate scales stay finite; no gradient through f (it is not trained), through the scales
+    as Mip-Splatting's filtered scales."""
+    if scene.filter3d is None:
+        return None
+    f = lax.stop_gradient(scene.filter3d)[:, None]
+    pos = f > 0  # (a zero filter leaves the splat as it is, however small)
+    ratio = jnp.exp(jnp.minimum(jnp.log(jnp.where(pos, f, 1.0)) - 2.0 * scene.log_scales, 80.0))
+    return 1.0 + jnp.where(pos, ratio, 0.0)
 
 
 def image_map(scene: Scene, camera: Camera):
@@ -216,9 +243,13 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
     in_front = depth > config.near
     mu = safe_div(M[:, :2, 2], jnp.where(in_front, depth, 1.0)[:, None])
     prefilter = config.coverage == "prefilter"
+    if scene.filter3d is not None and not prefilter:
+        raise ValueError(f"render: the 3D smoothing filter (Scene.filter3d) of 2D splats needs coverage "
+                         f"'prefilter', got {config.coverage!r}; render with RenderConfig(coverage='prefilter') "
+                         "or drop the filter (scene.replace(filter3d=None)).")
     if prefilter:
         conic, coverage, screen, inv_screen = _prefilter(M, mu, jnp.where(in_front, depth, 1.0),
-                                                         config.pixel_var, config.min_var)
+                                                         config.pixel_var, config.min_var, plane_filter(scene))
     if screen_offset is not None:
         off = screen_offset.astype(dt)
         Cc = Cc - off[:, :1] * A - off[:, 1:] * B

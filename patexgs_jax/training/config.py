@@ -120,6 +120,8 @@ METHODS: dict[str, Method] = {
     "3dgs": Method(textures=None, mip="none", coverage="lowpass", primitive="3d", prune_opacity=0.005),
     "mip-splatting": Method(textures=None, mip="none", coverage="prefilter", primitive="3d", filter3d=True,
                             prune_opacity=0.005),
+    # PATexGS with Mip-Splatting's 3D filter in each splat's plane from the texture stage on (zoom-in).
+    "patexgs+filter3d": Method(filter3d=True),
 }
 
 

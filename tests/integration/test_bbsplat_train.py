@@ -1,16 +1,23 @@
-"""The BBSplat baselines train end to end (docs/baselines.md): ``bbsplat+mip`` (billboards, fixed
-16 x 16 RGBA textures, mipmaps) and ``bbsplat+adaptive`` (billboards, Eq. 7 sizes and Eqs. 8-10
-growth) from one shared 2DGS stage 1 on test_train's tiny synthetic scene, a few steps each."""
+"""Methods that start from the shared 2DGS stage 1 train end to end (docs/baselines.md): the BBSplat
+baselines ``bbsplat+mip`` (billboards, fixed 16 x 16 RGBA textures, mipmaps) and ``bbsplat+adaptive``
+(billboards, Eq. 7 sizes and Eqs. 8-10 growth), and ``patexgs+filter3d`` (Mip-Splatting's 3D filter
+in the splats' planes), from one stage 1 on test_train's tiny synthetic scene, a few steps each."""
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
+from backends import NOT_BITWISE, bitwise_reproducible
+from patexgs_jax import checkpoint as ckpt
 from patexgs_jax.data import load
 from patexgs_jax.evaluation import evaluate
+from patexgs_jax.export import load_ply
+from patexgs_jax.filter3d import filter_variance
 from patexgs_jax.schedule import TextureSchedule
 from patexgs_jax.training.run import stage1_checkpoint, train
+from patexgs_jax.training.trainer import Trainer
 from train_configs import tiny_config
 
 
@@ -52,3 +59,45 @@ def test_bbsplat_trains_from_the_shared_stage1(stage1, method, tmp_path):
     else:
         assert s["allocation"] is not None and s["growth_events"], s
         assert sides.max() > sides.min()
+
+
+def test_patexgs_with_the_3d_filter_trains_exports_and_resumes(stage1, tmp_path):
+    """``patexgs+filter3d``: the filter arrives with the texture stage (the shared stage 1 has none)
+    and is the one of the final means after its last recomputation; the PLY carries it and renders
+    as the trained scene; a run killed in the texture stage resumes to the same scene."""
+    ds, ckpt_path, _ = stage1
+    cfg = tiny_config(method="patexgs+filter3d", iters_tex=12)  # (recomputed after steps 33 and 36)
+    result = train(ds, cfg, tmp_path / "run", verbose=False, stage1=ckpt_path)
+    s, sc = result.summary, result.scene
+    assert s["skipped_steps"] == 0 and np.isfinite(s["test_psnr"]) and s["growth_events"]
+    act = np.asarray(sc.active) > 0
+    f = np.asarray(sc.filter3d)
+    assert np.all(f[act] > 0)
+    cams = [v.camera for v in ds.train_views]
+    assert not np.allclose(f, filter_variance(sc.means, cams))  # (the means moved after step 36)
+    back = load_ply(tmp_path / "run" / "scene.ply")
+    np.testing.assert_array_equal(np.asarray(back.filter3d)[:act.sum()], f[act])
+    ev = evaluate(back, ds.test_views, cfg.render_config())
+    assert abs(ev["psnr"] - s["test_psnr"]) < 1e-3, (ev["psnr"], s["test_psnr"])
+    if not bitwise_reproducible():
+        pytest.skip(NOT_BITWISE)
+    orig = Trainer.after_step
+
+    def after_step(self, step):
+        orig(self, step)
+        if step == 35:  # (the newest checkpoint: 33, after the filter's first recomputation)
+            raise Killed
+
+    out = tmp_path / "resumed"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Trainer, "after_step", after_step)
+        with pytest.raises(Killed):
+            train(ds, cfg, out, verbose=False, stage1=ckpt_path)
+    assert ckpt.read_metadata(ckpt.latest_checkpoint(out / "checkpoints"))["step"] == 33
+    again = train(ds, cfg, out, resume=True, verbose=False, stage1=ckpt_path).scene
+    for a, b in zip(jax.tree_util.tree_leaves(again), jax.tree_util.tree_leaves(sc)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6, rtol=0)
+
+
+class Killed(Exception):
+    """Stands in for the process being killed (raised from a hook, in-process)."""
