@@ -22,20 +22,20 @@ Stages
      (:mod:`patexgs_jax.adaptive`, run by :mod:`patexgs_jax.schedule`);
      ``textured-fixed-N`` gives every Gaussian an N x N RGBA texture.
 
-Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as Textured Gaussians),
-``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
+Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as Textured
+Gaussians), ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
 ``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
-the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: ``patexgs`` with N x N
-textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
-Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly),
-``patexgs-literal`` (the paper's Eqs. 11-13 read literally: the 2DGS screen-space low-pass and
-lambda_mip 0.4), ``patexgs+filter3d`` (with Mip-Splatting's 3D smoothing filter in each splat's plane
-from the texture stage on: for renders zoomed in beyond the training views), the baselines ``bbsplat`` (BBSplat's billboards,
+the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: ``patexgs`` with N x
+N textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
+Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly), ``patexgs-literal`` (the paper's
+Eqs. 11-13 read literally: the 2DGS screen-space low-pass and lambda_mip 0.4), ``patexgs+filter3d``
+(with Mip-Splatting's 3D smoothing filter in each splat's plane from the texture stage on: for
+renders zoomed in beyond the training views), the baselines ``bbsplat`` (BBSplat's billboards,
 ``RenderConfig(coverage="billboard")``, with 16x16 RGBA textures), ``bbsplat+mip`` (and RGBA
-mipmaps), ``bbsplat+adaptive`` (with Eqs. 6-10 sizes), ``textured-gaussians`` (Textured
-Gaussians: ``textured-fixed-8``), ``3dgs`` (3DGS) and ``mip-splatting`` (3DGS with Mip-Splatting's
-3D and 2D filters); docs/baselines.md. The ``patexgs`` family, but ``patexgs-literal``, renders its
-texture stage, and is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``);
+mipmaps), ``bbsplat+adaptive`` (with Eqs. 6-10 sizes), ``textured-gaussians`` (Textured Gaussians:
+``textured-fixed-8``), ``3dgs`` (3DGS) and ``mip-splatting`` (3DGS with Mip-Splatting's 3D and 2D
+filters); docs/baselines.md. The ``patexgs`` family, but ``patexgs-literal``, renders its texture
+stage, and is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``);
 stage 1 is 2DGS for every method but ``3dgs`` and ``mip-splatting``, which train 3D Gaussians
 throughout.
 

@@ -361,7 +361,10 @@ class FrameRenderer:
         r = self._renderers.get(mode)
         if r is None:
             config = dataclasses.replace(mode_config(self.base, mode), **frame_schedule())
-            r = self._renderers[mode] = ViewRenderer(self.scene, config, headroom=self.headroom, reuse_textures=True)
+            scene = self.scene
+            if scene.filter3d is not None and not scene.is_3d and config.coverage != "prefilter":
+                scene = scene.replace(filter3d=None)  # (the 2D splats' 3D filter is the prefilter's only)
+            r = self._renderers[mode] = ViewRenderer(scene, config, headroom=self.headroom, reuse_textures=True)
         return r
 
     def render(self, camera: Camera, *, mode: str = "patexgs", view: str = "rgb", scale: int = 1,
