@@ -2,6 +2,7 @@
 
     python -m experiments.bench_render [--gaussians 50000 ...] [--sizes 640x480 ...] [--repeats 3]
                                        [--configs 2dgs,tex8,tex8-mip,tex8-trilinear] [--json out.json]
+                                       (3D Gaussians: --configs 2dgs,3dgs,mip-splatting)
                                        [--compositor xla,pallas]
 
 A fixed random scene (seeded) seen by a fixed camera, for every Gaussian count and image size
@@ -53,7 +54,7 @@ import numpy as np
 from experiments.provenance import write_benchmark_json
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
 from patexgs_jax.render import TRACE_COUNTS, count_pairs, render_jit
-from patexgs_jax.rendering import binning, projection, tiling
+from patexgs_jax.rendering import binning, gaussian3d, projection, tiling
 
 #: The layout of the --json file (experiments.provenance's header plus peak_gflops, timing, results).
 SCHEMA = 1
@@ -77,14 +78,21 @@ CONFIGS = {
     "tex8-mip-prefilter": (8, ("rgb", "alpha"), RenderConfig(mip="nearest", coverage="prefilter")),
     "tex8-mip-prefilter-dense": (8, ("rgb", "alpha"), RenderConfig(mip="nearest", coverage="prefilter",
                                                                    texture_pairs=1.0)),
+    # 3D Gaussians (the 3dgs and mip-splatting methods; THREE_D): the same splats with a third scale
+    # from the same range, 3DGS's dilation, or Mip-Splatting's 2D filter with a 3D filter of about a
+    # pixel at the camera's distance.
+    "3dgs": (None, (), RenderConfig(mip="none")),
+    "mip-splatting": (None, (), RenderConfig(mip="none", coverage="prefilter")),
 }
+#: The configurations of 3D Gaussians, and whether they carry Mip-Splatting's 3D filter.
+THREE_D = {"3dgs": False, "mip-splatting": True}
 DEFAULT_CONFIGS = ("2dgs", "tex8", "tex8-mip", "tex8-mip-prefilter", "tex8-trilinear")
 
 
 #: Hand-counted FLOPs per (pixel, splat) pair (see the module docstring).
 FLOPS_PER_PAIR = {"2dgs": 70, "tex8-rgb": 124, "tex8-alpha": 101, "tex8": 155, "tex8-mip": 215,
                   "tex8-trilinear": 305, "tex8-mip-dense": 215, "2dgs-prefilter": 68, "tex8-mip-prefilter": 213,
-                  "tex8-mip-prefilter-dense": 213}
+                  "tex8-mip-prefilter-dense": 213, "3dgs": 68, "mip-splatting": 68}
 
 
 def peak_gflops(n=2048, repeats=5) -> float:
@@ -95,13 +103,18 @@ def peak_gflops(n=2048, repeats=5) -> float:
     return 2.0 * n ** 3 / (timeit(lambda: f(a), repeats) / 1e3) / 1e9
 
 
-def make_scene(n, tex, seed=0, banks=("rgb", "alpha")):
+def make_scene(n, tex, seed=0, banks=("rgb", "alpha"), dims=2, filter3d=False):
+    """The benchmark's scene: ``dims`` 3 for 3D Gaussians (with ``filter3d``, a 3D filter of
+    (0.9 / 640 of the camera's distance)^2: about a pixel at 640 px wide)."""
     sizes = None if tex is None else [tex] * n
     # Splats spread through a 4x4x4 box in front of the camera, sized so a view has a realistic
     # ~ 10-40 splats per pixel of overlap for 50k splats at 640x480.
-    return random_scene(seed, n, sh_degree=3, extent=2.0, scale_range=(0.005, 0.04),
-                        center=(0.0, 0.0, 0.0), rgb_sizes=sizes if "rgb" in banks else None,
-                        alpha_sizes=sizes if "alpha" in banks else None)
+    scene = random_scene(seed, n, sh_degree=3, extent=2.0, scale_range=(0.005, 0.04),
+                         center=(0.0, 0.0, 0.0), rgb_sizes=sizes if "rgb" in banks else None,
+                         alpha_sizes=sizes if "alpha" in banks else None, scale_dims=dims)
+    if filter3d:
+        scene = scene.replace(filter3d=jnp.full(scene.capacity, (5.0 / (0.9 * 640)) ** 2, jnp.float32))
+    return scene
 
 
 def _time_once(fn):
@@ -122,7 +135,7 @@ def prepare(name, n, width, height, compositor="xla"):
     the timings)."""
     tex, banks, cfg = CONFIGS[name]
     cfg = dataclasses.replace(cfg, compositor=compositor)
-    scene = make_scene(n, tex, banks=banks)
+    scene = make_scene(n, tex, banks=banks, dims=3 if name in THREE_D else 2, filter3d=THREE_D.get(name, False))
     cam = Camera.from_intrinsics([0.9 * width, 0.9 * width, width / 2, height / 2],
                                  look_at((0.0, 0.0, -5.0), (0.0, 0.0, 0.0)), width, height)
     needed, max_tile = count_pairs(scene, cam, cfg)
@@ -131,11 +144,14 @@ def prepare(name, n, width, height, compositor="xla"):
     fwd = jax.jit(lambda s, c: render_jit(s, c, config=cfg, capacity=cap).rgb)
 
     def bin_view(s, c):  # the renderer's projection, tile ranges, one sort and per-tile starts
-        proj = projection.project(s, c, cfg, None, None, projection.alpha_peak(s))
+        if s.is_3d:
+            proj = gaussian3d.project3d(s, c, cfg, None, None)
+        else:
+            proj = projection.project(s, c, cfg, None, None, projection.alpha_peak(s))
         ts = cfg.tile_size
         tx, ty = -(-c.width // ts), -(-c.height // ts)
         ranges = binning.tile_ranges(proj.bounds, proj.visible, ts, tx, ty)
-        return binning.bin_projection(proj, ranges, tx, tx * ty, cap.pairs, cfg)
+        return binning.bin_projection(proj, ranges, tx, tx * ty, cap.pairs, gaussian3d.kernel_config(cfg, s))
 
     bin_c = jax.jit(bin_view).lower(scene, cam).compile()
     jax.block_until_ready(bin_c(scene, cam))

@@ -12,13 +12,13 @@ from locations import REPO
 def test_bench_render_reports_each_configuration(tmp_path, capsys):
     out = tmp_path / "render.json"
     bench_render.main(["--gaussians", "300", "--sizes", "48x32", "--repeats", "1", "--no-peak",
-                       "--configs", "2dgs,tex8-mip", "--json", str(out)])
+                       "--configs", "2dgs,tex8-mip,mip-splatting", "--json", str(out)])
     data = json.loads(out.read_text())
     for key in ("schema", "git", "date", "machine", "cpu", "cpus", "jax", "backend", "devices"):
         assert key in data, key  # where and on what the figures were measured
     assert data["schema"] == bench_render.SCHEMA and data["timing"] == "interleaved"
     rows = data["results"]
-    assert [r["config"] for r in rows] == ["2dgs", "tex8-mip"]
+    assert [r["config"] for r in rows] == ["2dgs", "tex8-mip", "mip-splatting"]  # (the last: 3D Gaussians)
     for r in rows:
         assert (r["gaussians"], r["width"], r["height"]) == (300, 48, 32)
         assert r["recompiles"] == 0
@@ -32,7 +32,7 @@ def test_bench_render_reports_each_configuration(tmp_path, capsys):
             assert math.isfinite(r[key]) and r[key] > 0, (r["config"], key)
     assert rows[0]["forward_over_2dgs"] == 1.0 and rows[0]["forward_backward_over_2dgs"] == 1.0
     printed = capsys.readouterr().out
-    assert all(name in printed for name in ("2dgs", "tex8-mip"))
+    assert all(name in printed for name in ("2dgs", "tex8-mip", "mip-splatting"))
 
 
 def test_bench_render_compositors_side_by_side(tmp_path, capsys):
