@@ -11,10 +11,12 @@ is kept (:mod:`patexgs_jax.rendering.gaussian3d` applies it from ``Scene.filter3
 view sees gets the lowest rate of those seen, as the reference code.
 
 2D splats (``patexgs+filter3d``) take the same f in their plane: a surfel has no extent along its
-normal, so its coverage kernel's scales become sqrt(s^2 + f) and its opacity is scaled by
-prod_i s_i / sqrt(s_i^2 + f) (:func:`patexgs_jax.rendering.projection.plane_filter`, with the
-prefiltered coverage only), while its textures keep their extent of +-3 scales. Their stage 1 is
-the shared 2DGS one, so the filter starts with the texture stage.
+normal, so its Gaussian's scales become sqrt(s^2 + f) and its opacity is scaled by
+prod_i s_i / sqrt(s_i^2 + f). Untextured (its 2DGS stage 1), the splat is drawn with those scales
+(:func:`patexgs_jax.rendering.projection.filtered_log_scales`); textured, only with the prefiltered
+coverage, which folds the filter into its kernel while the textures keep their extent of +-3
+scales (:func:`patexgs_jax.rendering.projection.plane_filter`). As in Mip-Splatting the filter acts
+from the first step, so such a method trains its own stage 1.
 
 The reference code (autonomousvision/mip-splatting, ``compute_3D_filter``) takes the smallest depth
 over the views and divides by the largest focal length of all of them; here the rate is the

@@ -19,9 +19,9 @@ Parameters are stored unconstrained, as training optimises them:
   3D scenes have no textures.
 * ``filter3d``: optional (C,) Mip-Splatting's 3D smoothing filter, the variance f (world units^2)
   added to each Gaussian's covariance in all three axes (3D scenes), or in its plane for 2D splats
-  (each scale s becomes sqrt(s^2 + f) in the coverage kernel; the texture keeps its extent; coverage
-  "prefilter" only), its opacity scaled so the integral is kept (:mod:`patexgs_jax.filter3d`); not
-  trained (its gradient is zero).
+  (each scale s becomes sqrt(s^2 + f) in the Gaussian; textures keep their extent; textured splats
+  need coverage "prefilter"), its opacity scaled so the integral is kept (:mod:`patexgs_jax.filter3d`);
+  not trained (its gradient is zero).
 
 Every leaf is a float array, so ``jax.grad`` of a loss of ``render(scene, ...)`` with respect to the
 whole scene works directly; the mask and texture indices get zero gradient.

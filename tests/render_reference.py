@@ -143,8 +143,9 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
     "billboard": the kernel is 1 where the ray meets the plane in the closed square |u|, |v| <= 3
     (BILLBOARD_HALF) and 0 elsewhere, with the intersection's depth.
 
-    With ``g["filter3d"]`` (prefilter only), each splat is first convolved in its plane with an
-    isotropic Gaussian of variance f (world units^2; Mip-Splatting's 3D filter on a surfel).
+    With ``g["filter3d"]``, each splat is first convolved in its plane with an isotropic Gaussian of
+    variance f (world units^2; Mip-Splatting's 3D filter on a surfel): with "lowpass" (untextured
+    splats) the splat with scales sqrt(s^2 + f) and its opacity times prod s / sqrt(s^2 + f).
 
     g: dict with means (N,3), scales (N,2), quats (N,4), opacities (N,) (0 for inactive), sh (N,K,3),
        rgb (list of None or (n,n,3)), alpha (list of None or (m,m,1)), optionally filter3d (N,).
@@ -181,6 +182,11 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
             continue
         R = quat_rot(g["quats"][i])
         mean, s = g["means"][i], g["scales"][i]
+        opacity = g["opacities"][i]
+        f_i = 0.0 if g.get("filter3d") is None else g["filter3d"][i]
+        if f_i > 0 and coverage == "lowpass":  # (an untextured splat: the convolved Gaussian itself)
+            s_f = np.sqrt(s * s + f_i)
+            opacity, s = opacity * np.prod(s / s_f), s_f
         tu, tv, n = R[:, 0], R[:, 1], R[:, 2]
         pc = Rc @ mean + tc
         mu = (K @ pc)[:2] / pc[2]
@@ -196,7 +202,6 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
             return np.where(bad, 1e30, u), np.where(bad, 1e30, v), t, bad
 
         u, v, t, bad = hit(d0)
-        opacity = g["opacities"][i]
         a_min = 1 / 255
         if coverage == "billboard":
             inside = ~bad & (np.abs(u) <= BILLBOARD_HALF) & (np.abs(v) <= BILLBOARD_HALF)
@@ -204,12 +209,11 @@ def reference_render(g, K, w2c, width, height, mip="nearest", lam=0.4, rgb_mip=T
             z = np.where(inside, t, pc[2])
         elif coverage == "prefilter":
             J = screen_jacobian(K, Rc, tc, mean, (tu * s[0], tv * s[1]))
-            f = 0.0 if g.get("filter3d") is None else g["filter3d"][i]
-            if f > 0:
+            if f_i > 0:
                 # The 3D filter in the plane: the splat's plane covariance (units of the scales)
                 # D = diag(1 + f / s^2), the pixel filter's e (J^T J)^-1 added, inverted directly;
                 # the peak sqrt(det I / det(sum)) keeps the integral of the unit Gaussian.
-                D = np.diag(1.0 + f / np.square(s))
+                D = np.diag(1.0 + f_i / np.square(s))
                 S = J @ D @ J.T
                 e = max(pixel_var, min_var - np.linalg.eigvalsh(S)[0])
                 Sf = S + e * np.eye(2)

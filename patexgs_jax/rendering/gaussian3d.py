@@ -42,7 +42,7 @@ from ..camera import Camera
 from ..math import quat_to_rotmat, safe_normalize, safe_sqrt, sh_basis
 from ..scene import Scene
 from .config import ALPHA_MIN, SUPPORT_Q, RenderConfig
-from .projection import COLS, HIGHEST, Projection, _footprint
+from .projection import COLS, HIGHEST, Projection, _footprint, filtered_log_scales
 
 __all__ = ["DILATION", "FOV_CLAMP", "kernel_config", "project3d", "screen_covariance"]
 
@@ -59,19 +59,6 @@ def kernel_config(config: RenderConfig, scene: Scene) -> RenderConfig:
     if scene.is_3d and config.coverage != "prefilter":
         return dataclasses.replace(config, coverage="prefilter")
     return config
-
-
-def _filtered_log_scales(scene: Scene):
-    """(C, 3) log scales with the 3D filter's variance added (the scales themselves without one) and
-    (C,) the filter's opacity factor sqrt(det Sigma / det(Sigma + f I)) (ones without one). In log
-    space, so degenerate scales (exp(2 log s) underflowing) stay finite."""
-    ls = scene.log_scales
-    if scene.filter3d is None:
-        return ls, jnp.ones(ls.shape[:1], ls.dtype)
-    f = lax.stop_gradient(scene.filter3d)[:, None]
-    pos = f > 0  # (a zero filter leaves the Gaussian as it is, however small)
-    ls_f = jnp.where(pos, 0.5 * jnp.logaddexp(2.0 * ls, jnp.log(jnp.where(pos, f, 1.0))), ls)
-    return ls_f, jnp.exp(jnp.sum(ls - ls_f, axis=-1))
 
 
 def screen_covariance(scene: Scene, camera: Camera, p, mu):
@@ -93,7 +80,7 @@ def screen_covariance(scene: Scene, camera: Camera, p, mu):
     mu_c = jnp.clip(mu, K[:2, 2] - half, K[:2, 2] + half)
     e3 = jnp.asarray([0.0, 0.0, 1.0], dt)
     J = (K[None, :2, :] - mu_c[:, :, None] * e3[None, None, :]) / z[:, None, None]       # (C, 2, 3)
-    ls_f, factor = _filtered_log_scales(scene)
+    ls_f, factor = filtered_log_scales(scene)
     L = jnp.einsum("ij,cjk->cik", Rc, quat_to_rotmat(scene.quats), precision=HIGHEST) * jnp.exp(ls_f)[:, None, :]
     T = jnp.einsum("cij,cjk->cik", J, L, precision=HIGHEST)
     k = jnp.maximum(lax.stop_gradient(jnp.max(jnp.abs(T), axis=(1, 2))), 1.0)

@@ -176,6 +176,21 @@ def _prefilter(M, mu, depth, pixel_var, min_var, plane=None):
     return jnp.stack([p, r, t], axis=-1), coverage, screen, inv_screen
 
 
+def filtered_log_scales(scene: Scene):
+    """(C, D) log scales with the 3D filter's variance added (``Scene.filter3d``; the scales
+    themselves without one) and (C,) the filter's opacity factor prod_i s_i / sqrt(s_i^2 + f), i.e.
+    sqrt(det Sigma / det(Sigma + f I)) (ones without one): a 3D Gaussian's (D = 3), or an untextured
+    splat's in its plane (D = 2). In log space, so degenerate scales (exp(2 log s) underflowing) stay
+    finite; no gradient through f (it is not trained)."""
+    ls = scene.log_scales
+    if scene.filter3d is None:
+        return ls, jnp.ones(ls.shape[:1], ls.dtype)
+    f = lax.stop_gradient(scene.filter3d)[:, None]
+    pos = f > 0  # (a zero filter leaves the Gaussian as it is, however small)
+    ls_f = jnp.where(pos, 0.5 * jnp.logaddexp(2.0 * ls, jnp.log(jnp.where(pos, f, 1.0))), ls)
+    return ls_f, jnp.exp(jnp.sum(ls - ls_f, axis=-1))
+
+
 def plane_filter(scene: Scene):
     """(C, 2) d = 1 + f / s^2 per tangent axis of a 2D scene's 3D smoothing filter (``Scene.filter3d``,
     variance f in world units^2; :mod:`patexgs_jax.filter3d`): the filter restricted to the splat's
@@ -236,17 +251,24 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
     dt = scene.means.dtype
     w2c = camera.world_to_camera.astype(dt)
     Rc, tc = w2c[:3, :3], w2c[:3, 3]
-    M, p, nrm = image_map(scene, camera)
+    prefilter = config.coverage == "prefilter"
+    filter_factor = None
+    if scene.filter3d is not None and not prefilter:
+        # The 3D filter in the plane of an untextured splat under the 2DGS low-pass: the filtered
+        # Gaussian is the splat with scales sqrt(s^2 + f) (the prefilter folds it into its kernel).
+        if config.coverage == "billboard" or scene.rgb is not None or scene.alpha is not None:
+            raise ValueError("render: the 3D smoothing filter (Scene.filter3d) of textured 2D splats or "
+                             f"billboards needs coverage 'prefilter', got {config.coverage!r}; render with "
+                             "RenderConfig(coverage='prefilter') or drop the filter (scene.replace(filter3d=None)).")
+        ls_f, filter_factor = filtered_log_scales(scene)
+        M, p, nrm = image_map(scene.replace(log_scales=ls_f), camera)
+    else:
+        M, p, nrm = image_map(scene, camera)
     M0, M1, M2 = M[:, 0], M[:, 1], M[:, 2]
     A, B, Cc = ray_planes(M0, M1, M2)
     depth = p[:, 2]
     in_front = depth > config.near
     mu = safe_div(M[:, :2, 2], jnp.where(in_front, depth, 1.0)[:, None])
-    prefilter = config.coverage == "prefilter"
-    if scene.filter3d is not None and not prefilter:
-        raise ValueError(f"render: the 3D smoothing filter (Scene.filter3d) of 2D splats needs coverage "
-                         f"'prefilter', got {config.coverage!r}; render with RenderConfig(coverage='prefilter') "
-                         "or drop the filter (scene.replace(filter3d=None)).")
     if prefilter:
         conic, coverage, screen, inv_screen = _prefilter(M, mu, jnp.where(in_front, depth, 1.0),
                                                          config.pixel_var, config.min_var, plane_filter(scene))
@@ -264,6 +286,8 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
 
     normal = jnp.where((jnp.sum(nrm * p, axis=-1) > 0)[:, None], -nrm, nrm)
     opacity = jax.nn.sigmoid(scene.opacity_logits) * (scene.active > 0)
+    if filter_factor is not None:
+        opacity = opacity * filter_factor
     # Culling and screen-space bounds (no gradient): alpha >= 1/255 needs
     # rho <= 2 log(255 * opacity * max A) =: r2 (with the prefilter, alpha / coverage >= 1/255 and
     # q <= r2: see kernel.alpha_min).

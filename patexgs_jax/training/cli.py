@@ -29,15 +29,16 @@ the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: `
 N textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
 Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly), ``patexgs-literal`` (the paper's
 Eqs. 11-13 read literally: the 2DGS screen-space low-pass and lambda_mip 0.4), ``patexgs+filter3d``
-(with Mip-Splatting's 3D smoothing filter in each splat's plane from the texture stage on: for
-renders zoomed in beyond the training views), the baselines ``bbsplat`` (BBSplat's billboards,
-``RenderConfig(coverage="billboard")``, with 16x16 RGBA textures), ``bbsplat+mip`` (and RGBA
-mipmaps), ``bbsplat+adaptive`` (with Eqs. 6-10 sizes), ``textured-gaussians`` (Textured Gaussians:
-``textured-fixed-8``), ``3dgs`` (3DGS) and ``mip-splatting`` (3DGS with Mip-Splatting's 3D and 2D
-filters); docs/baselines.md. The ``patexgs`` family, but ``patexgs-literal``, renders its texture
-stage, and is evaluated, with the prefiltered coverage (``RenderConfig(coverage="prefilter")``);
-stage 1 is 2DGS for every method but ``3dgs`` and ``mip-splatting``, which train 3D Gaussians
-throughout.
+(with Mip-Splatting's 3D smoothing filter in each splat's plane from the first step, its own stage
+1: for renders zoomed in beyond the training views), the baselines ``bbsplat`` (BBSplat's
+billboards, ``RenderConfig(coverage="billboard")``, with 16x16 RGBA textures), ``bbsplat+mip`` (and
+RGBA mipmaps), ``bbsplat+adaptive`` (with Eqs. 6-10 sizes), ``textured-gaussians`` (Textured
+Gaussians: ``textured-fixed-8``), ``3dgs`` (3DGS) and ``mip-splatting`` (3DGS with Mip-Splatting's
+3D and 2D filters); docs/baselines.md. The ``patexgs`` family, but ``patexgs-literal``, renders its
+texture stage, and is evaluated, with the prefiltered coverage
+(``RenderConfig(coverage="prefilter")``); stage 1 is 2DGS for every method but ``3dgs`` and
+``mip-splatting``, which train 3D Gaussians throughout, and is shared by all but those and
+``patexgs+filter3d``.
 
 Robustness
   The data order and every random choice are seeded, so ``--resume`` from a checkpoint reaches the

@@ -38,7 +38,6 @@ from ..schedule import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, TextureSchedule
 from ..textures.rebucket import resize_textures
 from .config import TrainConfig
 from .step import single_view_step
-from .strategies import SmoothingFilter
 
 if TYPE_CHECKING:
     from .trainer import Trainer
@@ -179,8 +178,7 @@ class CompileAhead:
         optimizer = self.run.optimizer if own else make_optimizer(self.run.radius, identity[1])  # (its learning rates)
         render_cfg = config.render_config(stage=2)
         stage = TextureSchedule(config, optimizer, self.run.train_views, render_cfg)
-        state = SmoothingFilter(config, self.run.train_views).before_step(stage.start(self.run.state),
-                                                                          config.iters_2dgs)
+        state = stage.start(self.run.state)
         scene, opt_state, stats = owned_copy(tuple(state))
         view = self.run.view(config.iters_2dgs, config.seed)
         cam = padding.padded_camera(view.camera, render_cfg.tile_size)

@@ -120,7 +120,7 @@ METHODS: dict[str, Method] = {
     "3dgs": Method(textures=None, mip="none", coverage="lowpass", primitive="3d", prune_opacity=0.005),
     "mip-splatting": Method(textures=None, mip="none", coverage="prefilter", primitive="3d", filter3d=True,
                             prune_opacity=0.005),
-    # PATexGS with Mip-Splatting's 3D filter in each splat's plane from the texture stage on (zoom-in).
+    # PATexGS with Mip-Splatting's 3D filter in each splat's plane, throughout (its own stage 1; zoom-in).
     "patexgs+filter3d": Method(filter3d=True),
 }
 
@@ -354,9 +354,11 @@ STAGE2_LR_FIELDS = ("texture_rgb", "texture_alpha")
 
 
 def stage1_part(saved: dict) -> dict:
-    """The part of a saved config that determines stage 1 (3D methods' own: their method is part)."""
+    """The part of a saved config that determines stage 1 (3D methods' and those with the 3D filter
+    own: their method is part)."""
     part = {k: v for k, v in comparable_config(saved).items() if k not in STAGE2_FIELDS}
-    if saved.get("method") in METHODS and METHODS[saved["method"]].primitive == "3d":
+    if saved.get("method") in METHODS and (METHODS[saved["method"]].primitive == "3d"
+                                           or METHODS[saved["method"]].filter3d):
         part["method"] = saved["method"]
     if isinstance(part.get("lr"), dict):
         part["lr"] = {k: v for k, v in part["lr"].items() if k not in STAGE2_LR_FIELDS}

@@ -11,12 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
 import numpy as np
 
 from .. import densify as dens
 from .. import filter3d
-from ..optim import map_moments
 from ..schedule import TrainState
 from .config import TrainConfig
 
@@ -56,39 +54,26 @@ class SmoothingFilter:
     ``patexgs+filter3d``), from the training cameras, at its reference code's steps: before the first
     step, after every densification (this strategy runs after :class:`Densification`) and, once
     densification has stopped, every densification interval up to one interval before the end.
-    2D splats get it from the texture stage on (their stage 1 is the shared 2DGS one, whose low-pass
-    coverage has no filter): before its first step, then every interval. Does nothing for other
-    methods. No state of its own (the filter is part of the scene)."""
+    Does nothing for other methods. No state of its own (the filter is part of the scene)."""
 
     def __init__(self, config: TrainConfig, views):
         self.on = config.spec.filter3d
         self.cameras = [v.camera for v in views] if self.on else []
         self.dc, self.iters, self.total = config.densify, config.iters_2dgs, config.total_steps
-        self.first = 0 if config.spec.primitive == "3d" else config.iters_2dgs
 
     def recomputes_at(self, step: int) -> bool:
         """Whether :meth:`after_step` recomputes the filter after ``step`` steps."""
         dc = self.dc
-        if step <= self.first:
-            return False
         if step < self.iters and dc.densify_at(step):
             return True
         return step % dc.interval == 0 and step > min(dc.stop, self.iters) and step < self.total - dc.interval
 
     def before_step(self, state: TrainState, step: int) -> TrainState:
-        if not self.on or step != self.first or (step > 0 and state.scene.filter3d is not None):
-            return state  # (a run resumed in its texture stage has its filter)
-        return self._with_filter(state)
+        if not self.on or step != 0:
+            return state
+        return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))
 
     def after_step(self, state: TrainState, step: int) -> TrainState:
         if not self.on or not self.recomputes_at(step):
             return state
-        return self._with_filter(state)
-
-    def _with_filter(self, state: TrainState) -> TrainState:
-        scene = filter3d.with_filter(state.scene, self.cameras)
-        opt_state = state.opt_state
-        if state.scene.filter3d is None:  # the moments get the new leaf too (zeros: it is not trained)
-            zeros = np.zeros(scene.capacity, np.float32)
-            opt_state = map_moments(opt_state, lambda t: t.replace(filter3d=jax.device_put(zeros)))
-        return state._replace(scene=scene, opt_state=opt_state)
+        return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))

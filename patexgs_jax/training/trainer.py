@@ -104,7 +104,7 @@ def init_scene(points, colors, config: TrainConfig, capacity: int | None = None)
     spec = config.spec
     return Scene.from_arrays(points, np.repeat(dist[:, None], 3 if spec.primitive == "3d" else 2, axis=1), quats,
                              np.full(n, config.init_opacity), sh, capacity=cap,
-                             filter3d=np.zeros(n) if spec.filter3d and spec.primitive == "3d" else None)
+                             filter3d=np.zeros(n) if spec.filter3d else None)
 
 
 class Trainer:

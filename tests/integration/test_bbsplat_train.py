@@ -1,7 +1,7 @@
-"""Methods that start from the shared 2DGS stage 1 train end to end (docs/baselines.md): the BBSplat
-baselines ``bbsplat+mip`` (billboards, fixed 16 x 16 RGBA textures, mipmaps) and ``bbsplat+adaptive``
-(billboards, Eq. 7 sizes and Eqs. 8-10 growth), and ``patexgs+filter3d`` (Mip-Splatting's 3D filter
-in the splats' planes), from one stage 1 on test_train's tiny synthetic scene, a few steps each."""
+"""The BBSplat baselines train end to end (docs/baselines.md): ``bbsplat+mip`` (billboards, fixed
+16 x 16 RGBA textures, mipmaps) and ``bbsplat+adaptive`` (billboards, Eq. 7 sizes and Eqs. 8-10
+growth) from one shared 2DGS stage 1 on test_train's tiny synthetic scene, a few steps each; and
+``patexgs+filter3d`` (Mip-Splatting's 3D filter in the splats' planes), which trains its own."""
 
 from __future__ import annotations
 
@@ -62,14 +62,15 @@ def test_bbsplat_trains_from_the_shared_stage1(stage1, method, tmp_path):
 
 
 def test_patexgs_with_the_3d_filter_trains_exports_and_resumes(stage1, tmp_path):
-    """``patexgs+filter3d``: the filter arrives with the texture stage (the shared stage 1 has none)
-    and is the one of the final means after its last recomputation; the PLY carries it and renders
-    as the trained scene; a run killed in the texture stage resumes to the same scene."""
-    ds, ckpt_path, _ = stage1
-    cfg = tiny_config(method="patexgs+filter3d", iters_tex=12)  # (recomputed after steps 33 and 36)
-    result = train(ds, cfg, tmp_path / "run", verbose=False, stage1=ckpt_path)
+    """``patexgs+filter3d`` trains its own stage 1 with the filter (recomputed after each
+    densification, then every 3 steps up to 36), which the texture stage keeps: the final filter is
+    that of the means after step 36, not the last ones; the PLY carries it and renders as the
+    trained scene; a run killed in the texture stage resumes to the same scene."""
+    ds = stage1[0]
+    cfg = tiny_config(method="patexgs+filter3d", iters_tex=12)
+    result = train(ds, cfg, tmp_path / "run", verbose=False)
     s, sc = result.summary, result.scene
-    assert s["skipped_steps"] == 0 and np.isfinite(s["test_psnr"]) and s["growth_events"]
+    assert s["skipped_steps"] == 0 and np.isfinite(s["test_psnr"]) and s["allocation"] is not None
     act = np.asarray(sc.active) > 0
     f = np.asarray(sc.filter3d)
     assert np.all(f[act] > 0)
@@ -92,9 +93,9 @@ def test_patexgs_with_the_3d_filter_trains_exports_and_resumes(stage1, tmp_path)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(Trainer, "after_step", after_step)
         with pytest.raises(Killed):
-            train(ds, cfg, out, verbose=False, stage1=ckpt_path)
+            train(ds, cfg, out, verbose=False)
     assert ckpt.read_metadata(ckpt.latest_checkpoint(out / "checkpoints"))["step"] == 33
-    again = train(ds, cfg, out, resume=True, verbose=False, stage1=ckpt_path).scene
+    again = train(ds, cfg, out, resume=True, verbose=False).scene
     for a, b in zip(jax.tree_util.tree_leaves(again), jax.tree_util.tree_leaves(sc)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6, rtol=0)
 

@@ -1,6 +1,7 @@
 """Mip-Splatting's 3D smoothing filter on 2D splats (``Scene.filter3d`` of a 2D scene, the
-``patexgs+filter3d`` method): the renderer against the float64 reference, the integral kept, a zero
-filter changing nothing, gradients, the modes that refuse it, its PLY round trip and its schedule.
+``patexgs+filter3d`` method): the renderer against the float64 reference (prefiltered, textured or
+not, and under the 2DGS low-pass untextured), the integral kept, a zero filter changing nothing,
+gradients, the settings that refuse it, its PLY round trip and the method's own stage 1.
 
 Scenes and camera are tests/render_cases.py's (capacity 48, 44x36), so compiled renderers are shared.
 """
@@ -35,14 +36,16 @@ def _filtered(sc, seed=0, scale=0.12):
     return sc.replace(filter3d=jnp.asarray(f, jnp.float32))
 
 
-@pytest.mark.parametrize("textured", [True, False])
-def test_matches_float64_reference(textured):
+@pytest.mark.parametrize("textured,coverage", [(True, "prefilter"), (False, "prefilter"), (False, "lowpass")])
+def test_matches_float64_reference(textured, coverage):
     """The reference convolves each splat in its plane (covariance diag(1 + f / s^2) in units of the
-    scales) and adds the pixel filter, inverted directly: the renderer, which folds the filter into
-    the screen Jacobian, agrees to rounding in float64 and within the 2DGS renderer's float32 bounds."""
+    scales) and adds the pixel filter, inverted directly, or (the 2DGS low-pass, untextured) draws
+    the splat with scales sqrt(s^2 + f): the renderer, which folds the filter into the screen
+    Jacobian, agrees to rounding in float64 and within the 2DGS renderer's float32 bounds."""
     sc = _filtered(scene(11, textured, 1))
     cam = camera()
-    cfg = RenderConfig(mip="nearest" if textured else "none", coverage="prefilter", min_var=0.25)
+    cfg = RenderConfig(mip="nearest" if textured else "none", coverage=coverage,
+                       min_var=0.25 if coverage == "prefilter" else 0.0)
     ref = ref_render(sc, cam, cfg)
     plain = ref_render(sc.replace(filter3d=None), cam, cfg)
     assert np.abs(ref["rgb"] - plain["rgb"]).max() > 0.05, "the filter should change the image"
@@ -99,9 +102,11 @@ def test_gradients_match_finite_differences():
     directional_fd_check(sc, camera(), RenderConfig(mip="nearest", coverage="prefilter"), seed=2, h=1e-7)
 
 
-@pytest.mark.parametrize("coverage", ["lowpass", "billboard"])
-def test_other_coverages_refuse_the_filter(coverage):
-    sc = _filtered(scene(3, False, 0))
+@pytest.mark.parametrize("textured,coverage", [(True, "lowpass"), (False, "billboard")])
+def test_textures_and_billboards_need_the_prefilter(textured, coverage):
+    """Textures span +-3 of the unfiltered scales, a billboard has no Gaussian: only the prefilter
+    folds the filter in, and the others say so."""
+    sc = _filtered(scene(3, textured, 0))
     with pytest.raises(ValueError, match="coverage 'prefilter'"):
         tile_render(sc, camera(), RenderConfig(mip="none", coverage=coverage))
 
@@ -124,26 +129,23 @@ def test_ply_stores_the_filter_and_renders_the_same(tmp_path):
     np.testing.assert_allclose(out.rgb, ref.rgb, atol=2e-5, rtol=0)
 
 
-def test_schedule_starts_with_the_texture_stage():
-    """2D splats get the filter before the texture stage's first step (their stage 1 is the shared
-    2DGS one) with zero moments, then every densification interval up to one interval before the
-    end; the method shares stage 1 with 2dgs."""
-    from patexgs_jax.optim import make_optimizer
+def test_method_has_its_own_stage1():
+    """As in Mip-Splatting the filter acts from the first step (the 2DGS stage under the low-pass
+    too), so ``patexgs+filter3d`` does not share the 2DGS stage 1; its scene carries the filter from
+    the start, recomputed at the 3D method's steps."""
     from patexgs_jax.training.config import stage1_key
+    from patexgs_jax.training.trainer import init_scene
 
     cfg = TrainConfig(method="patexgs+filter3d", iters_2dgs=1000, iters_tex=400, warmup_tex=40)
-    assert stage1_key(cfg) == stage1_key(TrainConfig(method="2dgs", iters_2dgs=1000))
+    assert stage1_key(cfg) != stage1_key(TrainConfig(method="2dgs", iters_2dgs=1000))
+    assert cfg.render_config(stage=1) == TrainConfig(method="2dgs").render_config()
+    assert cfg.render_config().coverage == "prefilter"
+    sc = init_scene(np.random.default_rng(0).uniform(-1, 1, (20, 3)), None, cfg)
+    assert not sc.is_3d and np.all(np.asarray(sc.filter3d) == 0)
     view = types.SimpleNamespace(camera=camera())
     f = SmoothingFilter(cfg, [view])
+    st = f.before_step(TrainState(sc, None, DensifyStats.zeros(sc.capacity)), 0)  # pyright: ignore[reportArgumentType]
+    np.testing.assert_array_equal(np.asarray(st.scene.filter3d), filter_variance(sc.means, [view.camera]))
     steps = [t for t in range(1, cfg.total_steps + 1) if f.recomputes_at(t)]
-    assert steps == list(range(1100, 1400 - 100, 100))
-    sc = scene(4, False, 0)
-    opt = make_optimizer(1.0, cfg.lr)
-    # (optax's stub types params as an array tree, which a Scene is at run time)
-    st = TrainState(sc, opt.init(sc), DensifyStats.zeros(C))  # pyright: ignore[reportArgumentType]
-    assert f.before_step(st, 999).scene is sc
-    out = f.before_step(st, 1000)
-    np.testing.assert_array_equal(np.asarray(out.scene.filter3d), filter_variance(sc.means, [view.camera]))
-    assert np.asarray(out.opt_state[0].mu.filter3d).shape == (C,)
-    assert not np.any(np.asarray(out.opt_state[0].nu.filter3d))
-    assert f.before_step(out, 1000) is out  # (resumed in the texture stage: already there)
+    first = next(t for t in range(1, cfg.iters_2dgs) if cfg.densify.densify_at(t))
+    assert steps[0] == first and steps[-1] == 1200 and 1100 in steps  # (the texture stage's too)
