@@ -45,15 +45,15 @@ For each scene:
      size and at 1/8, the 1/8 row enlarged 8x with nearest-neighbour so its pixels show).
 
 ``--methods`` takes method names and groups, alone or mixed (``table1,patexgs-no-mip``): ``table1``
-= the paper's Table 1 rows (3dgs, 2dgs, mip-splatting, bbsplat, bbsplat+adaptive, textured-gaussians,
-patexgs), ``table2`` = its Table 2 rows (2dgs, bbsplat, bbsplat+mip, textured-gaussians, patexgs),
-``tables`` = both, ``zoom-in`` = the zoom-in table's rows (3dgs, 2dgs, mip-splatting, patexgs) and
-``table4`` (below); a group naming a method this tree does not have fails before any work, naming it.
-Methods whose stage 1 differs from 2DGS's (``stage1_key``: 3D Gaussians, another densification)
-train from scratch in their own run folder, the same total steps; the others share it.
-``tables.md`` sets each row of Tables 1 and 2 beside the paper's own Mip-NeRF 360 figure for that
-method (:mod:`experiments.paper`: the row names and figures), with its Gaussians, storage, training
-and render time.
+= the paper's Table 1 rows (3dgs, 2dgs, mip-splatting, bbsplat, bbsplat+adaptive,
+textured-gaussians, patexgs), ``table2`` = its Table 2 rows (2dgs, bbsplat, bbsplat+mip,
+textured-gaussians, patexgs), ``tables`` = both, ``zoom-in`` = the zoom-in table's rows (3dgs, 2dgs,
+mip-splatting, patexgs, patexgs+filter3d) and ``table4`` (below); a group naming a method this tree
+does not have fails before any work, naming it. Methods whose stage 1 differs from 2DGS's
+(``stage1_key``: 3D Gaussians, another densification, the 3D filter) train from scratch in their own
+run folder, the same total steps; the others share it. ``tables.md`` sets each row of Tables 1 and 2
+beside the paper's own Mip-NeRF 360 figure for that method (:mod:`experiments.paper`: the row names
+and figures), with its Gaussians, storage, training and render time.
 
 ``--zoom-in`` also evaluates every entry zoomed IN by 2, 4 and 8 (Mip-Splatting's protocol: trained at
 ``--factor F``, tested at z times the resolution, e.g. ``--factor 8`` tested on the factor 4, 2 and 1

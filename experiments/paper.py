@@ -17,8 +17,9 @@ TABLE2_METHODS = ("2dgs", "bbsplat", "bbsplat+mip", "textured-gaussians", "patex
 #: ``--methods tables``: both, Table 1's order with Table 2's BBSplat + mipmap row beside its kin.
 TABLES_METHODS = ("3dgs", "2dgs", "mip-splatting", "bbsplat", "bbsplat+adaptive", "bbsplat+mip",
                   "textured-gaussians", "patexgs")
-#: ``--methods zoom-in``: the rows the zoom-in table (Mip-Splatting's protocol) is meant for.
-ZOOM_IN_METHODS = ("3dgs", "2dgs", "mip-splatting", "patexgs")
+#: ``--methods zoom-in``: the rows the zoom-in table (Mip-Splatting's protocol) is meant for, with
+#: PATexGS given Mip-Splatting's 3D filter (not a row of the paper).
+ZOOM_IN_METHODS = ("3dgs", "2dgs", "mip-splatting", "patexgs", "patexgs+filter3d")
 
 #: method name -> the paper's row name.
 PAPER_NAMES = {

@@ -45,7 +45,7 @@ def test_method_groups_expand_and_unknown_rows_fail_early(monkeypatch):
     assert set(paper.TABLES_METHODS) == set(paper.TABLE1_METHODS) | set(paper.TABLE2_METHODS)
     assert mn.expand_methods(["patexgs-no-mip", "table2", "2dgs"]) == ["patexgs-no-mip", *paper.TABLE2_METHODS]
     assert mn.expand_methods(["table1", "table2"]) == [*paper.TABLE1_METHODS, "bbsplat+mip"]
-    assert mn.expand_methods(["zoom-in"]) == ["3dgs", "2dgs", "mip-splatting", "patexgs"]
+    assert mn.expand_methods(["zoom-in"]) == ["3dgs", "2dgs", "mip-splatting", "patexgs", "patexgs+filter3d"]
 
 
 def test_paper_figures_are_the_papers():
