@@ -19,8 +19,9 @@ scales sqrt(s^2 + f), opacity times sqrt(det Sigma / det(Sigma + f I))), so a vi
 filter shows the trained model (the 2D Mip filter, a renderer setting, is not in the file).
 2D splats with the filter (``patexgs+filter3d``) cannot have it baked (widened scales would stretch
 their textures, which span +-3 scales): their PLY has one more property after ``rot_3``,
-``filter_3D`` (the variance f, as Mip-Splatting's unfused PLY stores it), which :func:`load_ply`
-reads back and other 2DGS readers skip.
+``filter_3D``, the filter's standard deviation sqrt(f) (world units) as Mip-Splatting's unfused PLY
+stores it, which :func:`load_ply` reads back (from Mip-Splatting's own unfused 3D files too: their
+scales are then filtered as its renderer does) and other 2DGS readers skip.
 
 Texture sidecar ``path.with_suffix(".textures.npz")`` (e.g. ``scene.ply`` ->
 ``scene.textures.npz``), always written by :func:`export_ply`, a numpy ``.npz`` with
@@ -131,7 +132,7 @@ def export_ply(scene: Scene, path) -> Path:
             logits[rows][:, None], log_scales[rows], np.asarray(scene.quats, np.float32)[rows]]
     names = ply_property_names(K, log_scales.shape[1])
     if plane_filter:
-        cols.append(np.asarray(scene.filter3d, np.float32)[rows][:, None])
+        cols.append(np.sqrt(np.maximum(np.asarray(scene.filter3d, np.float32)[rows], 0.0))[:, None])
         names.append("filter_3D")
     data = np.ascontiguousarray(np.concatenate(cols, axis=1).astype("<f4"))
     assert data.shape[1] == len(names)
@@ -261,7 +262,7 @@ def load_ply(path, capacity: int | None = None) -> Scene:
     logits = col("opacity")[:, 0]
     log_scales = col(*[f"scale_{i}" for i in range(dims)])
     quats = col("rot_0", "rot_1", "rot_2", "rot_3")
-    f3d = col("filter_3D")[:, 0] if dims == 2 and "filter_3D" in names else None
+    f3d = col("filter_3D")[:, 0] if "filter_3D" in names else None  # (ours, or Mip-Splatting's unfused PLY)
     for name, a in (("positions", means), ("SH", sh), ("opacity", logits), ("scales", log_scales),
                     ("rotations", quats), ("filter_3D", np.zeros(0) if f3d is None else f3d)):
         if not np.all(np.isfinite(a)):
@@ -283,7 +284,7 @@ def load_ply(path, capacity: int | None = None) -> Scene:
     return Scene(means=pad(means), log_scales=pad(log_scales),
                  quats=pad(quats, np.asarray([1.0, 0.0, 0.0, 0.0], np.float32)),
                  opacity_logits=pad(logits, -20.0), sh=pad(sh), active=jax.device_put(active),
-                 rgb=rgb, alpha=alpha, filter3d=None if f3d is None else pad(np.maximum(f3d, 0.0)))
+                 rgb=rgb, alpha=alpha, filter3d=None if f3d is None else pad(np.square(f3d)))
 
 
 def _load_sidecar(path: Path, n: int, crc: int, capacity: int):

@@ -14,9 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from patexgs_jax import Camera, RenderConfig, look_at
+from patexgs_jax import Camera, RenderConfig, look_at, random_scene
 from patexgs_jax.densify import DensifyStats
-from patexgs_jax.export import export_ply, load_ply
+from patexgs_jax.export import export_ply, load_ply, sidecar_path
 from patexgs_jax.filter3d import filter_variance
 from patexgs_jax.rendering.projection import plane_filter
 from patexgs_jax.schedule import TrainState
@@ -112,8 +112,9 @@ def test_textures_and_billboards_need_the_prefilter(textured, coverage):
 
 
 def test_ply_stores_the_filter_and_renders_the_same(tmp_path):
-    """A 2D scene's filter cannot be baked (its textures span +-3 scales): the PLY carries it as
-    ``filter_3D`` after ``rot_3`` and loads back into a scene that renders the same."""
+    """A 2D scene's filter cannot be baked (its textures span +-3 scales): the PLY carries its
+    deviation as ``filter_3D`` after ``rot_3`` and loads back into a scene that renders the same; a
+    3D file with ``filter_3D`` (Mip-Splatting's unfused PLY) loads with its filter."""
     sc = _filtered(scene(9, True, 1))
     path = export_ply(sc, tmp_path / "f.ply")
     head = path.read_bytes().split(b"end_header\n")[0].decode("ascii").splitlines()
@@ -122,11 +123,24 @@ def test_ply_stores_the_filter_and_renders_the_same(tmp_path):
     back = load_ply(path, capacity=C)
     assert back.filter3d is not None and not back.is_3d
     keep = np.asarray(sc.active) > 0
-    np.testing.assert_array_equal(np.asarray(back.filter3d)[:keep.sum()], np.asarray(sc.filter3d)[keep])
+    # (stored as the deviation sqrt(f), as Mip-Splatting does: back to the variance within rounding)
+    np.testing.assert_allclose(np.asarray(back.filter3d)[:keep.sum()], np.asarray(sc.filter3d)[keep], rtol=1e-6)
     np.testing.assert_array_equal(np.asarray(back.log_scales)[:keep.sum()], np.asarray(sc.log_scales)[keep])
     ref = tile_render(sc, camera(), PREFILTER)
     out = tile_render(back, camera(), PREFILTER)
     np.testing.assert_allclose(out.rgb, ref.rgb, atol=2e-5, rtol=0)
+
+    g3 = random_scene(3, 5, sh_degree=0, scale_dims=3)
+    path = export_ply(g3, tmp_path / "g3.ply")  # (no filter: the 3DGS layout) + a filter_3D column
+    head, body = path.read_bytes().split(b"end_header\n")
+    rows = np.frombuffer(body, "<f4").reshape(5, -1)
+    dev = np.linspace(0.01, 0.05, 5, dtype="<f4")[:, None]
+    head = head.replace(b"property float rot_3\n", b"property float rot_3\nproperty float filter_3D\n")
+    path.write_bytes(head + b"end_header\n" + np.concatenate([rows, dev], 1).astype("<f4").tobytes())
+    sidecar_path(path).unlink()  # (its CRC is of the file before)
+    back = load_ply(path)
+    assert back.is_3d
+    np.testing.assert_allclose(np.asarray(back.filter3d), np.square(dev[:, 0]), rtol=1e-6)
 
 
 def test_method_has_its_own_stage1():
