@@ -16,7 +16,7 @@ from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
 from ..schedule import side_histogram
-from .config import STAGE2_FIELDS, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
+from .config import STAGE2_FIELDS, Method, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
 from .progress import start_line
 from .trainer import STAGE1_DIR, Trainer
 
@@ -49,10 +49,29 @@ def stage1_checkpoint(run_dir, config: TrainConfig) -> Path | None:
     return None
 
 
+def _primitive_clash(path: Path, saved: dict, config: TrainConfig) -> str | None:
+    """A one-line error when the checkpoint at ``path`` (its saved config ``saved``) holds another
+    primitive than ``config``'s method trains (3D Gaussians against 2D splats), naming both."""
+    name = saved.get("method")
+    try:
+        theirs = Method.from_name(name).primitive if isinstance(name, str) else None
+    except ValueError:
+        return None
+    ours = config.spec.primitive
+    if theirs is None or theirs == ours:
+        return None
+    kind = {"2d": "2D splats", "3d": "3D Gaussians"}
+    return (f"checkpoint {path} holds {kind[theirs]} (method {name}), but {config.method} trains {kind[ours]}; "
+            f"choose a method of {kind[theirs]} or another output directory / checkpoint.")
+
+
 def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
     """Starts ``run`` from the stage-1 checkpoint ``path``, after checking that it was trained with
     ``config``'s 2DGS-stage settings and ended at the end of that stage."""
     meta = ckpt.read_metadata(path)
+    clash = _primitive_clash(path, meta.get("config") or {}, config)
+    if clash:
+        raise ValueError(clash)
     cfg = stage1_part(meta.get("config") or {})
     want = stage1_key(config)
     if cfg != want:
@@ -127,6 +146,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     latest = ckpt.latest_checkpoint(out / "checkpoints") if (out is not None and resume) else None
     if latest is not None:
         tree, meta = ckpt.load_checkpoint(latest)
+        clash = _primitive_clash(latest, meta.get("config") or {}, config)
+        if clash:
+            raise ValueError(clash)
         saved, wanted = comparable_config(meta.get("config") or {}), comparable_config(config_dict(config))
         if saved != wanted:
             differ = sorted(k for k in wanted if saved.get(k) != wanted[k])

@@ -362,8 +362,9 @@ class FrameRenderer:
         if r is None:
             config = dataclasses.replace(mode_config(self.base, mode), **frame_schedule())
             scene = self.scene
-            if scene.filter3d is not None and not scene.is_3d and config.coverage != "prefilter":
-                scene = scene.replace(filter3d=None)  # (the 2D splats' 3D filter is the prefilter's only)
+            if (scene.filter3d is not None and config.coverage != "prefilter"
+                    and (scene.rgb is not None or scene.alpha is not None)):
+                scene = scene.replace(filter3d=None)  # (textured splats take the 3D filter in the prefilter only)
             r = self._renderers[mode] = ViewRenderer(scene, config, headroom=self.headroom, reuse_textures=True)
         return r
 

@@ -90,5 +90,21 @@ def test_mip_splatting_resume_equals_uninterrupted(runs, dataset, tmp_path):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6, rtol=0)
 
 
+def test_checkpoint_of_one_primitive_refused_by_the_other(runs, dataset, tmp_path):
+    """A 3D run's checkpoint resumed, or taken as stage 1, by a method of 2D splats: one line naming
+    both primitives and methods, before any work."""
+    import shutil
+
+    src = runs["3dgs"]["out"]
+    out = tmp_path / "run"
+    shutil.copytree(src / "checkpoints", out / "checkpoints")
+    cfg = tiny_config(method="patexgs")
+    want = r"holds 3D Gaussians \(method 3dgs\), but patexgs trains 2D splats"
+    with pytest.raises(ValueError, match=want):
+        train(dataset, cfg, out, resume=True, verbose=False)
+    with pytest.raises(ValueError, match=want):
+        train(dataset, cfg, tmp_path / "other", verbose=False, stage1=ckpt.latest_checkpoint(src / "checkpoints"))
+
+
 class Killed(Exception):
     """Stands in for the process being killed (raised from a hook, in-process)."""
