@@ -84,7 +84,8 @@ def params(scene, n):
     return dict(means=np.asarray(scene.means[:n], np.float64),
                 scales=np.exp(np.asarray(scene.log_scales[:n], np.float64)),
                 quats=np.asarray(scene.quats[:n], np.float64), opacities=np.where(act, 1 / (1 + np.exp(-logits)), 0.0),
-                sh=np.asarray(scene.sh[:n], np.float64), rgb=textures(scene.rgb, 3), alpha=textures(scene.alpha, 1))
+                sh=np.asarray(scene.sh[:n], np.float64), rgb=textures(scene.rgb, 3), alpha=textures(scene.alpha, 1),
+                filter3d=None if scene.filter3d is None else np.asarray(scene.filter3d[:n], np.float64))
 
 
 def reference(scene, cam, n, g=None, cfg=CFG):
@@ -121,6 +122,8 @@ def permuted(scene, perm):
     """The same Gaussians in other slots (``perm`` a permutation of the slot indices)."""
     p = jnp.asarray(perm)
     kw = {f: getattr(scene, f)[p] for f in ("means", "log_scales", "quats", "opacity_logits", "sh", "active")}
+    if scene.filter3d is not None:
+        kw["filter3d"] = scene.filter3d[p]
     for name in ("rgb", "alpha"):
         b = getattr(scene, name)
         kw[name] = b.__class__(buckets=b.buckets, bucket=b.bucket[p], slot=b.slot[p], size=b.size[p],
@@ -210,9 +213,21 @@ def check_transmittance_monotone(scene, cam, out, n, cfg=CFG):
     assert np.all(out.alpha >= prev - 1e-7)
 
 
-def check_case(case, seed, knob, extra=False, cfg=CFG):
+def with_plane_filter(scene, n, seed):
+    """``scene`` with Mip-Splatting's 3D filter on its first ``n`` splats: deviations up to 0.2
+    (a third of the largest ordinary scale; the hard cases' tiny and huge splats beside it), a fifth
+    of them zero."""
+    rng = np.random.default_rng(seed)
+    f = np.zeros(hs.C, np.float32)
+    f[:n] = np.square(rng.uniform(0.0, 0.2, n) * (rng.uniform(size=n) > 0.2))
+    return scene.replace(filter3d=jnp.asarray(f))
+
+
+def check_case(case, seed, knob, extra=False, cfg=CFG, plane_filter=False):
     scene, cam, info = hs.build(case, seed, knob)
     n = info["n"]
+    if plane_filter:
+        scene = with_plane_filter(scene, n, seed)
     val, out, grad = run(scene, cam, cfg)
     check_finite(val, out, grad)
     g = params(scene, n)
@@ -247,6 +262,15 @@ def test_hard_scene_billboard(case, seed, knob):
     """The same properties with billboards (hard-edged squares: edge-on, needle, huge, across the
     near plane, sub-pixel)."""
     check_case(case, seed, knob, extra=True, cfg=CFGS["billboard"])
+
+
+@pytest.mark.parametrize("case", hs.CASES)
+@settings(max_examples=1)
+@given(seed=st.integers(0, 2**32 - 1), knob=st.floats(0.0, 1.0))
+def test_hard_scene_plane_filter(case, seed, knob):
+    """The same properties with the 3D filter on textured 2D splats (``patexgs+filter3d``'s texture
+    stage: the prefilter folding the filter into its kernel), against the reference's plane form."""
+    check_case(case, seed, knob, cfg=CFGS["prefilter"], plane_filter=True)
 
 
 @settings(max_examples=4)
