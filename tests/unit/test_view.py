@@ -138,13 +138,14 @@ def test_modes():
 
 
 def test_modes_of_a_run_with_the_plane_filter():
-    """A ``patexgs+filter3d`` scene (2D splats with a 3D filter, a prefilter-only setting) shows in
-    every mode: the literal (low-pass) mode renders it without the filter; the others with it."""
+    """A ``patexgs+filter3d`` scene (textured 2D splats with a 3D filter, which only the prefilter
+    folds in) shows in every mode: the literal (low-pass) mode renders it without the filter; the
+    others with it."""
     import jax.numpy as jnp
 
     from patexgs_jax.scene import random_scene
 
-    sc = random_scene(2, 6, extent=0.5, scale_range=(0.05, 0.2))
+    sc = random_scene(2, 6, extent=0.5, scale_range=(0.05, 0.2), rgb_sizes=[2] * 6)
     sc = sc.replace(filter3d=jnp.full(sc.capacity, 0.01, jnp.float32))
     fr = vw.FrameRenderer(sc, RenderConfig(coverage="prefilter"))
     cam = Camera.from_intrinsics((40.0, 40.0, 16.0, 16.0), look_at((0, 0, -2.5), (0, 0, 0)), 32, 32)
