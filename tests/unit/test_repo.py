@@ -70,7 +70,7 @@ def test_readme_paper_tables_match_their_benchmark_files():
     readme = (ROOT / "docs" / "results.md").read_text() + "\n## end"
     section = readme[readme.index("## Results: the paper's Tables 1 and 2"):]
     section = section[:section.index("\n## ", 1)]
-    for name, label in (("tables_tiny.json", "embedded"),):
+    for name, label in (("tables_tiny.json", "embedded"), ("tables_beer.json", "beer")):
         data = json.loads((ROOT / "benchmarks" / name).read_text())
         assert data["date"] and data["conditions"] and data["version"]["git"], "the benchmark file lacks its provenance"
         assert f"commit `{data['version']['git'].split('-')[0]}`" in section, name
