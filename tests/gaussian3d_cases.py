@@ -8,7 +8,7 @@ import numpy as np
 
 from patexgs_jax import RenderConfig, Scene, random_scene
 from render_cases import C
-from render_reference import reference_render_3d, scene_to_reference_3d
+from render_reference import reference_render_3d, scene_to_reference
 
 CONFIGS = {
     "3dgs": (False, RenderConfig(mip="none", background=(0.1, 0.2, 0.3))),
@@ -26,7 +26,7 @@ def scene3d(seed, filter3d=False, sh_degree=1):
 
 
 def ref3d(sc, cam, cfg):
-    return reference_render_3d(scene_to_reference_3d(sc), np.asarray(cam.K, np.float64),
+    return reference_render_3d(scene_to_reference(sc), np.asarray(cam.K, np.float64),
                                np.asarray(cam.world_to_camera, np.float64), cam.width, cam.height,
                                background=cfg.background, near=cfg.near, coverage=cfg.coverage,
                                pixel_var=cfg.pixel_var)

@@ -387,8 +387,3 @@ def reference_render_3d(g, K, w2c, width, height, background=(0.0, 0.0, 0.0), ne
     return dict(rgb=rgb.reshape(height, width, 3), alpha=alpha.reshape(height, width),
                 depth=depth.reshape(height, width), normal=nrm.reshape(height, width, 3),
                 distortion=dist.reshape(height, width), best=best.reshape(height, width))
-
-
-def scene_to_reference_3d(scene):
-    """Activated float64 parameters of a 3D-Gaussian Scene (inactive ones get opacity 0)."""
-    return scene_to_reference(scene)

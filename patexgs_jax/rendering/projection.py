@@ -195,15 +195,12 @@ def plane_filter(scene: Scene):
     """(C, 2) d = 1 + f / s^2 per tangent axis of a 2D scene's 3D smoothing filter (``Scene.filter3d``,
     variance f in world units^2; :mod:`patexgs_jax.filter3d`): the filter restricted to the splat's
     plane, in units of its scales, for :func:`_prefilter` (a surfel has no extent along its normal,
-    so the filter widens it in its plane only). None without a filter. In log space, so that
-    degenerate scales stay finite; no gradient through f (it is not trained), through the scales
-    as Mip-Splatting's filtered scales."""
+    so the filter widens it in its plane only), from :func:`filtered_log_scales` (d = (s_f / s)^2,
+    capped at e^80 so a degenerate splat stays finite). None without a filter."""
     if scene.filter3d is None:
         return None
-    f = lax.stop_gradient(scene.filter3d)[:, None]
-    pos = f > 0  # (a zero filter leaves the splat as it is, however small)
-    ratio = jnp.exp(jnp.minimum(jnp.log(jnp.where(pos, f, 1.0)) - 2.0 * scene.log_scales, 80.0))
-    return 1.0 + jnp.where(pos, ratio, 0.0)
+    ls_f, _ = filtered_log_scales(scene)
+    return jnp.exp(jnp.minimum(2.0 * (ls_f - scene.log_scales), 80.0))
 
 
 def image_map(scene: Scene, camera: Camera):
