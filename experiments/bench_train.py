@@ -95,9 +95,11 @@ def make_scene(n, tex, seed=0):
                         rgb_sizes=sizes, alpha_sizes=sizes)
 
 
-def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compositor="xla"):
+def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compositor="xla", scene=None):
     """Times ``steps + 1`` training steps rendering with ``compositor`` (``RenderConfig.compositor``);
-    returns one result row. ``on_step()`` is called after each step, once its results are ready."""
+    returns one result row. ``on_step()`` is called after each step, once its results are ready.
+    ``scene``: the scene to train (default: :func:`make_scene` of ``n`` and the configuration's
+    texture side)."""
 
     import jax
     import numpy as np
@@ -126,7 +128,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compo
 
     run = Run(ds, cfg, None, verbose=False)
     run.render_cfgs = (RenderConfig(mip=mip, coverage=coverage, compositor=compositor),) * 2
-    run.scene = make_scene(n, tex)
+    run.scene = make_scene(n, tex) if scene is None else scene
     run.opt_state = run.optimizer.init(run.scene)
     run.stats = DensifyStats.zeros(run.scene.capacity)
     for v in views:  # one capacity that fits every view: no overflow retry inside the timed steps

@@ -22,12 +22,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .metrics import texel_count
 
 __all__ = [
+    "ContributionCounts",
     "DEFAULT_MAX_SIZE",
     "GrowthSchedule",
     "SIGMA_PIXEL_SHARE",
@@ -85,18 +87,95 @@ def pixel_share_sigma(total_pixels: float, num_gaussians: int, share: float = SI
     return float(share) * float(total_pixels) / float(num_gaussians)
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class ContributionCounts:
+    """Eq. 6's counts S_ij of V views, kept sparse: only the non-zero ones.
+
+    A Gaussian contributes the largest weight at pixels of a few of the views (a capture of 200
+    views and a million Gaussians has a dense (V, C) matrix of 200M entries, 1.6 GB as float64, most
+    of them zeros), and a zero adds nothing to Eq. 7's ``sum_j log2(1 + S_ij / sigma)``. Build it one
+    view at a time with :meth:`from_views` (memory: 8 bytes a non-zero count) or from a dense matrix
+    with :meth:`from_dense`; every Eq. 7 function takes either form.
+
+    Attributes:
+      values: (nnz,) float32, the non-zero S_ij (pixel counts: exact in float32 up to 2**24).
+      index: (nnz,) int32 (int64 from 2**31 Gaussians), the Gaussian i of each.
+      num_views: V.
+      capacity: C.
+    """
+
+    values: np.ndarray
+    index: np.ndarray
+    num_views: int
+    capacity: int
+
+    @classmethod
+    def from_views(cls, rows, capacity: int | None = None) -> ContributionCounts:
+        """From an iterable of (C,) per-view counts (e.g. each view's ``max_contrib_count``)."""
+        values, index, V, C = [], [], 0, capacity
+        for row in rows:
+            r = np.asarray(row)
+            if r.ndim != 1 or (C is not None and r.shape[0] != C):
+                raise ValueError(f"each view's counts must have shape (C,) = ({C},), got {r.shape}.")
+            C = r.shape[0]
+            if r.dtype.kind not in "iuf" or not np.all(np.isfinite(r)) or np.any(r < 0):
+                raise ValueError("contrib_counts must be finite and non-negative (pixel counts S_ij).")
+            nz = np.flatnonzero(r)
+            values.append(r[nz].astype(np.float32))
+            index.append(nz.astype(np.int32 if C < 2**31 else np.int64))
+            V += 1
+        if C is None:
+            raise ValueError("contrib_counts holds no view.")
+        return cls(np.concatenate(values) if values else np.zeros(0, np.float32),
+                   np.concatenate(index) if index else np.zeros(0, np.int32), V, int(C))
+
+    @classmethod
+    def from_dense(cls, S) -> ContributionCounts:
+        """From a (V, C) matrix of counts."""
+        S = np.asarray(S)
+        if S.ndim != 2:
+            raise ValueError(f"contrib_counts must have shape (num_images, C), got {S.shape}.")
+        return cls.from_views(S, S.shape[1])
+
+    def columns(self, keep: np.ndarray) -> ContributionCounts:
+        """The counts of the Gaussians ``keep`` (a sorted (M,) index array), renumbered 0..M-1."""
+        pos = np.full(self.capacity, -1, np.int64)
+        pos[keep] = np.arange(keep.size)
+        new = pos[self.index]
+        sel = new >= 0
+        return ContributionCounts(self.values[sel], new[sel].astype(np.int32), self.num_views, int(keep.size))
+
+    def column_sum(self) -> np.ndarray:
+        """(C,) float64: ``sum_j S_ij``."""
+        return np.bincount(self.index, weights=self.values, minlength=self.capacity)
+
+    def column_max(self) -> np.ndarray:
+        """(C,) float64: ``max_j S_ij`` (0 where never counted)."""
+        out = np.zeros(self.capacity, np.float64)
+        order = np.argsort(self.values, kind="stable")
+        out[self.index[order]] = self.values[order]  # ascending: a repeated index keeps its last, largest
+        return out
+
+    def sizes(self, sigma: float) -> np.ndarray:
+        """(C,) float64 Eq. 7 real sizes ``T_i = sum_j log2(1 + S_ij / sigma)``."""
+        w = np.log2(1.0 + self.values.astype(np.float64) / float(sigma))
+        return np.bincount(self.index, weights=w, minlength=self.capacity)
+
+
+def _as_counts(contrib_counts) -> ContributionCounts:
+    if isinstance(contrib_counts, ContributionCounts):
+        return contrib_counts
+    return ContributionCounts.from_dense(contrib_counts)
+
+
 def _check_counts(contrib_counts, active=None):
-    S = np.asarray(contrib_counts, np.float64)
-    if S.ndim != 2:
-        raise ValueError(f"contrib_counts must have shape (num_images, C), got {S.shape}.")
-    if not np.all(np.isfinite(S)) or np.any(S < 0):
-        raise ValueError("contrib_counts must be finite and non-negative (pixel counts S_ij).")
+    S = _as_counts(contrib_counts)
     if active is None:
-        act = np.ones(S.shape[1], bool)
+        act = np.ones(S.capacity, bool)
     else:
         act = np.asarray(active)
-        if act.shape != (S.shape[1],):
-            raise ValueError(f"active must have shape (C,) = ({S.shape[1]},), got {act.shape}.")
+        if act.shape != (S.capacity,):
+            raise ValueError(f"active must have shape (C,) = ({S.capacity},), got {act.shape}.")
         act = act > 0
     return S, act
 
@@ -106,7 +185,8 @@ def contribution_sizes(contrib_counts, sigma: float) -> np.ndarray:
 
     Args:
       contrib_counts: (num_images, C) per-image max-contribution pixel counts S_ij (Eq. 6; the
-        renderer's ``max_contrib_count`` of each training view stacked).
+        renderer's ``max_contrib_count`` of each training view stacked), or their
+        :class:`ContributionCounts`.
       sigma: positive scale (see :func:`default_sigma`).
     Returns:
       (C,) float64.
@@ -114,7 +194,7 @@ def contribution_sizes(contrib_counts, sigma: float) -> np.ndarray:
     S, _ = _check_counts(contrib_counts)
     if not (np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be positive and finite, got {sigma}.")
-    return np.sum(np.log2(1.0 + S / float(sigma)), axis=0)
+    return S.sizes(sigma)
 
 
 def side_of(T, max_size: int = DEFAULT_MAX_SIZE, min_size: int = 1) -> np.ndarray:
@@ -137,7 +217,7 @@ def initial_texture_sizes(contrib_counts, sigma: float, *, max_size: int = DEFAU
     Every (active) Gaussian gets at least ``min_size`` (default 1), even with no contribution.
 
     Args:
-      contrib_counts: (num_images, C) S_ij counts.
+      contrib_counts: (num_images, C) S_ij counts, or their :class:`ContributionCounts`.
       sigma: positive scale.
       max_size, min_size: bounds of the side (1 <= min_size <= max_size).
       active: optional (C,) mask; inactive Gaussians get side 0.
@@ -146,8 +226,8 @@ def initial_texture_sizes(contrib_counts, sigma: float, *, max_size: int = DEFAU
     """
     if not 1 <= min_size <= max_size:
         raise ValueError(f"need 1 <= min_size <= max_size, got {min_size}, {max_size}.")
-    _, act = _check_counts(contrib_counts, active)
-    side = np.clip(np.floor(contribution_sizes(contrib_counts, sigma) + 0.5), min_size, max_size)
+    S, act = _check_counts(contrib_counts, active)
+    side = np.clip(np.floor(contribution_sizes(S, sigma) + 0.5), min_size, max_size)
     return np.where(act, side, 0).astype(np.int64)
 
 
@@ -163,11 +243,17 @@ def total_texels(sides, active=None) -> int:
 
 
 def _log_budget_residual(log_sigma, args):
-    """log(total texels at sigma) - log(target), the function bisected (module-level: compiled once)."""
-    S, log_target, min_size, max_size = args
-    T = jnp.sum(jnp.log2(1.0 + S / jnp.exp(log_sigma)), axis=0)
+    """log(total texels at sigma) - log(target) on a column sample, the function bisected
+    (module-level: compiled once a sample size)."""
+    values, index, columns, fixed, log_target, min_size, max_size = args
+    T = jax.ops.segment_sum(jnp.log2(1.0 + values / jnp.exp(log_sigma)), index, num_segments=columns.shape[0])
     side = jnp.clip(jnp.floor(T + 0.5), min_size, max_size)
-    return jnp.log(jnp.sum(side * side)) - log_target
+    return jnp.log(jnp.sum(side * side) + fixed) - log_target
+
+
+#: Gaussians the sigma search bisects over before it checks the result on all of them (a larger
+#: scene is sampled: a random 65,536 of its contributing Gaussians give its total within ~1%).
+SOLVE_SAMPLE = 1 << 16
 
 
 def solve_sigma_for_budget(contrib_counts, target_texels: int, *, max_size: int = DEFAULT_MAX_SIZE,
@@ -176,11 +262,14 @@ def solve_sigma_for_budget(contrib_counts, target_texels: int, *, max_size: int 
 
     ``total(sigma) = sum_i initial_texture_sizes(S, sigma)_i^2`` is a non-increasing step function
     of sigma; its root in ``log(total / target)`` over log sigma is found with
-    ``optimistix.root_find`` and ``optimistix.Bisection``, then the bracket's end closest to the
-    target is returned.
+    ``optimistix.root_find`` and ``optimistix.Bisection`` on at most :data:`SOLVE_SAMPLE` of the
+    contributing Gaussians (all of them in a smaller scene; a sample's target is the target's share
+    of the sample), then checked on every Gaussian and, where the sample missed by more than
+    ``rtol``, bisected further on all of them from there. Each step costs O(non-zero counts), never
+    O(V C): at a million Gaussians and 200 views a few evaluations on all of them.
 
     Args:
-      contrib_counts: (num_images, C) S_ij counts.
+      contrib_counts: (num_images, C) S_ij counts, or their :class:`ContributionCounts`.
       target_texels: wanted ``sum_i side_i^2`` (e.g. from :func:`patexgs_jax.metrics.mb_to_texels`).
       max_size, min_size, active: as in :func:`initial_texture_sizes`.
       rtol: relative tolerance on the total (default 1%).
@@ -198,43 +287,98 @@ def solve_sigma_for_budget(contrib_counts, target_texels: int, *, max_size: int 
     if not target > 0:
         raise ValueError(f"target_texels must be positive, got {target_texels}.")
 
-    def total_np(sigma):
+    def total(sigma):
         return total_texels(initial_texture_sizes(S, sigma, max_size=max_size, min_size=min_size, active=act))
 
-    contributing = act & (S.sum(axis=0) > 0)
+    col_sum = S.column_sum()
+    contributing = act & (col_sum > 0)
+    n_contrib, n_rest = int(contributing.sum()), int(np.sum(act & ~contributing))
     lo_total = int(np.sum(act)) * min_size**2
-    hi_total = int(np.sum(contributing)) * max_size**2 + int(np.sum(act & ~contributing)) * min_size**2
+    hi_total = n_contrib * max_size**2 + n_rest * min_size**2
     if not lo_total * (1 - rtol) <= target <= hi_total * (1 + rtol):
         raise ValueError(f"target of {target_texels} texels is unreachable: the Eq. 7 allocation holds "
                          f"between {lo_total} (every Gaussian at side {min_size}) and {hi_total} texels "
                          f"(every contributing Gaussian at side {max_size}).")
-    if not contributing.any():
+    if not n_contrib:
         return 1.0
     # Bracket: at sigma_lo every contributing Gaussian has T >= max_size + 1/2; at sigma_hi all T < 1/2.
-    s_min = S[:, contributing].max(axis=0).min()
+    s_min = S.column_max()[contributing].min()
     sigma_lo = s_min / (2.0 ** (max_size + 0.5) - 1.0) / 2.0
-    sigma_hi = 4.0 * S.sum(axis=0).max() / np.log(2.0) + 1.0
+    sigma_hi = 4.0 * col_sum.max() / np.log(2.0) + 1.0
     # total(sigma_lo) = hi_total and total(sigma_hi) = lo_total: targets near the ends need no search.
     if abs(hi_total - target) <= rtol * target:
         return float(sigma_lo)
     if abs(lo_total - target) <= rtol * target:
         return float(sigma_hi)
 
-    args = (jnp.asarray(S[:, act], jnp.float32), jnp.float32(np.log(target)), jnp.float32(min_size),
-            jnp.float32(max_size))
+    # The bisection on a sample of the contributing Gaussians (the others hold min_size^2 each).
+    cols = np.flatnonzero(contributing)
+    share = 1.0
+    if cols.size > SOLVE_SAMPLE:
+        share = SOLVE_SAMPLE / cols.size
+        cols = np.sort(np.random.default_rng(0).choice(cols, SOLVE_SAMPLE, replace=False))
+    sample = S.columns(cols)
+    # Shapes padded to powers of two, so that scenes of similar sizes share one compiled bisection:
+    # a padded count (0 at Gaussian 0) adds log2(1) = 0; a padded column holds min_size^2, taken off.
+    nnz, m = _next_pow2(sample.values.size), _next_pow2(cols.size)
+    values = np.zeros(nnz, np.float32)
+    values[: sample.values.size] = sample.values
+    index = np.zeros(nnz, np.int32)
+    index[: sample.index.size] = sample.index
+    fixed = share * n_rest * min_size**2 - (m - cols.size) * min_size**2
+    args = (jnp.asarray(values), jnp.asarray(index), jnp.zeros(m, jnp.float32), jnp.float32(fixed),
+            jnp.float32(np.log(share * target)), jnp.float32(min_size), jnp.float32(max_size))
     solver = optx.Bisection(rtol=0.0, atol=float(np.log1p(rtol)) / 4)
     y0 = jnp.float32(0.5 * (np.log(sigma_lo) + np.log(sigma_hi)))
     sol = optx.root_find(_log_budget_residual, solver, y0, args,
                          options=dict(lower=np.log(sigma_lo), upper=np.log(sigma_hi)),
                          max_steps=max_steps, throw=False)
     candidates = [float(np.exp(sol.value)), float(np.exp(sol.state.lower)), float(np.exp(sol.state.upper))]
-    totals = [total_np(s) for s in candidates]
+    if share == 1.0:  # the whole scene: the bracket's ends are the closest sigmas found
+        totals = [total(c) for c in candidates]
+    else:  # a sample: its root, checked (and refined) on every Gaussian
+        candidates, totals = candidates[:1], [total(candidates[0])]
+        _refine(total, target, rtol, candidates, totals, np.log(sigma_lo), np.log(sigma_hi))
     best = int(np.argmin([abs(t - target) for t in totals]))
     if abs(totals[best] - target) > rtol * target:
         raise ValueError(f"no sigma gives {target_texels} texels within {rtol:.1%}: the allocation jumps "
                          f"from {max(totals)} to {min(totals)} texels near sigma = {candidates[best]:.6g} "
                          "(too few Gaussians for this tolerance?).")
     return candidates[best]
+
+
+def _next_pow2(x: int) -> int:
+    return 1 if x <= 1 else 1 << (int(x) - 1).bit_length()
+
+
+def _refine(total, target: float, rtol: float, candidates: list, totals: list, log_lo: float, log_hi: float,
+            max_evals: int = 40) -> None:
+    """Bisects ``log sigma`` on the whole scene from the sample's root ``candidates[0]`` until a total
+    is within ``rtol`` of ``target``, appending every sigma tried and its total. The bracket grows
+    from the root by doubling steps (the sample's root is usually within 1% already: one evaluation)."""
+    x = float(np.log(candidates[0]))
+    if abs(totals[0] - target) <= rtol * target:
+        return
+    up = totals[0] > target  # too many texels: sigma must grow
+    lo_, hi_ = (x, None) if up else (None, x)
+    step = 0.01
+    for _ in range(max_evals):
+        if lo_ is not None and hi_ is not None:
+            mid = 0.5 * (lo_ + hi_)
+        else:
+            mid = min(x + step, log_hi) if up else max(x - step, log_lo)
+            step *= 2.0
+        t = total(float(np.exp(mid)))
+        candidates.append(float(np.exp(mid)))
+        totals.append(t)
+        if abs(t - target) <= rtol * target:
+            return
+        if t > target:
+            lo_ = mid
+        else:
+            hi_ = mid
+        if lo_ is not None and hi_ is not None and hi_ - lo_ < 1e-7:
+            return
 
 
 # =============================================================================================

@@ -321,12 +321,8 @@ def _load_sidecar(path: Path, n: int, crc: int, capacity: int):
                                      f"({total}, {ch}).")
             if not np.all(np.isfinite(texels)):
                 raise PlyFormatError(f"{sc}: non-finite {name} texels.")
-            offsets = np.concatenate([[0], np.cumsum(sizes * sizes)])
-            textures = [None if s == 0 else texels[offsets[i]:offsets[i + 1]].reshape(s, s, ch)
-                        for i, s in enumerate(sizes)]
-            textures += [None] * (capacity - n)
-            banks.append(TextureBank.from_list(textures, capacity, ch, 0.0 if ch == 3 else 1.0,
-                                               min_buckets=int(d[f"{name}_num_buckets"])))
+            banks.append(TextureBank.from_packed(sizes, texels, capacity, ch,
+                                                 min_buckets=int(d[f"{name}_num_buckets"])))
     except KeyError as e:
         raise PlyFormatError(f"{sc}: texture sidecar lacks the entry {e}.") from None
     except (TypeError, ValueError) as e:

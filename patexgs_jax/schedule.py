@@ -165,14 +165,14 @@ class TextureSchedule:
         """Eqs. 6-7 at ``step``: contribution counts over all training views -> initial sizes (or
         N x N for every Gaussian, ``patexgs-fixed-N``)."""
         scene = state.scene
-        counts = []
         programs, self.programs = self.programs, None
         with padding.ViewRenderer(scene, self.render_config, programs=programs) as renderer:
             renderer.prepare([v.camera for v in self.train_views])
-            for v in self.train_views:
-                counts.append(np.asarray(renderer(v.camera).max_contrib_count))
+            # Kept sparse, one view at a time: a dense (views, C) stack is GBs at the paper's scale.
+            counts = adaptive.ContributionCounts.from_views(
+                (np.asarray(renderer(v.camera).max_contrib_count) for v in self.train_views), scene.capacity)
         act = np.asarray(scene.active) > 0
-        sides, sigma, budget = self.allocation_sides(np.stack(counts), act)
+        sides, sigma, budget = self.allocation_sides(counts, act)
         self.state = adaptive.TextureScheduleState.create(sides)
         scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                               min_spare=TEXTURE_MIN_SPARE)
@@ -187,8 +187,9 @@ class TextureSchedule:
                  f"{_texels(sides, act)} texels")
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(scene.capacity))
 
-    def allocation_sides(self, S: np.ndarray, act: np.ndarray) -> tuple[np.ndarray, float | None, int | None]:
-        """Eq. 7's texture sides from the contribution counts ``S`` (V, C) of the active Gaussians
+    def allocation_sides(self, S, act: np.ndarray) -> tuple[np.ndarray, float | None, int | None]:
+        """Eq. 7's texture sides from the contribution counts ``S`` ((V, C), or their
+        :class:`patexgs_jax.adaptive.ContributionCounts`) of the active Gaussians
         ``act`` (C,): (sides (C,) int64, sigma (None for ``patexgs-fixed-N``), the texel budget or
         None). Pure: also what a speculative allocation compiles ahead for
         (:meth:`patexgs_jax.training.compile_ahead.CompileAhead.prepare`)."""

@@ -107,11 +107,10 @@ class TextureBank:
           min_buckets: build at least this many buckets (zero-capacity ones included).
         """
         del default
-        sizes = np.zeros(capacity, np.int64)
+        sizes = np.zeros(len(textures), np.int64)
         arrays = []
         for i, t in enumerate(textures):
             if t is None:
-                arrays.append(None)
                 continue
             t = np.asarray(t, np.float32)
             if channels == 1 and t.ndim == 2:
@@ -122,22 +121,53 @@ class TextureBank:
             if not np.all(np.isfinite(t)):
                 raise ValueError(f"texture of Gaussian {i} has non-finite texels.")
             sizes[i] = t.shape[0]
-            arrays.append(t)
-        nb = max([bucket_of(int(s)) + 1 for s in sizes if s > 0] + [min_buckets])
-        counts = [0] * nb
-        bucket = -np.ones(capacity, np.int64)
+            arrays.append(t.reshape(-1, channels))
+        texels = np.concatenate(arrays) if arrays else np.zeros((0, channels), np.float32)
+        return cls.from_packed(sizes, texels, capacity, channels, min_buckets)
+
+    @classmethod
+    def from_packed(cls, sizes, texels, capacity: int, channels: int, min_buckets: int = 0) -> TextureBank:
+        """Packs textures given back to back into buckets, without a loop over Gaussians.
+
+        The layout is :meth:`from_list`'s: Gaussian i (in order) takes the next slot of its bucket,
+        and a bucket's capacity is the power of two at or above its count.
+
+        Args:
+          sizes: (N,) int sides, N <= capacity (0: no texture).
+          texels: (sum sizes**2, channels) float32: the textures in Gaussian order, each row-major
+            (texel [a, c] of Gaussian i at row ``offset_i + a * n_i + c``), as the PLY sidecar stores them.
+          capacity: the scene's Gaussian capacity C.
+          channels: 3 or 1.
+          min_buckets: build at least this many buckets (zero-capacity ones included).
+        """
+        n_in = np.asarray(sizes).astype(np.int64)
+        if n_in.ndim != 1 or n_in.shape[0] > capacity or np.any(n_in < 0):
+            raise ValueError(f"sizes must be (N,) non-negative with N <= capacity {capacity}, got shape "
+                             f"{n_in.shape}.")
+        texels = np.asarray(texels, np.float32).reshape(-1, channels)
+        total = int(np.sum(n_in * n_in))
+        if texels.shape[0] != total:
+            raise ValueError(f"texels has {texels.shape[0]} rows; the sizes need {total}.")
+        sizes = np.zeros(capacity, np.int64)
+        sizes[: n_in.shape[0]] = n_in
+        has = sizes > 0
+        # bucket ceil(log2 n) = bit_length(n - 1): frexp's exponent of n - 1 (exact for n < 2**53).
+        bucket = np.where(has, np.frexp(np.maximum(sizes - 1, 0).astype(np.float64))[1], -1).astype(np.int64)
+        nb = max(int(bucket.max(initial=-1)) + 1, int(min_buckets))
+        counts = np.bincount(bucket[has], minlength=nb)
+        # slot: the Gaussian's rank among those of its bucket, in index order (a stable sort).
+        idx = np.flatnonzero(has)
+        order = idx[np.argsort(bucket[idx], kind="stable")]
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
         slot = np.zeros(capacity, np.int64)
-        for i, s in enumerate(sizes):
-            if s > 0:
-                b = bucket_of(int(s))
-                bucket[i], slot[i] = b, counts[b]
-                counts[b] += 1
-        caps = [0 if c == 0 else 1 << (c - 1).bit_length() for c in counts]
+        slot[order] = np.arange(order.size) - starts[bucket[order]]
+        caps = [0 if c == 0 else 1 << (int(c) - 1).bit_length() for c in counts]
         data = [np.zeros((caps[b], 1 << b, 1 << b, channels), np.float32) for b in range(nb)]
-        for i, t in enumerate(arrays):
-            if t is not None:
-                n = t.shape[0]
-                data[bucket[i]][slot[i], :n, :n] = t
+        offsets = np.concatenate([[0], np.cumsum(sizes * sizes)])
+        for n in np.unique(sizes[has]):
+            sel = np.flatnonzero(sizes == n)
+            rows = offsets[sel][:, None] + np.arange(n * n)[None, :]
+            data[bucket_of(int(n))][slot[sel], :n, :n] = texels[rows].reshape(sel.size, n, n, channels)
         return cls(buckets=tuple(jnp.asarray(d) for d in data),
                    bucket=jnp.asarray(bucket, jnp.float32), slot=jnp.asarray(slot, jnp.float32),
                    size=jnp.asarray(sizes, jnp.float32), channels=channels)

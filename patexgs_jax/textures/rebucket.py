@@ -128,7 +128,8 @@ def resample_texture(tex, n_out: int) -> np.ndarray:
     if tex.ndim < 3 or tex.shape[-3] != tex.shape[-2]:
         raise ValueError(f"textures must have shape (..., n, n, ch), got {tex.shape}.")
     R = resample_matrix(tex.shape[-3], n_out)
-    return np.einsum("ma,...abc,nb->...mnc", R, tex, R).astype(np.float32)
+    # optimize: two BLAS contractions (R X, then X R^T) instead of one loop over all four indices.
+    return np.einsum("ma,...abc,nb->...mnc", R, tex, R, optimize=True).astype(np.float32)
 
 
 # =============================================================================================
@@ -223,7 +224,7 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
     # ceil(log2 n) = bit_length(n - 1) = frexp(n - 1) exponent; -1 for no texture.
     new_bucket = np.where(new_size > 0, np.frexp(np.maximum(new_size - 1, 0).astype(np.float64))[1], -1)
     new_bucket = new_bucket.astype(np.int64)
-    nb = max([bank.num_buckets] + [int(b) + 1 for b in new_bucket if b >= 0])
+    nb = max(bank.num_buckets, int(new_bucket.max(initial=-1)) + 1)
     old_caps = list(bank.capacities) + [0] * (nb - bank.num_buckets)
     counts = np.bincount(new_bucket[new_bucket >= 0], minlength=nb)
     if all(int(c) <= cap for c, cap in zip(counts, old_caps)):
@@ -246,24 +247,44 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
 
 
 def _apply_plan(plan: _BankPlan, old_buckets, fresh_value: float | np.ndarray):
-    """New bucket arrays (list of float32 numpy) from old ones following ``plan``."""
+    """New bucket arrays (list of float32 numpy) from old ones following ``plan``.
+
+    Where the layout is kept (every bucket's capacity unchanged: a growth event that fits its
+    headroom), each bucket is copied whole (one memcpy) and only the slots that change are written:
+    the textures that were resized, appeared or arrived, and the slots they left (zeroed). Otherwise
+    the buckets are made afresh and every stayer is copied to its new slot. Textures are resampled
+    in groups of one (old side, new side) pair."""
     old = [np.asarray(b) for b in old_buckets]
     ch = plan.channels
-    new = [np.zeros((cap, 1 << b, 1 << b, ch), np.float32) for b, cap in enumerate(plan.capacities)]
     n_old, n_new = plan.old_size, plan.new_size
     same = (n_new > 0) & (n_new == n_old)
-    for b in range(len(new)):
-        idx = np.flatnonzero(same & (plan.new_bucket == b))
-        if idx.size:
-            new[b][plan.new_slot[idx]] = old[b][plan.old_slot[idx]]  # bit-exact, padding included
+    kept = len(old) == len(plan.capacities) and all(o.shape[0] == c for o, c in zip(old, plan.capacities))
+    if kept:
+        new = [np.array(o, np.float32) for o in old]  # a writeable copy, padding included
+        unmoved = same & (plan.new_bucket == plan.old_bucket) & (plan.new_slot == plan.old_slot)
+        left = (n_old > 0) & (plan.old_bucket >= 0) & ~unmoved
+        for b in np.unique(plan.old_bucket[left]):
+            new[b][plan.old_slot[left & (plan.old_bucket == b)]] = 0.0
+        moved = same & ~unmoved
+    else:
+        new = [np.zeros((cap, 1 << b, 1 << b, ch), np.float32) for b, cap in enumerate(plan.capacities)]
+        moved = same
+    for b in np.unique(plan.new_bucket[moved]):
+        idx = np.flatnonzero(moved & (plan.new_bucket == b))
+        new[b][plan.new_slot[idx]] = old[b][plan.old_slot[idx]]  # bit-exact, padding included
     changed = (n_new > 0) & (n_new != n_old)
+    if kept:  # a changed texture's whole slot is rewritten: its padding must be zeros
+        for b in np.unique(plan.new_bucket[changed]):
+            new[b][plan.new_slot[changed & (plan.new_bucket == b)]] = 0.0
     fresh = changed & (n_old == 0)
     for m in np.unique(n_new[fresh]):
         idx = np.flatnonzero(fresh & (n_new == m))
         new[bucket_of(m)][plan.new_slot[idx], :m, :m] = fresh_value
     resampled = changed & (n_old > 0)
-    pairs = np.stack([n_old[resampled], n_new[resampled]], axis=1) if resampled.any() else np.zeros((0, 2))
-    for n, m in np.unique(pairs, axis=0).astype(np.int64):
+    # One group per (n, m) pair, found by a 1-D unique of n * 2^20 + m (unique over rows sorts slowly).
+    codes = n_old[resampled] * (1 << 20) + n_new[resampled]
+    for code in np.unique(codes):
+        n, m = int(code >> 20), int(code & ((1 << 20) - 1))
         idx = np.flatnonzero(resampled & (n_old == n) & (n_new == m))
         src = old[bucket_of(n)][plan.old_slot[idx], :n, :n]
         new[bucket_of(m)][plan.new_slot[idx], :m, :m] = resample_texture(src, m)

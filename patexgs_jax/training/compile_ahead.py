@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import ahead, interrupt, padding
+from ..adaptive import ContributionCounts
 from ..optim import make_optimizer
 from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
@@ -270,7 +271,8 @@ class CompileAhead:
                 # released after (the main thread's Eq. 7 shares them).
                 renderer = padding.ViewRenderer(scene, render_cfg, programs=eq7_job.value)
                 renderer.prepare([v.camera for v in self.run.train_views])
-                counts = np.stack([np.asarray(renderer(v.camera).max_contrib_count) for v in self.run.train_views])
+                counts = ContributionCounts.from_views(
+                    (np.asarray(renderer(v.camera).max_contrib_count) for v in self.run.train_views), scene.capacity)
                 sides, _, _ = stage.allocation_sides(counts, np.asarray(scene.active) > 0)
                 new_scene, new_opt, _ = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                                         min_spare=TEXTURE_MIN_SPARE)

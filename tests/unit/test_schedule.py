@@ -20,7 +20,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
+from patexgs_jax import adaptive
 from patexgs_jax.adaptive import (
+    ContributionCounts,
     GrowthSchedule,
     TextureScheduleState,
     contribution_sizes,
@@ -494,6 +496,51 @@ def test_solve_sigma_hits_budget(seed):
         solve_sigma_for_budget(S, hi * 2)
     with pytest.raises(ValueError, match="unreachable"):
         solve_sigma_for_budget(S, lo // 2)
+
+
+def _sparse_counts(rng, J, C, seen=0.3):
+    visible = rng.uniform(size=(J, C)) < seen
+    return (rng.poisson(rng.lognormal(3.0, 1.5, (1, C)), (J, C)) * visible).astype(np.float64)
+
+
+def test_contribution_counts_keep_only_nonzeros_and_match_the_dense_sums():
+    rng = np.random.default_rng(0)
+    S = _sparse_counts(rng, 7, 500)
+    S[:, :9] = 0  # never the top contributor
+    sp = ContributionCounts.from_dense(S)
+    assert sp.values.size == np.count_nonzero(S) and sp.num_views == 7 and sp.capacity == 500
+    streamed = ContributionCounts.from_views((row.astype(np.int32) for row in S), 500)
+    for sigma in (0.3, 17.0, 4e3):
+        want = np.sum(np.log2(1.0 + S / sigma), axis=0)  # Eq. 7 written out, dense, float64
+        np.testing.assert_allclose(sp.sizes(sigma), want, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(streamed.sizes(sigma), want, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(contribution_sizes(sp, sigma), contribution_sizes(S, sigma), rtol=1e-12)
+        np.testing.assert_array_equal(initial_texture_sizes(sp, sigma), initial_texture_sizes(S, sigma))
+    np.testing.assert_array_equal(sp.column_max(), S.max(axis=0))
+    np.testing.assert_allclose(sp.column_sum(), S.sum(axis=0))
+    keep = np.array([3, 10, 11, 400])
+    np.testing.assert_allclose(sp.columns(keep).sizes(5.0), np.sum(np.log2(1 + S[:, keep] / 5.0), axis=0))
+    with pytest.raises(ValueError, match="non-negative"):
+        ContributionCounts.from_views([np.array([1.0, -2.0])])
+    with pytest.raises(ValueError, match=r"shape \(C,\)"):
+        ContributionCounts.from_views([np.zeros(3), np.zeros(4)])
+    with pytest.raises(ValueError, match="num_images, C"):
+        ContributionCounts.from_dense(np.zeros(5))
+
+
+def test_solve_sigma_on_a_sample_then_checked_on_every_gaussian(monkeypatch):
+    """A scene larger than the bisection's sample: its sigma still holds the budget on all Gaussians
+    (the sample's root is checked on all of them and, where it misses, refined there)."""
+    monkeypatch.setattr(adaptive, "SOLVE_SAMPLE", 256)
+    rng = np.random.default_rng(5)
+    S = _sparse_counts(rng, 6, 6000)
+    act = rng.uniform(size=6000) < 0.95
+    lo = total_texels(initial_texture_sizes(S, 1e9, active=act))
+    hi = total_texels(initial_texture_sizes(S, 1e-9, active=act))
+    for target in (int(lo * 1.3), int(np.sqrt(lo * hi)), int(hi * 0.5)):
+        sigma = solve_sigma_for_budget(ContributionCounts.from_dense(S), target, active=act)
+        got = total_texels(initial_texture_sizes(S, sigma, active=act))
+        assert abs(got - target) <= 0.01 * target, (got, target)
 
 
 def test_solve_sigma_reports_unreachable_tolerance():
