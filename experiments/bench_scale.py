@@ -225,8 +225,11 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
                     rows_.append(np.asarray(renderer(v.camera).max_contrib_count, np.float32))
             counts = np.stack(rows_)
             note["contributing"] = int((counts.sum(axis=0) > 0).sum())
-    if counts is None:  # stand-in counts with the same sparsity as a view sees a third of the box
-        counts = np.where(rng.random((num_views, C)) < 0.3, rng.geometric(0.05, (num_views, C)), 0).astype(np.float32)
+    if counts is None:  # stand-ins: a fifth of a view's pixels' top contributors, 5 pixels each on average
+        counts = np.zeros((num_views, C), np.float32)
+        k = min(int(active.sum()), width * height // 5)
+        for j in range(num_views):
+            counts[j, rng.choice(np.flatnonzero(active), k, replace=False)] = rng.geometric(0.2, k)
     # A capture of eq7_views views: the rendered rows repeated, each repeat's columns permuted.
     perms = [np.arange(C)] + [rng.permutation(C) for _ in range(min(eq7_views, 8) - 1)]
 

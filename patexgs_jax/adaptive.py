@@ -98,36 +98,41 @@ class ContributionCounts:
     with :meth:`from_dense`; every Eq. 7 function takes either form.
 
     Attributes:
-      values: (nnz,) float32, the non-zero S_ij (pixel counts: exact in float32 up to 2**24).
-      index: (nnz,) int32 (int64 from 2**31 Gaussians), the Gaussian i of each.
-      num_views: V.
+      values: (nnz,) float32, the non-zero S_ij, view by view (pixel counts: exact in float32 up to 2**24).
+      index: (nnz,) int32 (int64 from 2**31 Gaussians), the Gaussian i of each (increasing within a view).
+      offsets: (V + 1,) int64: view j's counts are ``values[offsets[j]:offsets[j + 1]]``.
       capacity: C.
     """
 
     values: np.ndarray
     index: np.ndarray
-    num_views: int
+    offsets: np.ndarray
     capacity: int
+
+    @property
+    def num_views(self) -> int:
+        return int(self.offsets.shape[0]) - 1
 
     @classmethod
     def from_views(cls, rows, capacity: int | None = None) -> ContributionCounts:
         """From an iterable of (C,) per-view counts (e.g. each view's ``max_contrib_count``)."""
-        values, index, V, C = [], [], 0, capacity
+        values, index, C = [], [], capacity
         for row in rows:
             r = np.asarray(row)
             if r.ndim != 1 or (C is not None and r.shape[0] != C):
                 raise ValueError(f"each view's counts must have shape (C,) = ({C},), got {r.shape}.")
             C = r.shape[0]
-            if r.dtype.kind not in "iuf" or not np.all(np.isfinite(r)) or np.any(r < 0):
+            bad = r.dtype.kind not in "iuf" or (r.dtype.kind == "f" and not np.all(np.isfinite(r)))
+            if bad or r.min(initial=0) < 0:
                 raise ValueError("contrib_counts must be finite and non-negative (pixel counts S_ij).")
             nz = np.flatnonzero(r)
             values.append(r[nz].astype(np.float32))
             index.append(nz.astype(np.int32 if C < 2**31 else np.int64))
-            V += 1
         if C is None:
             raise ValueError("contrib_counts holds no view.")
+        offsets = np.concatenate([[0], np.cumsum([v.size for v in values], dtype=np.int64)]).astype(np.int64)
         return cls(np.concatenate(values) if values else np.zeros(0, np.float32),
-                   np.concatenate(index) if index else np.zeros(0, np.int32), V, int(C))
+                   np.concatenate(index) if index else np.zeros(0, np.int32), offsets, int(C))
 
     @classmethod
     def from_dense(cls, S) -> ContributionCounts:
@@ -137,13 +142,21 @@ class ContributionCounts:
             raise ValueError(f"contrib_counts must have shape (num_images, C), got {S.shape}.")
         return cls.from_views(S, S.shape[1])
 
+    def _views(self):
+        for j in range(self.num_views):
+            a, b = int(self.offsets[j]), int(self.offsets[j + 1])
+            yield self.index[a:b], self.values[a:b]
+
     def columns(self, keep: np.ndarray) -> ContributionCounts:
         """The counts of the Gaussians ``keep`` (a sorted (M,) index array), renumbered 0..M-1."""
         pos = np.full(self.capacity, -1, np.int64)
         pos[keep] = np.arange(keep.size)
         new = pos[self.index]
         sel = new >= 0
-        return ContributionCounts(self.values[sel], new[sel].astype(np.int32), self.num_views, int(keep.size))
+        per_view = np.add.reduceat(sel, self.offsets[:-1]) if sel.size else np.zeros(self.num_views, np.int64)
+        per_view = np.where(np.diff(self.offsets) > 0, per_view, 0)  # reduceat of an empty view reads the next
+        offsets = np.concatenate([[0], np.cumsum(per_view)]).astype(np.int64)
+        return ContributionCounts(self.values[sel], new[sel].astype(np.int32), offsets, int(keep.size))
 
     def column_sum(self) -> np.ndarray:
         """(C,) float64: ``sum_j S_ij``."""
@@ -152,8 +165,8 @@ class ContributionCounts:
     def column_max(self) -> np.ndarray:
         """(C,) float64: ``max_j S_ij`` (0 where never counted)."""
         out = np.zeros(self.capacity, np.float64)
-        order = np.argsort(self.values, kind="stable")
-        out[self.index[order]] = self.values[order]  # ascending: a repeated index keeps its last, largest
+        for idx, val in self._views():  # a Gaussian appears once a view: plain fancy indexing is exact
+            out[idx] = np.maximum(out[idx], val)
         return out
 
     def sizes(self, sigma: float) -> np.ndarray:

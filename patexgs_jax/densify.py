@@ -223,11 +223,18 @@ def _fill_value(field: str, moments: bool):
 
 
 def _take(a, src, fill):
+    """``a[src]`` with ``fill`` where ``src < 0``. ``src`` is mostly the identity (a densification
+    moves a few percent of the rows): the rows are copied whole and only the others gathered."""
     a = np.asarray(a)
-    out = np.empty((src.shape[0],) + a.shape[1:], a.dtype)
-    ok = src >= 0
-    out[ok] = a[src[ok]]
-    out[~ok] = fill
+    n, m = src.shape[0], min(src.shape[0], a.shape[0])
+    out = np.empty((n,) + a.shape[1:], a.dtype)
+    out[:m] = a[:m]
+    out[m:] = fill
+    moved = np.flatnonzero(src != np.arange(n))
+    from_row = src[moved]
+    ok = from_row >= 0
+    out[moved[ok]] = a[from_row[ok]]
+    out[moved[~ok]] = fill
     return out
 
 

@@ -246,48 +246,119 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
                      bank.channels)
 
 
-def _apply_plan(plan: _BankPlan, old_buckets, fresh_value: float | np.ndarray):
-    """New bucket arrays (list of float32 numpy) from old ones following ``plan``.
+def _groups(rows: np.ndarray, n_old: np.ndarray, n_new: np.ndarray):
+    """``(n, m, idx)`` for each (old side, new side) pair among ``rows``, sorted once by n * 2^20 + m
+    (a unique over (n, m) rows sorts slowly)."""
+    codes = n_old[rows] * (1 << 20) + n_new[rows]
+    order = np.argsort(codes, kind="stable")
+    rows, codes = rows[order], codes[order]
+    starts = np.flatnonzero(np.r_[True, codes[1:] != codes[:-1]]) if rows.size else np.zeros(0, np.int64)
+    for a, b in zip(starts, np.r_[starts[1:], rows.size].astype(np.int64)):
+        yield int(codes[a] >> 20), int(codes[a] & ((1 << 20) - 1)), rows[a:b]
 
-    Where the layout is kept (every bucket's capacity unchanged: a growth event that fits its
-    headroom), each bucket is copied whole (one memcpy) and only the slots that change are written:
-    the textures that were resized, appeared or arrived, and the slots they left (zeroed). Otherwise
-    the buckets are made afresh and every stayer is copied to its new slot. Textures are resampled
-    in groups of one (old side, new side) pair."""
+
+def _new_texels(n: int, m: int, src, fresh_value) -> np.ndarray:
+    """(k, m, m, ch) texels of k textures going from side n to m; ``src`` (k, n, n, ch) their old
+    texels (unused for n = 0: new textures take ``fresh_value``)."""
+    if n == 0:
+        return np.broadcast_to(np.asarray(fresh_value, np.float32), (src.shape[0], m, m, src.shape[-1]))
+    if n == 1:  # a constant stays one: no resampling needed
+        return np.broadcast_to(np.asarray(src, np.float32), (src.shape[0], m, m, src.shape[-1]))
+    return resample_texture(src, m)
+
+
+def _apply_plan(plan: _BankPlan, old_buckets, fresh_value: float | np.ndarray):
+    """New bucket arrays from old ones following ``plan``: the layout made afresh (numpy arrays,
+    every stayer copied to its new slot), or, where it is kept, :func:`_apply_plan_in_place`."""
+    kept = len(old_buckets) == len(plan.capacities) and all(
+        o.shape[0] == c for o, c in zip(old_buckets, plan.capacities))
+    if kept:
+        return _apply_plan_in_place(plan, old_buckets, fresh_value)
     old = [np.asarray(b) for b in old_buckets]
     ch = plan.channels
     n_old, n_new = plan.old_size, plan.new_size
+    new = [np.zeros((cap, 1 << b, 1 << b, ch), np.float32) for b, cap in enumerate(plan.capacities)]
     same = (n_new > 0) & (n_new == n_old)
-    kept = len(old) == len(plan.capacities) and all(o.shape[0] == c for o, c in zip(old, plan.capacities))
-    if kept:
-        new = [np.array(o, np.float32) for o in old]  # a writeable copy, padding included
-        unmoved = same & (plan.new_bucket == plan.old_bucket) & (plan.new_slot == plan.old_slot)
-        left = (n_old > 0) & (plan.old_bucket >= 0) & ~unmoved
-        for b in np.unique(plan.old_bucket[left]):
-            new[b][plan.old_slot[left & (plan.old_bucket == b)]] = 0.0
-        moved = same & ~unmoved
-    else:
-        new = [np.zeros((cap, 1 << b, 1 << b, ch), np.float32) for b, cap in enumerate(plan.capacities)]
-        moved = same
+    for b in np.unique(plan.new_bucket[same]):
+        idx = np.flatnonzero(same & (plan.new_bucket == b))
+        new[b][plan.new_slot[idx]] = old[b][plan.old_slot[idx]]  # bit-exact, padding included
+    for n, m, idx in _groups(np.flatnonzero((n_new > 0) & (n_new != n_old)), n_old, n_new):
+        src = np.zeros((idx.size, 1, 1, ch), np.float32) if n == 0 else old[bucket_of(n)][plan.old_slot[idx], :n, :n]
+        new[bucket_of(m)][plan.new_slot[idx], :m, :m] = _new_texels(n, m, src, fresh_value)
+    return new
+
+
+def _pad_pow2(x: np.ndarray, fill, floor: int = 64) -> np.ndarray:
+    """``x`` padded along its first axis to a power of two (at least ``floor``) with ``fill``: it bounds
+    the shapes, so that the programs below compile a few times in a run, not once an event."""
+    k = x.shape[0]
+    size = max(floor, 1 if k <= 1 else 1 << (k - 1).bit_length())
+    out = np.empty((size,) + x.shape[1:], x.dtype)
+    out[:k] = x
+    out[k:] = fill
+    return out
+
+
+@jax.jit
+def _take_slots(bucket, slots):
+    """(k, P, P, ch) slots of a bucket; ``slots`` (k,) int32 (padding reads slot 0)."""
+    return jnp.take(bucket, slots, axis=0, mode="clip")
+
+
+@jax.jit
+def _set_slots(bucket, slots, blocks):
+    """The bucket with ``blocks`` (k, P, P, ch) at ``slots`` (k,) int32; a slot >= the capacity (the
+    padding) writes nothing."""
+    return bucket.at[slots].set(blocks, mode="drop", unique_indices=False)
+
+
+def _apply_plan_in_place(plan: _BankPlan, old_buckets, fresh_value):
+    """The layout kept (a growth event within the headroom): the buckets stay on the device and only
+    the slots that change are read and written there (a few percent of them), instead of a copy of
+    every bucket through the host. Written: the textures resized, new or arrived (their whole slot,
+    zero padding included) and the slots left (zeros); every other slot is unchanged, bit for bit."""
+    ch = plan.channels
+    n_old, n_new = plan.old_size, plan.new_size
+    unmoved = (n_new > 0) & (n_new == n_old) & (plan.new_bucket == plan.old_bucket) & (plan.new_slot == plan.old_slot)
+    writes: dict[int, tuple[list, list]] = {}  # bucket -> (slot arrays, block arrays)
+
+    def write(b, slots, blocks):
+        writes.setdefault(int(b), ([], []))
+        writes[int(b)][0].append(slots)
+        writes[int(b)][1].append(blocks)
+
+    def read(b, slots):
+        got = _take_slots(old_buckets[b], jnp.asarray(_pad_pow2(slots.astype(np.int32), 0)))
+        return np.asarray(got)[: slots.size]
+
+    # Slots left behind (the texture moved, was resized into another slot or removed): zeros.
+    left = (n_old > 0) & (plan.old_bucket >= 0) & ~unmoved
+    for b in np.unique(plan.old_bucket[left]):
+        slots = plan.old_slot[left & (plan.old_bucket == b)]
+        P = 1 << int(b)
+        write(b, slots, np.zeros((slots.size, P, P, ch), np.float32))
+    moved = (n_new > 0) & (n_new == n_old) & ~unmoved
     for b in np.unique(plan.new_bucket[moved]):
         idx = np.flatnonzero(moved & (plan.new_bucket == b))
-        new[b][plan.new_slot[idx]] = old[b][plan.old_slot[idx]]  # bit-exact, padding included
-    changed = (n_new > 0) & (n_new != n_old)
-    if kept:  # a changed texture's whole slot is rewritten: its padding must be zeros
-        for b in np.unique(plan.new_bucket[changed]):
-            new[b][plan.new_slot[changed & (plan.new_bucket == b)]] = 0.0
-    fresh = changed & (n_old == 0)
-    for m in np.unique(n_new[fresh]):
-        idx = np.flatnonzero(fresh & (n_new == m))
-        new[bucket_of(m)][plan.new_slot[idx], :m, :m] = fresh_value
-    resampled = changed & (n_old > 0)
-    # One group per (n, m) pair, found by a 1-D unique of n * 2^20 + m (unique over rows sorts slowly).
-    codes = n_old[resampled] * (1 << 20) + n_new[resampled]
-    for code in np.unique(codes):
-        n, m = int(code >> 20), int(code & ((1 << 20) - 1))
-        idx = np.flatnonzero(resampled & (n_old == n) & (n_new == m))
-        src = old[bucket_of(n)][plan.old_slot[idx], :n, :n]
-        new[bucket_of(m)][plan.new_slot[idx], :m, :m] = resample_texture(src, m)
+        write(b, plan.new_slot[idx], read(b, plan.old_slot[idx]))
+    for n, m, idx in _groups(np.flatnonzero((n_new > 0) & (n_new != n_old)), n_old, n_new):
+        b = bucket_of(m)
+        P = 1 << b
+        src = (np.zeros((idx.size, 1, 1, ch), np.float32) if n == 0
+               else read(bucket_of(n), plan.old_slot[idx])[:, :n, :n])
+        block = np.zeros((idx.size, P, P, ch), np.float32)
+        block[:, :m, :m] = _new_texels(n, m, src, fresh_value)
+        write(b, plan.new_slot[idx], block)
+
+    new = list(old_buckets)
+    for b, (slot_parts, block_parts) in writes.items():
+        slots, blocks = np.concatenate(slot_parts), np.concatenate(block_parts)
+        # A slot both left and taken: the later write (the arrival) must win, so keep its last entry.
+        _, last = np.unique(slots[::-1], return_index=True)
+        keep = slots.size - 1 - last
+        cap = int(plan.capacities[b])
+        new[b] = _set_slots(old_buckets[b], jnp.asarray(_pad_pow2(slots[keep].astype(np.int32), cap)),
+                            jnp.asarray(_pad_pow2(blocks[keep], 0.0)))
     return new
 
 
