@@ -19,14 +19,16 @@ Builds a paper-scale state without training it and times each stage of a run on 
   texel budget (the real run's texels a Gaussian).
 * ``textures_start``: stage 2's first textures (:func:`~patexgs_jax.textures.rebucket.add_textures`).
 * ``eq8_10_growth``: one growth event's selection (Eqs. 8-10) from a gradient statistic, and
-  ``rebucket``: re-bucketing the grown textures with their Adam moments.
+  ``rebucket``: re-bucketing the grown textures with their Adam moments; ``rebucket_again``: a
+  second event (the first one compiles the programs that write a kept layout in place).
 * ``densify``: one densification step's bookkeeping (clone, split, prune; moments moved).
 * ``checkpoint_save`` / ``checkpoint_load``: the trainer's checkpoint of this state.
 * ``ply_export`` / ``ply_load``: the PLY and its texture sidecar.
 * ``eval_render_1/2/4/8``: one view rendered at full size and zoomed out by 2, 4, 8 (renders).
 * ``train_step_2dgs`` / ``train_step_textured``: one training step (forward + backward + Adam
   update) through the real trainer, its steady-state time (median of ``--steps`` after a first
-  that compiles) and peak memory.
+  that compiles) and peak memory, each in a fresh process (so that the peaks are the step's own:
+  the state, the step's buffers and compilation; ``process_seconds``: that process's whole time).
 
 Each row: ``event``, ``gaussians``, ``seconds``, ``host`` (true for host-side work), ``peak_rss_bytes``
 (the process's resident-memory high-water mark during that row, Linux's VmHWM reset before it) and,
@@ -286,11 +288,16 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
     with rows.time("eq8_10_growth", host=True) as note:
         state, new_sides, sel = state.step(grad, step, schedule, active=active)
         note["grown"] = int(sel.sum())
-    with rows.time("rebucket", host=True) as note:
-        scene, opt_state, info = resize_textures(scene, opt_state, new_sides, new_sides, headroom=TEXTURE_HEADROOM,
-                                                 min_spare=TEXTURE_MIN_SPARE)
-        _block((scene, opt_state))
-        note["recompiles"] = bool(info.shapes_changed)
+    # Two events: the first compiles the in-place programs of the layout, later ones reuse them.
+    for event in ("rebucket", "rebucket_again"):
+        if event == "rebucket_again":
+            grad = np.where(active, rng.exponential(schedule.tau_preset, C), 0.0)
+            state, new_sides, sel = state.step(grad, step + schedule.interval, schedule, active=active)
+        with rows.time(event, host=True) as note:
+            scene, opt_state, info = resize_textures(scene, opt_state, new_sides, new_sides,
+                                                     headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
+            _block((scene, opt_state))
+            note.update(grown=int(sel.sum()), layout_changed=bool(info.shapes_changed))
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_scale_"))
     try:
@@ -325,19 +332,69 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
                     _block(renderer(c).rgb)
 
     if "step" not in skip:
-        from experiments.bench_train import bench
-
-        plain = make_state(n)
-        for name, sc in (("2dgs", plain), ("tex8-mip-prefilter", scene)):
-            label = "train_step_2dgs" if name == "2dgs" else "train_step_textured"
-            with rows.time(label, host=False) as note:
-                r = bench(name, n, views, steps, scene=sc, compositor=None)
-            rows.rows[-1]["seconds"] = r["ms_per_step"] / 1e3
-            rows.rows[-1].update(first_step_s=r["first_step_s"], recompiles_steady=r["recompiles_steady"],
-                                 pairs_capacity=r["capacity"], compositor=r["compositor"])
+        for kind in ("2dgs", "textured"):
+            label = f"train_step_{kind}"
+            say(f"{label}: in a fresh process (its own peak memory)")
+            r = step_in_process(kind, n, width, height, num_views, steps)
+            row = dict(event=label, gaussians=n, seconds=r["ms_per_step"] / 1e3, host=False,
+                       peak_rss_bytes=r["peak_rss_bytes"], device_peak_bytes=r["device_peak_bytes"],
+                       first_step_s=r["first_step_s"], recompiles_steady=r["recompiles_steady"],
+                       pairs_capacity=r["capacity"], compositor=r["compositor"], process_seconds=r["process_seconds"])
+            rows.rows.append(row)
             on_row(rows.rows)
-            say(f"{label}: {r['ms_per_step']:.1f} ms a step (first {r['first_step_s']:.1f} s)")
+            dev = r["device_peak_bytes"]
+            say(f"{label:<22} {r['ms_per_step']:9.1f} ms a step (first {r['first_step_s']:.1f} s)  peak RSS "
+                f"{r['peak_rss_bytes'] / 2**30:6.2f} GiB" + ("" if dev is None else f"  device {dev / 2**30:6.2f} GiB"))
     return rows.rows
+
+
+def textured_state(n: int, seed: int = 0):
+    """:func:`make_state` with textures of :data:`SIDE_HISTOGRAM`'s sides and its optimiser."""
+    from patexgs_jax.optim import make_optimizer
+    from patexgs_jax.schedule import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE
+    from patexgs_jax.textures.rebucket import add_textures, resize_textures
+
+    scene = make_state(n, seed)
+    active = np.asarray(scene.active) > 0
+    optimizer = make_optimizer(scene_radius=2.0)
+    scene, state, _ = add_textures(scene, optimizer.init(scene), optimizer, np.where(active, 1, 0),
+                                   np.where(active, 5, 0), headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
+    sides = np.where(active, sample_sides(scene.capacity, np.random.default_rng(1)), 0)
+    scene, _, _ = resize_textures(scene, state, sides, sides, headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
+    return scene
+
+
+def step_in_process(kind: str, n: int, width: int, height: int, num_views: int, steps: int) -> dict:
+    """Runs :func:`step_main` in a fresh process: the step's peak memory (resident and, on a GPU, the
+    device's) is then its own, not this process's running maximum."""
+    import json
+    import subprocess
+
+    cmd = [sys.executable, "-m", "experiments.bench_scale", "--step-only", kind, "--gaussians", str(n),
+           "--width", str(width), "--height", str(height), "--views", str(num_views), "--steps", str(steps)]
+    t0 = time.perf_counter()
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"the {kind} step at {n} Gaussians failed (exit {out.returncode}):\n{out.stderr[-3000:]}")
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    result["process_seconds"] = time.perf_counter() - t0
+    return result
+
+
+def step_main(kind: str, n: int, width: int, height: int, num_views: int, steps: int) -> dict:
+    """One training configuration's steps (forward + backward + Adam update, the real trainer) on the
+    paper-scale state: ``2dgs`` untextured, ``textured`` with the real run's side distribution and the
+    ``patexgs`` renderer. Returns bench_train's row plus the process's peak memory."""
+    import resource
+
+    from experiments.bench_train import bench
+
+    views = make_views(width, height, num_views)
+    scene = make_state(n) if kind == "2dgs" else textured_state(n)
+    r = bench("2dgs" if kind == "2dgs" else "tex8-mip-prefilter", n, views, steps, scene=scene, compositor=None)
+    r["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    r["device_peak_bytes"] = _device_peak()
+    return r
 
 
 def main(argv=None) -> int:
@@ -351,7 +408,14 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=2, help="steady training steps timed after the first")
     p.add_argument("--skip", default="", help="comma-separated: counts, densify, checkpoint, ply, eval, step")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--step-only", choices=["2dgs", "textured"], default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.step_only is not None:  # the child of step_in_process: one JSON line on stdout
+        import json
+
+        r = step_main(args.step_only, args.gaussians[0], args.width, args.height, args.views, args.steps)
+        print(json.dumps(r, default=str), flush=True)
+        return 0
     skip = {s for s in args.skip.split(",") if s}
     unknown = skip - {"counts", "densify", "checkpoint", "ply", "eval", "step"}
     if unknown:

@@ -95,3 +95,31 @@ def test_every_benchmark_file_names_its_provenance():
         provenance_note = data.get("provenance")
         assert provenance_note is None or provenance_note.startswith("reconstructed from git history"), path.name
 
+
+
+def test_bench_scale_times_every_host_stage(tmp_path, capsys):
+    """bench_scale's rows: every stage of a run on one state, with the fields scripts read; the host
+    events flagged as host work; the re-bucketing of a growth event keeps its layout (the in-place
+    path); the JSON rewritten after every row. (Renders and steps skipped: behaviour, not speed.)"""
+    from experiments import bench_scale
+
+    out = tmp_path / "scale.json"
+    bench_scale.main(["--gaussians", "3000", "--width", "64", "--height", "48", "--views", "2",
+                      "--eq7-views", "6", "--skip", "counts,eval,step", "--json", str(out)])
+    data = json.loads(out.read_text())
+    assert data["schema"] == bench_scale.SCHEMA and data["config"]["eq7_views"] == 6
+    rows = {r["event"]: r for r in data["rows"]}
+    host = ["build_state", "eq7_allocation", "eq7_budget_solve", "densify", "textures_start",
+            "allocation_rebucket", "eq8_10_growth", "rebucket", "rebucket_again", "checkpoint_save",
+            "checkpoint_load", "ply_export", "ply_load"]
+    assert list(rows) == host
+    for r in rows.values():
+        assert r["gaussians"] == 3000 and r["host"] is True
+        assert math.isfinite(r["seconds"]) and r["seconds"] >= 0
+        assert r["peak_rss_bytes"] > 0
+    assert rows["rebucket"]["grown"] > 0 and rows["rebucket"]["layout_changed"] is False
+    assert rows["checkpoint_save"]["bytes"] > 0 and rows["ply_export"]["bytes"] > 0
+    assert rows["densify"]["cloned"] + rows["densify"]["split"] > 0
+    assert rows["eq7_allocation"]["texels"] >= 3000  # at least one texel a Gaussian
+    printed = capsys.readouterr().out
+    assert "rebucket_again" in printed
