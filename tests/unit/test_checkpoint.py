@@ -103,7 +103,7 @@ def test_atomic_on_crash(tmp_path, state, monkeypatch):
     before = p.read_bytes()
 
     calls = {"n": 0}
-    real = np.lib.format.write_array
+    real = ckpt._write_npy
 
     def crash(*a, **k):  # dies half-way through the arrays
         calls["n"] += 1
@@ -111,10 +111,10 @@ def test_atomic_on_crash(tmp_path, state, monkeypatch):
             raise KeyboardInterrupt("simulated crash")
         return real(*a, **k)
 
-    monkeypatch.setattr(np.lib.format, "write_array", crash)
+    monkeypatch.setattr(ckpt, "_write_npy", crash)
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(p, {"scene": state["scene"], "step": 2}, {"step": 2})
-    monkeypatch.setattr(np.lib.format, "write_array", real)
+    monkeypatch.setattr(ckpt, "_write_npy", real)
     assert p.read_bytes() == before and [f.name for f in tmp_path.iterdir()] == ["same.ckpt"]
 
     monkeypatch.setattr(ckpt.os, "replace", lambda *a: (_ for _ in ()).throw(OSError(28, "No space left")))
