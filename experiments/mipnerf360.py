@@ -1,7 +1,8 @@
 """The paper's protocol end to end: train, evaluate at zoom-out scales, tabulate, plot.
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
-        [--preset tiny|cpu|small|paper] [--factor F] [--out DIR] [--budgets 100%,10%,1%|N] [--zoom-in] [--renders K]
+        [--preset tiny|cpu|small|paper] [--factor F] [--dataset mipnerf360|tandt|db] [--out DIR]
+        [--budgets 100%,10%,1%|N] [--zoom-in] [--renders K]
         [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
         [--coordinator HOST:PORT --num-processes N --process-id I]
 
@@ -9,14 +10,19 @@
 ``srun`` / Open MPI ``mpirun``) run the study over several processes: every process trains and
 evaluates in step, process 0 writes (docs/parallel.md; ``--out`` on a filesystem all of them see).
 
-ROOT holds Mip-NeRF 360 scene folders (``bicycle/``, ``garden/``, ... each in COLMAP layout) or is
-one scene (any format :func:`patexgs_jax.data.load` reads). Without ``--data`` the study runs on the
-embedded synthetic scene with the ``tiny`` preset (methods ``2dgs,patexgs``); with ``--data`` the
-default preset is ``paper`` (the paper's iteration counts) on a GPU and ``cpu`` (1,000 + 400 steps)
-on a CPU, where the paper's take days (:func:`patexgs_jax.training.config.default_preset`), and the
-default factor the Mip-NeRF 360
-one (4 outdoors, 2 indoors); other scenes' images wider than 1600 px are resized to 1600 wide (the
-3DGS rule; ``--factor 1`` keeps the full size).
+ROOT is one scene (any format :func:`patexgs_jax.data.load` reads), a folder of scene folders, or a
+folder holding ``360_v2/``, ``tandt/`` and ``db/`` (the paper's three datasets as
+``python -m patexgs_jax.data.download`` lays them out); every scene found is run. Each scene's
+dataset is recognised from its parent folder (``360_v2``, ``tandt``, ``db``) or else its name
+(:mod:`patexgs_jax.data.benchmarks`; ``--dataset`` names it for every scene instead), and sets its
+protocol: Mip-NeRF 360 at factor 4 outdoors and 2 indoors; Tanks and Temples (truck, train) and Deep
+Blending (drjohnson, playroom) at the images' own size (factor 1, as 3DGS and the paper); other
+scenes' images wider than 1600 px resized to 1600 wide (the 3DGS rule); ``--factor F`` sets every
+scene's factor (1: full size). Every dataset holds out every 8th image. The start lines say each
+scene's protocol and why. Without ``--data`` the study runs on the embedded synthetic scene with the
+``tiny`` preset (methods ``2dgs,patexgs``); with ``--data`` the default preset is ``paper`` (the
+paper's iteration counts) on a GPU and ``cpu`` (1,000 + 400 steps) on a CPU, where the paper's take
+days (:func:`patexgs_jax.training.config.default_preset`).
 
 For each scene:
   1. Stage 1 (2DGS) is trained once, as the ``2dgs`` method's run, and shared: every method whose
@@ -52,8 +58,9 @@ mip-splatting, patexgs, patexgs+filter3d) and ``table4`` (below); a group naming
 does not have fails before any work, naming it. Methods whose stage 1 differs from 2DGS's
 (``stage1_key``: 3D Gaussians, another densification, the 3D filter) train from scratch in their own
 run folder, the same total steps; the others share it. ``tables.md`` sets each row of Tables 1 and 2
-beside the paper's own Mip-NeRF 360 figure for that method (:mod:`experiments.paper`: the row names
-and figures), with its Gaussians, storage, training and render time.
+beside the paper's own figure for that method (:mod:`experiments.paper`: the row names
+and figures), with its Gaussians, storage, training and render time; with scenes of several of the
+paper's datasets, each dataset's columns (the mean over its scenes) beside the paper's figures for it.
 
 ``--zoom-in`` also evaluates every entry zoomed IN by 2, 4 and 8 (Mip-Splatting's protocol: trained at
 ``--factor F``, tested at z times the resolution, e.g. ``--factor 8`` tested on the factor 4, 2 and 1
@@ -79,12 +86,15 @@ work, the command that continues) and exit status 130 / 143 (see :mod:`patexgs_j
 ``results.json`` schema::
 
     {"version": {"patexgs_jax": str, "git": str | null, "jax": str, "results_schema": 2},
-     "config": {"preset", "factor", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
+     "config": {"preset", "factor", "dataset", "budget", "iters_2dgs", "iters_tex", "max_gaussians", "seed",
                 "test_views", "train_overrides", "zoom_in": bool (absent from older files),
                 "train_config": {...}, "machine": str},   # budget: "10%", "100%,10%,1%" or null
      "elapsed_seconds": float (wall-clock time of the study, summed over the invocations that finished),
      "lpips": {"version": "0.1", "net": "alex" | "vgg", "trunk": "AlexNet" | "VGG16",
                "weights": str} | null,
+     "scenes": {scene: {"dataset": "mipnerf360" | "tandt" | "db" | null, "factor": int | null,
+                        "test_every": 8, "why": str, "training_size": [W, H], "applied_factor": float,
+                        "train_views": int, "test_views": int}}   (absent from older files),
      "results": {scene: {label: {
          "1": {"psnr", "ssim", "lpips", "alias_psnr", "supersampled_psnr", "views"}, "2": {...}, ...,
          "storage_mb", "num_gaussians", "texels", "train_seconds", "render_ms", "method",
@@ -134,6 +144,7 @@ from experiments.study_tables import (
 )
 from patexgs_jax import progress
 from patexgs_jax.camera import ZOOM_SCALES
+from patexgs_jax.data.benchmarks import DATASETS, SCENES
 
 SCALES = ZOOM_SCALES
 EMBEDDED_METHODS = ("2dgs", "patexgs")
@@ -142,24 +153,33 @@ DEFAULT_METHODS = ("2dgs", "textured-fixed-8", "patexgs")
 #: with mipmaps; only the texture sizes differ).
 TABLE4_METHODS = ("patexgs", "patexgs-fixed-4", "patexgs-fixed-8", "patexgs-fixed-16", "patexgs-fixed-32", MATCHED)
 #: The paper's nine Mip-NeRF 360 scenes (the order of its per-scene tables).
-MIPNERF360_SCENES = ("bicycle", "flowers", "garden", "stump", "treehill", "room", "counter", "kitchen", "bonsai")
+MIPNERF360_SCENES = SCENES["mipnerf360"]
+#: The paper's scenes, in the order of its Table 1's column groups (Mip-NeRF 360, Tanks and Temples,
+#: Deep Blending).
+PAPER_SCENES = tuple(s for d in DATASETS for s in SCENES[d])
 
 
 # ------------------------------------------------------------------------------------------------
 # Arguments
 # ------------------------------------------------------------------------------------------------
 def find_scenes(root, names=None) -> dict[str, Path]:
-    """``{name: folder}`` of the scenes under ``root`` (or ``{root.name: root}`` if it is a scene).
+    """``{name: folder}`` of the scenes under ``root`` (or ``{root.name: root}`` if it is a scene):
+    its scene folders, and those of its ``360_v2/``, ``tandt/`` and ``db/`` folders (the layout the
+    archives of ``python -m patexgs_jax.data.download`` extract to); the paper's scenes first, in
+    its order (Mip-NeRF 360, Tanks and Temples, Deep Blending), then the others by name.
 
     Args:
-      root: a scene folder or a folder of scene folders.
+      root: a scene folder, a folder of scene folders, or a folder holding ``360_v2/``, ``tandt/``,
+        ``db/``.
       names: optional scene names to keep (each must exist).
     """
     from patexgs_jax.data import DatasetError, detect_format, photos_without_poses_hint
+    from patexgs_jax.data.benchmarks import DATASET_FOLDERS
 
     root = Path(root)
     if not root.exists():
-        raise StudyError(f"--data {root} does not exist: pass a scene folder or a folder of scene folders.")
+        raise StudyError(f"--data {root} does not exist: pass a scene folder, a folder of scene folders, or a "
+                         "folder holding 360_v2/, tandt/, db/ (python -m patexgs_jax.data.download makes one).")
 
     def is_scene(p):
         try:
@@ -171,13 +191,30 @@ def find_scenes(root, names=None) -> dict[str, Path]:
     if is_scene(root):
         scenes = {root.resolve().name: root}
     else:
-        found = {p.name: p for p in sorted(root.iterdir()) if p.is_dir() and is_scene(p)}
-        order = [n for n in MIPNERF360_SCENES if n in found] + [n for n in found if n not in MIPNERF360_SCENES]
+        found: dict[str, Path] = {}
+
+        def add(p: Path):
+            if p.name in found:
+                raise StudyError(f"two scenes are named {p.name} under {root}: {found[p.name]} and {p}; pass one "
+                                 "of them (or the folder holding it) with --data.")
+            found[p.name] = p
+
+        for p in sorted(root.iterdir()):
+            if not p.is_dir():
+                continue
+            if is_scene(p):
+                add(p)
+            elif p.name in DATASET_FOLDERS.values():
+                for q in sorted(p.iterdir()):
+                    if q.is_dir() and is_scene(q):
+                        add(q)
+        order = [n for n in PAPER_SCENES if n in found] + [n for n in found if n not in PAPER_SCENES]
         scenes = {n: found[n] for n in order}
     if not scenes:
         photos = photos_without_poses_hint(root)
         raise StudyError(f"no scene under {root}: expected scene folders (COLMAP sparse/0, transforms.json or "
-                         "poses_bounds.npy), e.g. the Mip-NeRF 360 release's bicycle/, garden/, ..."
+                         "poses_bounds.npy), e.g. the Mip-NeRF 360 release's bicycle/, garden/, ..., or folders "
+                         "360_v2/, tandt/, db/ holding them (python -m patexgs_jax.data.download)."
                          + (f" {photos}" if photos else ""))
     if names:
         missing = [n for n in names if n not in scenes]
@@ -185,6 +222,22 @@ def find_scenes(root, names=None) -> dict[str, Path]:
             raise StudyError(f"scene(s) {', '.join(missing)} not found under {root}; found: {', '.join(scenes)}.")
         scenes = {n: scenes[n] for n in names}
     return scenes
+
+
+def scene_protocols(scenes: dict, dataset: str | None = None, factor: int | None = None) -> dict:
+    """``{name: Protocol}`` of ``find_scenes``'s scenes (:func:`patexgs_jax.data.benchmarks.protocol`:
+    the dataset recognised from the layout and name, or ``dataset``; ``factor`` for every scene when
+    given). Raises StudyError where a scene's protocol cannot be decided."""
+    from patexgs_jax.data import DatasetError
+    from patexgs_jax.data.benchmarks import protocol
+
+    out = {}
+    for name, path in scenes.items():
+        try:
+            out[name] = protocol(path, dataset=dataset, factor=factor)
+        except DatasetError as e:
+            raise StudyError(f"scene {name} ({path}): {e}") from None
+    return out
 
 
 def expand_methods(names) -> list[str]:
@@ -232,7 +285,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
       lpips_net: its trunk, ``"alex"`` (AlexNet) or ``"vgg"`` (VGG16).
       devices: devices a batch of views is split over (``TrainConfig.devices``; not part of the
         protocol); the batch size is ``train_overrides={"batch_size": B}``.
-      **config: :class:`StudyConfig` fields (preset, factor, budget, iters_2dgs, iters_tex,
+      **config: :class:`StudyConfig` fields (preset, factor, dataset, budget, iters_2dgs, iters_tex,
         max_gaussians, seed, test_views, train_overrides).
     """
     from patexgs_jax.training.config import default_preset
@@ -251,15 +304,18 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     config["budget"] = join_budgets(budgets)
     found = find_scenes(root, scenes)
     cfg = StudyConfig(**config)
+    protocols = scene_protocols(found, cfg.dataset, cfg.factor)  # before any work: a scene may be refused
     study = Study(out, cfg, renders=renders, use_lpips=use_lpips, lpips_net=lpips_net, verbose=verbose,
                   devices=devices)
+    for name, proto in protocols.items():  # the start lines: each scene's protocol, and why
+        study.say(f"[{name}] {proto.why}")
     t = time.perf_counter()
     entries = [(name, label(m, b)) for name in found for b in budgets for m in methods]
     with progress.bar(len(entries), "study", unit="run", initial=sum(study.done(*e) for e in entries),
                       leave=True, show=verbose and study.main) as bar:
         study.bar = bar
         for name, path in found.items():
-            study.run_scene(name, path, methods)
+            study.run_scene(name, path, methods, protocols[name])
     study.data["elapsed_seconds"] = study.data.get("elapsed_seconds", 0.0) + time.perf_counter() - t
     study.save()
     if verbose and study.main:
@@ -270,8 +326,8 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.mipnerf360", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=None, help="folder of scene folders, or one scene (default: the embedded "
-                    "synthetic scene)")
+    ap.add_argument("--data", default=None, help="one scene, a folder of scene folders, or a folder holding "
+                    "360_v2/, tandt/, db/ (default: the embedded synthetic scene)")
     ap.add_argument("--scenes", default=None, help="comma-separated scene names under --data")
     ap.add_argument("--methods", default=None, help="comma-separated methods (default: 2dgs,patexgs on the embedded "
                     f"scene, {','.join(DEFAULT_METHODS)} with --data) and groups: table1, table2 (the paper's "
@@ -280,8 +336,13 @@ def main(argv=None) -> int:
                     "protocol: the images at factor F/2, F/4, F/8, or the synthetic scene's analytic ones)")
     ap.add_argument("--preset", default=None, choices=["tiny", "cpu", "small", "paper"],
                     help="iteration schedule (default: tiny without --data; with it, paper on a GPU and cpu on a CPU)")
-    ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: 4 outdoor, 2 indoor; "
-                    "other scenes: images wider than 1600 px resized to 1600 wide; 1: full size)")
+    ap.add_argument("--factor", type=int, default=None, help="image downsampling of every scene (default: its "
+                    "dataset's: Mip-NeRF 360 4 outdoor, 2 indoor; Tanks and Temples, Deep Blending 1; other scenes: "
+                    "images wider than 1600 px resized to 1600 wide; 1: full size)")
+    ap.add_argument("--dataset", default=None, choices=list(DATASETS),
+                    help="train every scene under the protocol of this dataset instead of the one recognised "
+                    "from its folder and name (mipnerf360: factor 4 outdoors, 2 indoors; tandt, db: the "
+                    "images' own size)")
     ap.add_argument("--out", default="runs/mipnerf360")
     ap.add_argument("--budget", "--budgets", dest="budget", default=None,
                     help="Gaussian budget(s): 10%%, 1%% (of the unbudgeted 2DGS count) or a count; several "
@@ -336,7 +397,7 @@ def _study(args) -> int:
     def split(s):
         return None if s is None else [x.strip() for x in s.split(",") if x.strip()]
 
-    config = {k: v for k, v in dict(preset=args.preset, factor=args.factor, budget=args.budget,
+    config = {k: v for k, v in dict(preset=args.preset, factor=args.factor, dataset=args.dataset, budget=args.budget,
                                     iters_2dgs=args.iters_2dgs, iters_tex=args.iters_tex,
                                     max_gaussians=args.max_gaussians, seed=args.seed,
                                     test_views=args.test_views).items() if v is not None}

@@ -51,7 +51,8 @@ class StudyConfig:
     """What the results depend on (recorded in results.json; a resumed study must match)."""
 
     preset: str = "tiny"
-    factor: int | None = None
+    factor: int | None = None       # every scene's downsampling factor; None: each scene's protocol's
+    dataset: str | None = None      # every scene trained under this dataset's protocol; None: recognised per scene
     budget: str | None = None       # the Gaussian budgets, "10%" or "100%,10%,1%" (parse_budgets); None: 100%
     iters_2dgs: int | None = None
     iters_tex: int | None = None
@@ -112,6 +113,7 @@ class Study:
             extra = ("machine", "budget", "zoom_in")
             ours = {k: v for k, v in record.items() if k not in extra}
             theirs = {k: v for k, v in old.get("config", {}).items() if k not in extra}
+            theirs.setdefault("dataset", None)  # files written before --dataset existed
             if ours != theirs:
                 diff = sorted(k for k in set(ours) | set(theirs) if ours.get(k) != theirs.get(k))
                 raise StudyError(f"{self.path} holds results of a different protocol ({', '.join(diff)} differ); "
@@ -160,22 +162,30 @@ class Study:
             self.say(f"warning: plots not written ({type(e).__name__}: {e})")
 
     # -- one scene ---------------------------------------------------------------------------------
-    def run_scene(self, name: str, path: Path, methods) -> None:
+    def run_scene(self, name: str, path: Path, methods, protocol=None) -> None:
         """Trains and evaluates ``methods`` on one scene at every budget of the study (unbudgeted
-        first where listed); the unbudgeted 2DGS run, which fraction budgets are taken of, is shared."""
+        first where listed); the unbudgeted 2DGS run, which fraction budgets are taken of, is shared.
+        ``protocol``: the scene's :class:`~patexgs_jax.data.benchmarks.Protocol` (default: recognised
+        from its folder, :func:`~patexgs_jax.data.benchmarks.protocol`), recorded in ``scenes``."""
         from patexgs_jax.data import load
+        from patexgs_jax.data.benchmarks import protocol as scene_protocol
         from patexgs_jax.training import train
 
+        if protocol is None:
+            protocol = scene_protocol(path, self.cfg.dataset, self.cfg.factor)
+        scenes = self.data.setdefault("scenes", {})
         budgets = parse_budgets(self.cfg.budget)
         todo = {b: [m for m in methods if not self.done(name, label(m, b))] for b in budgets}
         if not any(todo.values()):
+            scenes.setdefault(name, protocol.record())
             self.say(f"[{name}] all of {', '.join(methods)} done; skipped")
             return
         from patexgs_jax import interrupt
         from patexgs_jax.data import check_images
 
         interrupt.set_phase(f"loading scene {name}")
-        ds = load(path, factor=self.cfg.factor)
+        ds = load(path, factor=protocol.factor, test_every=protocol.test_every)
+        scenes[name] = protocol.record(ds)
         interrupt.set_phase(f"checking the {len(ds.views)} images of scene {name}")
         ds = check_images(ds, skip_hint="remove their views from the scene", on_view=lambda n: (
             interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))

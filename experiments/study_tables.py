@@ -8,8 +8,17 @@ import functools
 
 import numpy as np
 
-from experiments.paper import PAPER_TABLE1, PAPER_TABLE2, TABLE1_METHODS, TABLE2_METHODS, ordered, paper_name
+from experiments.paper import (
+    PAPER_TABLE1_BY_DATASET,
+    PAPER_TABLE2,
+    TABLE1_METHODS,
+    TABLE2_METHODS,
+    ordered,
+    paper_name,
+)
 from patexgs_jax.camera import ZOOM_SCALES
+from patexgs_jax.data.benchmarks import DATASET_NAMES, DATASETS
+from patexgs_jax.data.benchmarks import SCENES as PAPER_SCENES
 
 SCALES = ZOOM_SCALES
 #: The fixed-size row whose storage matches the adaptive run's ("similar parameters" in the paper's
@@ -202,7 +211,7 @@ def tables_markdown(data: dict) -> str:
         out += ["", "Rows named `+ mip` and the adaptive row differ only in their texture sizes (same warm-up, "
                 "mipmaps and prefiltered coverage); the Textured Gaussians rows render without mipmaps, with the "
                 "2DGS low-pass.", ""]
-    out += paper_tables(results)
+    out += paper_tables(results, data.get("scenes"))
     out += zoom_in_table(results)
     out += budget_table(results)
     out += ["## Cost: what the accuracy costs", "",
@@ -280,46 +289,83 @@ def _paper(v, digits: int) -> str:
     return "" if v is None else f"{v:.{digits}f}"
 
 
-def paper_tables(results: dict) -> list[str]:
-    """Tables 1 and 2 with every row that ran, ours (means over the study's scenes) beside the paper's
-    Mip-NeRF 360 figure for the same method (:mod:`experiments.paper`; blank where the paper has no
-    such row), the paper's rows first in its order; Table 1 with each row's cost."""
+def dataset_groups(results: dict, scenes: dict | None = None) -> dict[str | None, list[str]]:
+    """``{dataset: [scene, ...]}`` of a study's scenes, by the dataset ``results.json``'s ``scenes``
+    records for each (:mod:`patexgs_jax.data.benchmarks`), in the paper's order (Mip-NeRF 360,
+    Tanks and Temples, Deep Blending), then None: scenes of none of them (and those of files
+    written before the record existed)."""
+    of = {name: (scenes or {}).get(name, {}).get("dataset") for name in results}
+    groups = {d: [n for n in results if of[n] == d] for d in (*DATASETS, None)}
+    return {d: names for d, names in groups.items() if names}
+
+
+def paper_tables(results: dict, scenes: dict | None = None) -> list[str]:
+    """Tables 1 and 2 with every row that ran, ours beside the paper's figure for the same method
+    (:mod:`experiments.paper`; blank where the paper has no such row), the paper's rows first in its
+    order. Table 1 has one column group per dataset of the study (:func:`dataset_groups`): our mean
+    over its scenes beside the paper's mean for that dataset (scenes of none of the paper's datasets
+    beside its Mip-NeRF 360 figures, for reference), then each row's cost (means over every scene).
+    Table 2, the paper's zoom-out table, is Mip-NeRF 360's: ours over the study's Mip-NeRF 360 scenes
+    when it has some, else over all its scenes."""
     labels = _labels(results)
     if not labels:
         return []
+    groups = dataset_groups(results, scenes)
 
-    def mean(key, field):
-        return _mean_over_scenes(results, key, field)
+    def mean(key, field, names=None):
+        return _mean_over_scenes({n: results[n] for n in (names or results)}, key, field)
 
     def at(scale, name):
         return lambda e: e.get(str(scale), {}).get(name)
 
+    plain = list(groups) == [None]  # no scene of the paper's datasets: one group, as before they were told apart
+    heads = []
+    for d in groups:
+        what = "" if plain else (DATASET_NAMES[d] if d else "other scenes") + " "
+        heads.append(f"{what}PSNR | paper | SSIM | paper | LPIPS | paper")
     out = ["## Table 1 beside the paper", "",
-           "| method | paper row | PSNR | paper | SSIM | paper | LPIPS | paper | Gaussians | storage MB | train s | "
-           "render ms |", "| --- | --- |" + " ---: |" * 10]
+           f"| method | paper row | {' | '.join(heads)} | Gaussians | storage MB | train s | render ms |",
+           "| --- | --- |" + " ---: |" * (6 * len(groups) + 4)]
     for key in ordered(labels, TABLE1_METHODS):
-        fig = PAPER_TABLE1.get(key, (None, None, None))
         cells = []
-        for i, (name, digits) in enumerate((("psnr", 2), ("ssim", 3), ("lpips", 3))):
-            cells += [_fmt(mean(key, at(1, name)), digits), _paper(fig[i], digits)]
+        for d, names in groups.items():
+            fig = PAPER_TABLE1_BY_DATASET.get(d or "mipnerf360", {}).get(key, (None, None, None))
+            for i, (name, digits) in enumerate((("psnr", 2), ("ssim", 3), ("lpips", 3))):
+                cells += [_fmt(mean(key, at(1, name), names), digits), _paper(fig[i], digits)]
         cells += [_fmt(mean(key, lambda e, f=f: e.get(f)), digits)
                   for f, digits in (("num_gaussians", 0), ("storage_mb", 2), ("train_seconds", 0), ("render_ms", 1))]
         out.append(f"| {key} | {paper_name(key) or ''} | " + " | ".join(cells) + " |")
+    if plain:
+        note = ["", "`paper`: the paper's Mip-NeRF 360 means (nine scenes, its resolutions, 30k + 30k steps; "
+                "Tables 1 and 2 of the paper); ours: this study's scenes, preset and steps. Compare the order "
+                "of the rows and the gaps between them, not the absolute values.", ""]
+    else:
+        said = [f"{DATASET_NAMES[d] if d else 'other scenes'}: {', '.join(names)}"
+                + (f" ({len(names)} of its {len(PAPER_SCENES[d])})" if d else "") for d, names in groups.items()]
+        note = ["", "Each column group: our mean over the study's scenes of that dataset (" + "; ".join(said)
+                + ") beside the paper's mean for the dataset (its Table 1; its resolutions, 30k + 30k steps"
+                + ("; other scenes beside its Mip-NeRF 360 figures, for reference" if None in groups else "")
+                + "); cost columns: means over every scene. Compare the order of the rows and the gaps between "
+                "them, not the absolute values.", ""]
+    out += note
+    t2_names = groups.get("mipnerf360") or list(results)
     head = " | ".join(f"{'Full' if s == 1 else f'1/{s}'} PSNR | paper | SSIM | paper" for s in SCALES)
-    out += ["", "## Table 2 beside the paper (zoom-out)", "",
+    out += ["## Table 2 beside the paper (zoom-out)", "",
             f"| method | paper row | {head} | alias PSNR 1/8 |", "| --- | --- |" + " ---: |" * (4 * len(SCALES) + 1)]
     for key in ordered(labels, TABLE2_METHODS):
         fig = PAPER_TABLE2.get(key, {})
         cells = []
         for s in SCALES:
             p = fig.get(s, (None, None, None))
-            cells += [_fmt(mean(key, at(s, "psnr")), 2), _paper(p[0], 2), _fmt(mean(key, at(s, "ssim")), 3),
-                      _paper(p[1], 3)]
-        cells.append(_fmt(mean(key, at(SCALES[-1], "alias_psnr")), 2))
+            cells += [_fmt(mean(key, at(s, "psnr"), t2_names), 2), _paper(p[0], 2),
+                      _fmt(mean(key, at(s, "ssim"), t2_names), 3), _paper(p[1], 3)]
+        cells.append(_fmt(mean(key, at(SCALES[-1], "alias_psnr"), t2_names), 2))
         out.append(f"| {key} | {paper_name(key) or ''} | " + " | ".join(cells) + " |")
-    return out + ["", "`paper`: the paper's Mip-NeRF 360 means (nine scenes, its resolutions, 30k + 30k steps; "
-                  "Tables 1 and 2 of the paper); ours: this study's scenes, preset and steps. Compare the order "
-                  "of the rows and the gaps between them, not the absolute values.", ""]
+    if plain:
+        return out + note
+    return out + ["", "`paper`: the paper's Table 2, Mip-NeRF 360 means; ours: "
+                  + ("the study's Mip-NeRF 360 scenes" if "mipnerf360" in groups else "every scene of the study")
+                  + ".", ""]
 
 
 def zoom_in_table(results: dict) -> list[str]:

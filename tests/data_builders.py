@@ -123,3 +123,19 @@ def write_json(path: Path, data: dict) -> None:
 def opengl_c2w(w2c_cv: np.ndarray) -> list:
     """The transforms.json ``transform_matrix`` (OpenGL camera-to-world) of an OpenCV world-to-camera."""
     return (np.linalg.inv(w2c_cv) @ np.diag([1.0, -1.0, -1.0, 1.0])).tolist()
+
+
+def make_3dgs_layout(scene: Path, root: Path, scenes: dict) -> dict:
+    """Copies a COLMAP scene (its ``images/`` and ``sparse/0``) into ``root`` as 3DGS distributes
+    Tanks and Temples and Deep Blending: ``scenes`` maps a dataset folder to its scene names, e.g.
+    ``{"tandt": ["truck"], "db": ["drjohnson"]}``. Returns ``{name: folder}``."""
+    import shutil
+
+    out = {}
+    for folder, names in scenes.items():
+        for name in names:
+            target = Path(root) / folder / name
+            shutil.copytree(Path(scene) / "images", target / "images")
+            shutil.copytree(Path(scene) / "sparse" / "0", target / "sparse" / "0")
+            out[name] = target
+    return out

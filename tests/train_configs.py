@@ -1,4 +1,4 @@
-"""Training settings shared by the tests that train (test_train, test_ahead)."""
+"""Training settings shared by the tests that train (test_train, test_ahead, the studies' tests)."""
 
 from patexgs_jax.densify import DensifyConfig
 from patexgs_jax.training.config import TrainConfig
@@ -15,3 +15,11 @@ def tiny_config(**kw) -> TrainConfig:
                                       opacity_reset_interval=10_000))
     base.update(kw)
     return TrainConfig(**base)
+
+
+#: The studies' tests (test_mipnerf360, test_mipnerf360_datasets): ``experiments.mipnerf360.run``'s
+#: smallest protocol, 12 + 8 steps, at most 300 Gaussians, 2 test views; Eq. 7 allocation after 2
+#: texture steps; no growth event (each re-bucketing compiles a step).
+TINY_STUDY = dict(preset="tiny", iters_2dgs=12, iters_tex=8, max_gaussians=300, test_views=2,
+                  train_overrides=dict(warmup_tex=2, growth_interval=100, max_texture_size=8, log_every=4,
+                                       checkpoint_every=4))

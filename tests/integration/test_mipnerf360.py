@@ -22,11 +22,9 @@ from experiments.study import RESULTS_SCHEMA
 from patexgs_jax.training.config import TrainConfig, config_dict, stage1_key
 from patexgs_jax.training.run import load_stage1, stage1_checkpoint
 from patexgs_jax.training.trainer import Trainer
+from train_configs import TINY_STUDY
 
-STUDY = dict(preset="tiny", iters_2dgs=12, iters_tex=8, max_gaussians=300, test_views=2,
-             # Eq. 7 allocation after 2 texture steps; no growth event (each re-bucketing compiles a step).
-             train_overrides=dict(warmup_tex=2, growth_interval=100, max_texture_size=8, log_every=4,
-                                  checkpoint_every=4))
+STUDY = TINY_STUDY
 METHODS = ["2dgs", "patexgs"]
 
 
@@ -47,7 +45,7 @@ def test_results_schema_and_values(study):
     out, data = study
     on_disk = json.loads((out / "results.json").read_text())
     assert on_disk == json.loads(json.dumps(data))
-    assert set(on_disk) == {"version", "config", "lpips", "results", "elapsed_seconds"}
+    assert set(on_disk) == {"version", "config", "lpips", "results", "elapsed_seconds", "scenes"}
     assert on_disk["elapsed_seconds"] > 0  # the study's wall-clock time
     assert on_disk["lpips"] is None  # switched off: no network named
     assert on_disk["version"]["results_schema"] == RESULTS_SCHEMA
@@ -55,6 +53,10 @@ def test_results_schema_and_values(study):
     (scene,) = on_disk["results"]
     entries = on_disk["results"][scene]
     assert list(entries) == METHODS
+    # the scene's protocol: none of the paper's datasets, so the 3DGS width rule (64 px: kept)
+    proto = on_disk["scenes"][scene]
+    assert proto["dataset"] is None and proto["factor"] is None and "1600" in proto["why"]
+    assert proto["training_size"] == [64, 48] and proto["test_views"] == 2 and proto["test_every"] == 8
     for key, e in entries.items():
         for s in ("1", "2", "4", "8"):
             m = e[s]
