@@ -428,9 +428,11 @@ def main(argv=None) -> int:
     config = dict(width=args.width, height=args.height, views=args.views, eq7_views=args.eq7_views,
                   steps=args.steps, depth=DEPTH, side_histogram=SIDE_HISTOGRAM)
 
+    head = header(SCHEMA)  # the code and machine at the start (the checkout may move while it runs)
+
     def write(rows):  # after every row: a run cut short (a device's time limit) keeps what it measured
         if args.json is not None:
-            write_json(args.json, dict(header(SCHEMA), config=config, rows=done + rows))
+            write_json(args.json, dict(head, config=config, rows=done + rows))
 
     for n in args.gaussians:
         say(f"== {n} Gaussians, {args.views} views of {args.width}x{args.height}, Eq. 7 over {args.eq7_views} views")
