@@ -16,7 +16,16 @@ from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
 from ..schedule import side_histogram
-from .config import STAGE2_FIELDS, Method, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
+from .config import (
+    STAGE2_FIELDS,
+    Method,
+    TrainConfig,
+    comparable_config,
+    config_dict,
+    effective_config,
+    stage1_key,
+    stage1_part,
+)
 from .progress import start_line
 from .trainer import STAGE1_DIR, Trainer
 
@@ -84,7 +93,7 @@ def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
     tree, _ = ckpt.load_checkpoint(path)
     run.load_state(tree)
     run.capacity = None  # refit for this method's render configuration
-    run.say(f"stage 1 from {path} ({run.t_train:.0f} s of 2DGS training)")
+    run.say(f"stage 1 from {path} ({run.t_train:.0f} s of {run.spec.stage1_name} training)")
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
@@ -201,7 +210,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     else:  # evaluation and outputs are process 0's
         train_eval = test_eval = dict(psnr=None, ssim=None)
     summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],
-                   config=config_dict(config))
+                   config=config_dict(effective_config(config)))  # (what the run trained with)
     if out is not None and main:
         from ..export import export_ply
 
