@@ -208,8 +208,9 @@ def expand_methods(names) -> list[str]:
             Method.from_name(m)
         except ValueError as e:
             group = next((g for g in names if m in groups.get(g, ())), None)
-            if group is None:
-                raise
+            if group is None:  # (a name that is neither: say the groups too, not only the methods)
+                raise ValueError(f"{str(e).rstrip('.')}; or a group: {', '.join(groups)}, or {MATCHED} "
+                                 "(python -m experiments.mipnerf360 -h says what each group runs).") from None
             raise StudyError(f"{e} (--methods {group} runs {', '.join(groups[group])}; this tree has no {m!r}: "
                              "list the methods it has instead)") from None
     return out
@@ -329,6 +330,7 @@ def _study(args) -> int:
 
     from patexgs_jax import checkpoint as ckpt
     from patexgs_jax import compiled
+    from patexgs_jax.training.cli import tidy_output_dir
 
     if not args.no_compile_cache:
         compiled.enable_compile_cache()
@@ -344,11 +346,15 @@ def _study(args) -> int:
         config["zoom_in"] = True
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
-    if jax.process_index() == 0:  # the process that writes; before any scene is loaded
-        ckpt.check_output_dir(args.out)
-    run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
-        renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
-        **config)
+    methods = split(args.methods)
+    if methods:
+        expand_methods(methods)  # (an unknown name fails before --out is made)
+    with tidy_output_dir(args.out):  # (a study that fails before writing anything leaves no empty --out)
+        if jax.process_index() == 0:  # the process that writes; before any scene is loaded
+            ckpt.check_output_dir(args.out)
+        run(args.data, scenes=split(args.scenes), methods=methods, out=args.out,
+            renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
+            **config)
     return 0
 
 
