@@ -110,7 +110,9 @@ whose storage is closest to the ``patexgs`` run's). ``lpips`` is null where unav
 or images under 31 pixels for AlexNet, 16 for VGG16), and the top-level ``"lpips"`` names the
 network that computed it (null: not computed; files written before it was recorded lack it; a study
 resumed with another ``--lpips-net`` is refused); ``train_seconds`` is the wall-clock time of the
-training steps of both stages (stage 1 counted for every method; compilation included);
+training steps of both stages (a shared stage 1 counted for every method that starts from it; the
+compiles a step waits for included; the host work between steps, data loading and the evaluation
+not: docs/results.md);
 ``render_ms`` the median time of one full-resolution test render after compilation.
 """
 

@@ -131,7 +131,11 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         programs are compiled ahead in a background thread (:mod:`patexgs_jax.ahead`,
         ``PATEXGS_COMPILE_AHEAD=0`` turns it off), so that their first steps do not wait for them.
     Returns:
-      :class:`TrainResult`.
+      :class:`TrainResult`. Its summary's ``train_seconds`` is the wall-clock time of the training
+      steps of both stages (with ``stage1=``, that run's stage-1 seconds carried over), including
+      the compiles a step waits for, not the host work between steps (densification, texture
+      allocation and growth, checkpoints), data loading or evaluation; its ``config`` is the
+      configuration the run trained with (:func:`~patexgs_jax.training.config.effective_config`).
     Raises:
       compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
       parallel.DistributedError: with several processes, they do not start from the same state, or
