@@ -85,11 +85,11 @@ def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
     want = stage1_key(config)
     if cfg != want:
         diff = sorted(k for k in set(cfg) | set(want) if cfg.get(k) != want.get(k))
-        raise ValueError(f"stage-1 checkpoint {path} was trained with different 2DGS-stage settings "
-                         f"({', '.join(diff)}); train stage 1 again or pass a matching checkpoint.")
+        raise ValueError(f"stage-1 checkpoint {path} was trained with different {config.spec.stage1_name}-stage "
+                         f"settings ({', '.join(diff)}); train stage 1 again or pass a matching checkpoint.")
     if meta.get("step") != config.iters_2dgs:
         raise ValueError(f"stage-1 checkpoint {path} is at step {meta.get('step')}, not at the end of the "
-                         f"2DGS stage (step {config.iters_2dgs}).")
+                         f"{config.spec.stage1_name} stage (step {config.iters_2dgs}).")
     tree, _ = ckpt.load_checkpoint(path)
     run.load_state(tree)
     run.capacity = None  # refit for this method's render configuration
