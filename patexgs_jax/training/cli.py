@@ -11,7 +11,7 @@ docs/parallel.md.
 Without ``--data`` it trains on the embedded synthetic scene (generated once into the cache).
 
 Stages (every method trains ``--iters-2dgs`` + ``--iters-tex`` steps in all)
-  1. 2DGS (every method; 3D Gaussians for ``3dgs`` and ``mip-splatting``): SfM-point
+  1. 2DGS (3D Gaussians for ``3dgs`` and ``mip-splatting``), every method: SfM-point
      initialisation, per-group Adam (:mod:`patexgs_jax.optim`), loss ``0.8 L1 + 0.2 (1 - SSIM)``
      plus the normal-consistency (from ``normal_from``; 2D splats only) and depth-distortion
      regularisers, one SH band every ``sh_interval`` steps, adaptive density control
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="patexgs", help="what to train (default: patexgs); the methods are "
                     "listed above")
     ap.add_argument("--out", required=True, help="the run's folder: checkpoints/, log.jsonl, scene.ply (+ texture "
-                    "sidecar) and summary.json (no default: required)")
+                    "sidecar for a textured method) and summary.json (no default: required)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
                     "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
