@@ -24,7 +24,8 @@ For each scene:
      checkpoint (:func:`patexgs_jax.training.stage1_checkpoint`), so method comparisons start from
      the same 2DGS model, as in the paper; a method whose stage 1 differs (3D Gaussians) trains
      from scratch in its own run folder, for the same total steps. Every method trains
-     the same number of steps: ``2dgs`` continues its stage for the texture stage's steps
+     the same number of steps: ``2dgs`` (as ``3dgs`` and ``mip-splatting``) continues its stage
+     for the texture stage's steps
      (``TrainConfig.continue_2dgs``), so a textured method's gain is not extra training.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
      evaluated on the test split (every 8th image) at full resolution and zoomed out by 2, 4 and 8
