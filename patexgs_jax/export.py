@@ -120,8 +120,8 @@ def export_ply(scene: Scene, path) -> Path:
     its texture sidecar (a scene without textures leaves none: an older sidecar at that path is
     removed, so that :func:`load_ply` does not find a stale one).
 
-    Both files are written atomically (temp file + rename), mode 0644 less the umask, as
-    ``open()`` creates files. Returns the PLY path.
+    Both files are written atomically (temp file + rename) with the mode ``open()`` gives a new
+    file (0666 less the umask: 0644 under the usual 022). Returns the PLY path.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
