@@ -30,7 +30,8 @@ For each scene:
      checkpoint (:func:`patexgs_jax.training.stage1_checkpoint`), so method comparisons start from
      the same 2DGS model, as in the paper; a method whose stage 1 differs (3D Gaussians) trains
      from scratch in its own run folder, for the same total steps. Every method trains
-     the same number of steps: ``2dgs`` continues its stage for the texture stage's steps
+     the same number of steps: ``2dgs`` (as ``3dgs`` and ``mip-splatting``) continues its stage
+     for the texture stage's steps
      (``TrainConfig.continue_2dgs``), so a textured method's gain is not extra training.
   2. Each method is trained (``DIR/runs/<scene>/<label>/``: checkpoints, log, PLY, summary), then
      evaluated on the test split (every 8th image) at full resolution and zoomed out by 2, 4 and 8
@@ -120,7 +121,9 @@ whose storage is closest to the ``patexgs`` run's). ``lpips`` is null where unav
 or images under 31 pixels for AlexNet, 16 for VGG16), and the top-level ``"lpips"`` names the
 network that computed it (null: not computed; files written before it was recorded lack it; a study
 resumed with another ``--lpips-net`` is refused); ``train_seconds`` is the wall-clock time of the
-training steps of both stages (stage 1 counted for every method; compilation included);
+training steps of both stages (a shared stage 1 counted for every method that starts from it; the
+compiles a step waits for included; the host work between steps, data loading and the evaluation
+not: docs/results.md);
 ``render_ms`` the median time of one full-resolution test render after compilation.
 """
 
@@ -261,8 +264,9 @@ def expand_methods(names) -> list[str]:
             Method.from_name(m)
         except ValueError as e:
             group = next((g for g in names if m in groups.get(g, ())), None)
-            if group is None:
-                raise
+            if group is None:  # (a name that is neither: say the groups too, not only the methods)
+                raise ValueError(f"{str(e).rstrip('.')}; or a group: {', '.join(groups)}, or {MATCHED} "
+                                 "(python -m experiments.mipnerf360 -h says what each group runs).") from None
             raise StudyError(f"{e} (--methods {group} runs {', '.join(groups[group])}; this tree has no {m!r}: "
                              "list the methods it has instead)") from None
     return out
@@ -390,6 +394,7 @@ def _study(args) -> int:
 
     from patexgs_jax import checkpoint as ckpt
     from patexgs_jax import compiled
+    from patexgs_jax.training.cli import tidy_output_dir
 
     if not args.no_compile_cache:
         compiled.enable_compile_cache()
@@ -405,11 +410,15 @@ def _study(args) -> int:
         config["zoom_in"] = True
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
-    if jax.process_index() == 0:  # the process that writes; before any scene is loaded
-        ckpt.check_output_dir(args.out)
-    run(args.data, scenes=split(args.scenes), methods=split(args.methods), out=args.out,
-        renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
-        **config)
+    methods = split(args.methods)
+    if methods:
+        expand_methods(methods)  # (an unknown name fails before --out is made)
+    with tidy_output_dir(args.out):  # (a study that fails before writing anything leaves no empty --out)
+        if jax.process_index() == 0:  # the process that writes; before any scene is loaded
+            ckpt.check_output_dir(args.out)
+        run(args.data, scenes=split(args.scenes), methods=methods, out=args.out,
+            renders=args.renders, use_lpips=not args.no_lpips, lpips_net=args.lpips_net, devices=args.devices,
+            **config)
     return 0
 
 

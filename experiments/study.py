@@ -63,16 +63,15 @@ class StudyConfig:
     train_overrides: dict | None = None  # further TrainConfig fields (JSON-able values), Python API only
 
     def train_config(self, method: str, max_gaussians: int | None = None):
-        from patexgs_jax.training import Method, preset_config
+        from patexgs_jax.training import preset_config
+        from patexgs_jax.training.config import equal_steps
 
         cfg = preset_config(self.preset, method=method, iters_2dgs=self.iters_2dgs, iters_tex=self.iters_tex,
                             max_gaussians=max_gaussians if max_gaussians is not None else self.max_gaussians,
                             seed=self.seed, **(self.train_overrides or {}))
-        if method != MATCHED and Method.from_name(method).textures is None:
-            # Equal steps: an untextured method (2dgs, 3dgs, mip-splatting) continues its first stage
-            # for the texture stage's steps.
-            cfg = dataclasses.replace(cfg, continue_2dgs=cfg.iters_tex)
-        return cfg
+        # Equal steps: an untextured method (2dgs, 3dgs, mip-splatting) continues its first stage
+        # for the texture stage's steps (as the training command line does).
+        return cfg if method == MATCHED else equal_steps(cfg)
 
     def record(self) -> dict:
         from patexgs_jax.training.config import config_dict

@@ -58,34 +58,92 @@ def labelled_pairs(pairs, names, enlarge: int = 1, gap: int = 4, head: int = 14)
     return np.asarray(image)
 
 
-def write_comparison(directory, keys, scales=(SCALES[0], SCALES[-1]), gap: int = 4) -> Path | None:
+#: ``compare.png``: the short side a tile is enlarged to at least (nearest neighbour, by a whole
+#: factor), so that a small render is seen at a size a person can read.
+MIN_TILE = 200
+#: ``compare.png``: the labels' font size (px) and the space around them.
+LABEL_SIZE, LABEL_PAD = 16, 6
+
+
+def _font(size: int = LABEL_SIZE):
+    """A scalable font of ``size`` px (Pillow's bundled one), or PIL's small bitmap font where
+    Pillow has no FreeType."""
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except (TypeError, OSError, ImportError):  # (Pillow < 10.1, or built without FreeType)
+        return ImageFont.load_default()
+
+
+def _text_size(font, text: str) -> tuple[int, int]:
+    """(width, height) in px of ``text`` (several lines allowed) in ``font``."""
+    from PIL import Image, ImageDraw
+
+    box = ImageDraw.Draw(Image.new("RGB", (1, 1))).multiline_textbbox((0, 0), text, font=font)
+    return int(box[2]), int(box[3])
+
+
+def row_label(scale: int) -> str:
+    """The label of a ``compare.png`` row at 1/``scale``."""
+    return "full size" if scale == 1 else f"1/{scale} size\n(enlarged x{scale})"
+
+
+def sheet_layout(tile: tuple[int, int], cols, rows, gap: int = 6) -> dict:
+    """Where ``compare.png`` puts things, for tiles of ``tile`` (h, w) px before enlargement,
+    ``cols`` column names and ``rows`` row labels: ``enlarge`` (the whole factor that brings the
+    short side to :data:`MIN_TILE`), ``tile`` (the enlarged (h, w)), ``head`` (the header band's
+    height), ``left`` (the row-label band's width), ``origin(i, j)`` (the top-left (y, x) of row i,
+    column j) and ``size`` (the sheet's (h, w)). The labels are on white bands of their own, never
+    over an image."""
+    font = _font()
+    h, w = tile
+    enlarge = max(1, -(-MIN_TILE // max(1, min(h, w))))
+    th, tw = h * enlarge, w * enlarge
+    head = max(_text_size(font, c)[1] for c in cols) + 2 * LABEL_PAD
+    left = max(_text_size(font, r)[0] for r in rows) + 2 * LABEL_PAD
+
+    def origin(i: int, j: int) -> tuple[int, int]:
+        return head + i * (th + gap), left + j * (tw + gap)
+
+    size = (head + len(rows) * (th + gap) - gap, left + len(cols) * (tw + gap) - gap)
+    return dict(enlarge=enlarge, tile=(th, tw), head=head, left=left, origin=origin, size=size)
+
+
+def write_comparison(directory, keys, scales=(SCALES[0], SCALES[-1]), gap: int = 6) -> Path | None:
     """``directory/compare.png``: the first test view, ground truth | each of ``keys``, one row per
     scale, from the ``directory/first/<key>_x<s>.png`` images the study saves. Zoomed-out rows are
-    enlarged by their factor (nearest neighbour) to the full row's size, so their pixels show; each
-    column is headed by its name. Returns the path, or None when no image is there yet."""
+    enlarged by their factor (nearest neighbour) to the full row's size, so their pixels show, and
+    the whole sheet by :func:`sheet_layout`'s factor where the full-size renders are small; the
+    column names head the columns and the row labels stand on a band to the left, both black on
+    white, never over an image. Returns the path, or None when no image is there yet."""
     from PIL import Image, ImageDraw
 
     directory = Path(directory)
     cols = ["ground-truth"] + list(dict.fromkeys(k for k in keys if k != "ground-truth"))
-    rows = []
-    for s in scales:
-        cells = []
-        for k in cols:
+    cells = {}
+    for i, s in enumerate(scales):
+        for j, k in enumerate(cols):
             f = directory / "first" / f"{k}_x{s}.png"
             if f.exists():
                 im = np.asarray(Image.open(f).convert("RGB"))
-                cells.append(np.repeat(np.repeat(im, s, axis=0), s, axis=1))
-            else:
-                cells.append(None)
-        rows.append(cells)
-    head = 14
-    grid = _labelled_grid(rows, cols, gap, head)
-    if grid is None:
+                cells[i, j] = np.repeat(np.repeat(im, s, axis=0), s, axis=1)
+    if not cells:
         return None
-    img, (h, _) = grid
-    draw = ImageDraw.Draw(img)
-    for i, s in enumerate(scales):
-        draw.text((2, head + i * (h + gap) + 2), "full" if s == 1 else f"1/{s} (x{s})", fill=(255, 255, 0))
+    tile = (max(c.shape[0] for c in cells.values()), max(c.shape[1] for c in cells.values()))
+    labels = [row_label(s) for s in scales]
+    lay = sheet_layout(tile, cols, labels, gap)
+    canvas = np.full(lay["size"] + (3,), 255, np.uint8)
+    for (i, j), c in cells.items():
+        y, x = lay["origin"](i, j)
+        big = np.repeat(np.repeat(c, lay["enlarge"], axis=0), lay["enlarge"], axis=1)
+        canvas[y:y + big.shape[0], x:x + big.shape[1]] = big
+    img = Image.fromarray(canvas)
+    draw, font = ImageDraw.Draw(img), _font()
+    for j, name in enumerate(cols):
+        draw.text((lay["origin"](0, j)[1] + LABEL_PAD, LABEL_PAD), name, fill=(0, 0, 0), font=font)
+    for i, text in enumerate(labels):
+        draw.multiline_text((LABEL_PAD, lay["origin"](i, 0)[0] + LABEL_PAD), text, fill=(0, 0, 0), font=font)
     path = directory / "compare.png"
     _save_png(path, np.asarray(img))
     return path
@@ -144,13 +202,15 @@ def write_plots(data: dict, directory) -> list[Path]:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, field, xlabel in ((axes[0], "train_seconds", "training time (s)"),
                               (axes[1], "render_ms", "render time per image (ms)")):
+        points = []
         for key in labels:
             x = _mean_over_scenes(results, key, lambda e, f=field: e.get(f))
             y = _mean_over_scenes(results, key, lambda e: e.get("1", {}).get("psnr"))
-            if x is None or y is None:
-                continue
-            ax.scatter([x], [y])
-            ax.annotate(key, (x, y), fontsize=8, xytext=(3, 3), textcoords="offset points")
+            if x is not None and y is not None:
+                points.append((key, x, y))
+                ax.scatter([x], [y])
+        ax.margins(x=0.15, y=0.2)  # (room for the labels inside the frame)
+        _annotate_inside(ax, points)
         ax.set_xlabel(xlabel)
         ax.set_ylabel("PSNR at full resolution (dB)")
         ax.grid(alpha=0.3)
@@ -158,6 +218,19 @@ def write_plots(data: dict, directory) -> list[Path]:
     paths.append(_save_figure(fig, directory / "accuracy_vs_time.png"))
     side_path = plot_sides(data, directory / "texture_sides.png")
     return paths + ([side_path] if side_path else [])
+
+
+def _annotate_inside(ax, points) -> None:
+    """Labels each (name, x, y) point beside it, on the side towards the middle of the axes (left
+    of a point in the right half, below one in the top half), so that no label runs into the frame."""
+    if not points:
+        return
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    for name, x, y in points:
+        right = x > (x0 + x1) / 2
+        top = y > (y0 + y1) / 2
+        ax.annotate(name, (x, y), fontsize=8, xytext=(-4 if right else 4, -4 if top else 4),
+                    textcoords="offset points", ha="right" if right else "left", va="top" if top else "bottom")
 
 
 def plot_sides(data: dict, path) -> Path | None:

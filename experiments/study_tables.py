@@ -223,8 +223,9 @@ def tables_markdown(data: dict) -> str:
                    f"{_fmt(m(lambda e: e['texels']), 0)} | {_fmt(m(lambda e: e['storage_mb']), 2)} | "
                    f"{_fmt(m(lambda e: e.get('steps')), 0)} | "
                    f"{_fmt(m(lambda e: e['train_seconds']), 0)} | {_fmt(m(lambda e: e['render_ms']), 1)} |")
-    out += ["", "Every method trains the same number of steps: `2dgs` continues its stage for the texture "
-            "stage's steps.", ""]
+    out += ["", "Every method trains the same number of steps: an untextured method (`2dgs`, `3dgs`, "
+            "`mip-splatting`) continues its first stage for the texture stage's steps. `train s`: the training "
+            "steps of both stages, with the compiles they wait for; not the evaluation (docs/results.md).", ""]
     return "\n".join(out)
 
 

@@ -236,6 +236,28 @@ def _json_default(o):
 
 
 # ------------------------------------------------------------------------------------------------
+def _umask() -> int:
+    """The process's umask, read without changing it where the kernel says it (``/proc/self/status``,
+    Linux 4.7+; elsewhere set and restored at once)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def make_public(fd: int) -> None:
+    """Gives the file open as ``fd`` the mode ``open()`` would have created it with (0666 less the
+    umask: 0644 under the usual 022), where :func:`tempfile.mkstemp` makes it 0600. Outputs written
+    through a temporary file and a rename (checkpoints, PLY, summaries) are then as readable in a
+    shared results folder as any other file."""
+    os.fchmod(fd, 0o666 & ~_umask())
+
+
 def _fsync_dir(directory: Path) -> None:
     try:
         fd = os.open(directory, os.O_RDONLY)
@@ -295,6 +317,7 @@ def save_checkpoint(path, tree, metadata: dict | None = None, *, keep: int | Non
     tmp = Path(tmp_name)
     try:
         with os.fdopen(fd, "wb") as f:
+            make_public(f.fileno())
             with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
                 zf.writestr("spec.json", spec_bytes)
                 for i, arr in enumerate(enc.arrays):

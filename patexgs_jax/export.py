@@ -24,7 +24,9 @@ stores it, which :func:`load_ply` reads back (from Mip-Splatting's own unfused 3
 scales are then filtered as its renderer does) and other 2DGS readers skip.
 
 Texture sidecar ``path.with_suffix(".textures.npz")`` (e.g. ``scene.ply`` ->
-``scene.textures.npz``), always written by :func:`export_ply`, a numpy ``.npz`` with
+``scene.textures.npz``), written by :func:`export_ply` for a scene with textures (a scene without
+any, e.g. ``2dgs`` or ``3dgs``, is the PLY alone, and a sidecar left at that path by an earlier
+export is removed), a numpy ``.npz`` with
   * ``format``: the string ``"patexgs-textures"``; ``version``: int, currently 1;
   * ``num_gaussians``: N, the PLY's vertex count; ``ply_crc32``: CRC-32 of the PLY's vertex data
     (a sidecar left over from another export is rejected);
@@ -48,6 +50,7 @@ import jax
 import numpy as np
 
 from . import filter3d
+from .checkpoint import make_public
 from .math import SH_COEFFS_PER_DEGREE
 from .scene import Scene
 from .textures import TextureBank
@@ -79,6 +82,7 @@ def _atomic_write(path: Path, write) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            make_public(f.fileno())
             write(f)
             f.flush()
             os.fsync(f.fileno())
@@ -112,9 +116,12 @@ def _bank_export(bank: TextureBank | None, rows: np.ndarray, channels: int):
 
 
 def export_ply(scene: Scene, path) -> Path:
-    """Writes the active Gaussians of ``scene`` to ``path`` (PLY) and its texture sidecar.
+    """Writes the active Gaussians of ``scene`` to ``path`` (PLY) and, when the scene has textures,
+    its texture sidecar (a scene without textures leaves none: an older sidecar at that path is
+    removed, so that :func:`load_ply` does not find a stale one).
 
-    Both files are written atomically (temp file + rename). Returns the PLY path.
+    Both files are written atomically (temp file + rename) with the mode ``open()`` gives a new
+    file (0666 less the umask: 0644 under the usual 022). Returns the PLY path.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -140,7 +147,11 @@ def export_ply(scene: Scene, path) -> Path:
               f"element vertex {n}\n" + "".join(f"property float {p}\n" for p in names)
               + "end_header\n").encode("ascii")
     body = data.tobytes()
+    if scene.rgb is None and scene.alpha is None:
+        sidecar_path(path).unlink(missing_ok=True)  # (before the PLY: never a new PLY beside a stale sidecar)
     _atomic_write(path, lambda f: (f.write(header), f.write(body)))
+    if scene.rgb is None and scene.alpha is None:
+        return path
 
     side = {"format": np.asarray(SIDECAR_FORMAT), "version": np.asarray(SIDECAR_VERSION),
             "num_gaussians": np.asarray(n), "ply_crc32": np.asarray(zlib.crc32(body), np.int64)}

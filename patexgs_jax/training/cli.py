@@ -10,17 +10,19 @@ docs/parallel.md.
 
 Without ``--data`` it trains on the embedded synthetic scene (generated once into the cache).
 
-Stages
-  1. 2DGS (every method): SfM-point initialisation, per-group Adam (:mod:`patexgs_jax.optim`),
-     loss ``0.8 L1 + 0.2 (1 - SSIM)`` plus the normal-consistency (from ``normal_from``) and
-     depth-distortion regularisers, one SH band every ``sh_interval`` steps, adaptive density
-     control (:mod:`patexgs_jax.densify`).
+Stages (every method trains ``--iters-2dgs`` + ``--iters-tex`` steps in all)
+  1. 2DGS (3D Gaussians for ``3dgs`` and ``mip-splatting``), every method: SfM-point
+     initialisation, per-group Adam (:mod:`patexgs_jax.optim`), loss ``0.8 L1 + 0.2 (1 - SSIM)``
+     plus the normal-consistency (from ``normal_from``; 2D splats only) and depth-distortion
+     regularisers, one SH band every ``sh_interval`` steps, adaptive density control
+     (:mod:`patexgs_jax.densify`; the 3D methods prune below opacity 0.005, as 3DGS).
   2. Textures (all methods but ``2dgs``): ``patexgs*`` start every Gaussian with a 5x5 alpha
      texture (ones) and a 1x1 RGB offset (zeros) - the first render equals the 2DGS one - warm up
      ``warmup_tex`` steps, then allocate Eq. 7 sizes from the max-contribution counts over all
      training views and grow them by Eqs. 8-10 every ``growth_interval`` steps
      (:mod:`patexgs_jax.adaptive`, run by :mod:`patexgs_jax.schedule`);
-     ``textured-fixed-N`` gives every Gaussian an N x N RGBA texture.
+     ``textured-fixed-N`` gives every Gaussian an N x N RGBA texture. The untextured methods
+     (``2dgs``, ``3dgs``, ``mip-splatting``) continue stage 1 for these steps instead.
 
 Methods: ``2dgs``, ``textured-fixed-N`` (N in 1, 2, 4, 8, 16, 32; no mipmaps, as Textured
 Gaussians), ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs-no-alpha-mip``,
@@ -72,7 +74,7 @@ import jax
 
 from .. import checkpoint as ckpt
 from .. import interrupt
-from .config import PRESETS, default_preset, preset_config
+from .config import PRESETS, default_preset, equal_steps, preset_config
 from .run import train
 
 __all__ = ["main"]
@@ -88,15 +90,22 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="patexgs", help="what to train (default: patexgs); the methods are "
                     "listed above")
     ap.add_argument("--out", required=True, help="the run's folder: checkpoints/, log.jsonl, scene.ply (+ texture "
-                    "sidecar) and summary.json (no default: required)")
+                    "sidecar for a textured method) and summary.json (no default: required)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
                     "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
                     help="iteration schedule (default: tiny on the embedded scene; with --data, paper on a GPU "
                     "and cpu on a CPU); --iters-* override it")
-    ap.add_argument("--iters-2dgs", type=int, default=None)
-    ap.add_argument("--iters-tex", type=int, default=None,
-                    help="texture-stage steps; the preset's warm-up and growth interval scale with it")
+    ap.add_argument("--iters-2dgs", type=int, default=None, metavar="N",
+                    help="steps of the first stage (2DGS splats; 3D Gaussians for 3dgs and mip-splatting), "
+                    "densification included (default: the preset's)")
+    ap.add_argument("--iters-tex", type=int, default=None, metavar="N",
+                    help="steps after the first stage (default: the preset's): the texture stage of a textured "
+                    "method (the preset's warm-up and growth interval scale with it); an untextured method "
+                    "(2dgs, 3dgs, mip-splatting) continues its first stage for as many steps (no densification, "
+                    "the final position learning rate). Every method trains --iters-2dgs + --iters-tex steps in "
+                    "all, as experiments.study and experiments.mipnerf360 train them; --iters-tex 0 stops an "
+                    "untextured method after its first stage")
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--texture-budget-mb", type=float, default=None)
     ap.add_argument("--seed", type=int, default=0)
@@ -176,6 +185,7 @@ def _train(args) -> None:
                         checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                         checkpoint_on_stop=args.checkpoint_on_stop, batch_size=args.batch_size,
                         devices=args.devices)
+    cfg = equal_steps(cfg)  # (an untextured method continues its first stage for the --iters-tex steps)
     if args.data is None:
         from ..data.synthetic import ensure_default_scene
 

@@ -30,6 +30,8 @@ __all__ = [
     "comparable_config",
     "default_preset",
     "config_dict",
+    "effective_config",
+    "equal_steps",
     "preset_config",
     "stage1_key",
     "stage1_part",
@@ -68,6 +70,11 @@ class Method:
     primitive: str = "2d"
     filter3d: bool = False
     prune_opacity: float | None = None
+
+    @property
+    def stage1_name(self) -> str:
+        """The first stage's name after what it trains: ``"3DGS"`` (3D Gaussians) or ``"2DGS"``."""
+        return "3DGS" if self.primitive == "3d" else "2DGS"
 
     @property
     def grows(self) -> bool:
@@ -334,6 +341,28 @@ def preset_config(preset: str = "paper", **overrides) -> TrainConfig:
                 given[name] = max(1, round(f * kw.get(name, getattr(TrainConfig, name))))
     kw.update(given)
     return TrainConfig(**kw)
+
+
+def equal_steps(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` with every method training ``iters_2dgs + iters_tex`` steps, as the studies compare
+    them: an untextured method (``2dgs``, ``3dgs``, ``mip-splatting``) continues its first stage for
+    the texture stage's ``iters_tex`` steps (``continue_2dgs``); a textured one is unchanged."""
+    if cfg.spec.textures is not None:
+        return cfg
+    return dataclasses.replace(cfg, continue_2dgs=cfg.iters_tex)
+
+
+def effective_config(cfg: TrainConfig) -> TrainConfig:
+    """The configuration a run of ``cfg`` trains with: ``cfg`` with its method's own settings in
+    place of the general ones (the 3D methods' densification prune threshold, 3DGS's 0.005, and no
+    normal-consistency loss: a 3D Gaussian has no surface normal). ``summary.json`` records it;
+    checkpoints keep ``cfg`` as given (resuming compares what was asked for)."""
+    spec, changes = cfg.spec, {}
+    if spec.prune_opacity is not None:
+        changes["densify"] = dataclasses.replace(cfg.densify, prune_opacity=spec.prune_opacity)
+    if spec.primitive == "3d":
+        changes["lambda_normal"] = 0.0
+    return dataclasses.replace(cfg, **changes) if changes else cfg
 
 
 def config_dict(cfg: TrainConfig) -> dict:

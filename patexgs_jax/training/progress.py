@@ -116,7 +116,7 @@ def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = 
     size = "{}x{} px".format(*typical_size(dataset.train_views)) + (
         f" (and {n_sizes - 1} other size{'s' if n_sizes > 2 else ''})" if n_sizes > 1 else "")
     preset = preset or preset_name(config)
-    stage1 = "3DGS" if run.spec.primitive == "3d" else "2DGS"
+    stage1 = run.spec.stage1_name
     steps = (f"{config.iters_2dgs} {stage1} steps" if run.spec.textures is None and not config.continue_2dgs
              else f"{config.iters_2dgs} + {config.total_steps - config.iters_2dgs} steps")
     cap = "no Gaussian cap" if config.max_gaussians is None else f"at most {config.max_gaussians:,} Gaussians"
@@ -140,7 +140,7 @@ class Estimate:
     def measure(self, step: int, seconds: float) -> None:
         """Records ``seconds``, the duration of step ``step`` (one that compiled nothing)."""
         run = self.run
-        stage = 1 if run.stage_name(step) == "2DGS" else 2
+        stage = 1 if run.in_stage1(step) else 2
         times = self.clean_steps[stage]
         times.append(seconds)
         if stage in self.estimated or not (len(times) >= 10 or (len(times) >= 2 and sum(times) >= 20.0)):

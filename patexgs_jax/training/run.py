@@ -16,7 +16,16 @@ from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
 from ..schedule import side_histogram
-from .config import STAGE2_FIELDS, Method, TrainConfig, comparable_config, config_dict, stage1_key, stage1_part
+from .config import (
+    STAGE2_FIELDS,
+    Method,
+    TrainConfig,
+    comparable_config,
+    config_dict,
+    effective_config,
+    stage1_key,
+    stage1_part,
+)
 from .progress import start_line
 from .trainer import STAGE1_DIR, Trainer
 
@@ -76,15 +85,15 @@ def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
     want = stage1_key(config)
     if cfg != want:
         diff = sorted(k for k in set(cfg) | set(want) if cfg.get(k) != want.get(k))
-        raise ValueError(f"stage-1 checkpoint {path} was trained with different 2DGS-stage settings "
-                         f"({', '.join(diff)}); train stage 1 again or pass a matching checkpoint.")
+        raise ValueError(f"stage-1 checkpoint {path} was trained with different {config.spec.stage1_name}-stage "
+                         f"settings ({', '.join(diff)}); train stage 1 again or pass a matching checkpoint.")
     if meta.get("step") != config.iters_2dgs:
         raise ValueError(f"stage-1 checkpoint {path} is at step {meta.get('step')}, not at the end of the "
-                         f"2DGS stage (step {config.iters_2dgs}).")
+                         f"{config.spec.stage1_name} stage (step {config.iters_2dgs}).")
     tree, _ = ckpt.load_checkpoint(path)
     run.load_state(tree)
     run.capacity = None  # refit for this method's render configuration
-    run.say(f"stage 1 from {path} ({run.t_train:.0f} s of 2DGS training)")
+    run.say(f"stage 1 from {path} ({run.t_train:.0f} s of {run.spec.stage1_name} training)")
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
@@ -122,7 +131,11 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         programs are compiled ahead in a background thread (:mod:`patexgs_jax.ahead`,
         ``PATEXGS_COMPILE_AHEAD=0`` turns it off), so that their first steps do not wait for them.
     Returns:
-      :class:`TrainResult`.
+      :class:`TrainResult`. Its summary's ``train_seconds`` is the wall-clock time of the training
+      steps of both stages (with ``stage1=``, that run's stage-1 seconds carried over), including
+      the compiles a step waits for, not the host work between steps (densification, texture
+      allocation and growth, checkpoints), data loading or evaluation; its ``config`` is the
+      configuration the run trained with (:func:`~patexgs_jax.training.config.effective_config`).
     Raises:
       compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
       parallel.DistributedError: with several processes, they do not start from the same state, or
@@ -201,7 +214,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     else:  # evaluation and outputs are process 0's
         train_eval = test_eval = dict(psnr=None, ssim=None)
     summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],
-                   config=config_dict(config))
+                   config=config_dict(effective_config(config)))  # (what the run trained with)
     if out is not None and main:
         from ..export import export_ply
 

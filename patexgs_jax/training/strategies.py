@@ -16,7 +16,7 @@ import numpy as np
 from .. import densify as dens
 from .. import filter3d
 from ..schedule import TrainState
-from .config import TrainConfig
+from .config import TrainConfig, effective_config
 
 __all__ = ["Densification", "SmoothingFilter"]
 
@@ -27,9 +27,8 @@ class Densification:
     random choice is seeded by (seed, step)."""
 
     def __init__(self, config: TrainConfig, radius: float):
-        own = config.spec.prune_opacity  # 3DGS's 0.005 for the 3D methods
-        self.config = dataclasses.replace(config.densify, max_gaussians=config.max_gaussians,
-                                          **({} if own is None else dict(prune_opacity=own)))
+        # (the method's own prune threshold: 3DGS's 0.005 for the 3D methods)
+        self.config = dataclasses.replace(effective_config(config).densify, max_gaussians=config.max_gaussians)
         self.iters_2dgs, self.seed, self.radius = config.iters_2dgs, config.seed, radius
 
     def before_step(self, state: TrainState, step: int) -> TrainState:

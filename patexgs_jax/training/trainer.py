@@ -52,7 +52,7 @@ from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from ..schedule import TextureSchedule, TrainState
 from .compile_ahead import CompileAhead, layout_of, single_step_jit
-from .config import TrainConfig, config_dict
+from .config import TrainConfig, config_dict, effective_config
 from .progress import Estimate
 from .step import STEP_TRACES, batch_step
 from .strategies import Densification, SmoothingFilter
@@ -123,6 +123,7 @@ class Trainer:
             raise ValueError("the dataset has no training views.")
         self.radius = float(dataset.normalization.radius)
         self.spec = config.spec
+        self.lambda_normal = effective_config(config).lambda_normal
         self.render_cfgs = (config.render_config(stage=1), config.render_config(stage=2))
         # The position learning rate decays over the 2DGS stage for every method, so stage 1 is the
         # same run whatever the method (and can be shared: ``train(..., stage1=)``, see .run).
@@ -283,9 +284,14 @@ class Trainer:
         return self._jit_cache[key]
 
     def stage_name(self, step: int | None = None) -> str:
-        """``"2DGS"`` or ``"textured"``: which step ``step`` (default: the current one) runs."""
+        """``"2DGS"`` (``"3DGS"`` for 3D Gaussians) or ``"textured"``: which step ``step`` (default:
+        the current one) runs."""
         step = self.step if step is None else step
-        return "2DGS" if step < self.cfg.iters_2dgs or self.spec.textures is None else "textured"
+        return self.spec.stage1_name if self.in_stage1(step) else "textured"
+
+    def in_stage1(self, step: int) -> bool:
+        """Whether step ``step`` trains as the first stage (every step of an untextured method)."""
+        return step < self.cfg.iters_2dgs or self.spec.textures is None
 
     def announce_compile(self, what: str) -> None:
         """Marks the phase as a compile (the heartbeat then says how long it has taken)."""
@@ -524,8 +530,8 @@ class Trainer:
                 t0 = time.perf_counter()
                 traces = sum(STEP_TRACES.values())
                 active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
-                w_normal = jnp.float32(cfg.lambda_normal if step >= cfg.normal_from and self.spec.primitive == "2d"
-                                       else 0.0)  # (3D Gaussians have no surface normal)
+                # (effective_config: no normal loss for 3D Gaussians, which have no surface normal)
+                w_normal = jnp.float32(self.lambda_normal if step >= cfg.normal_from else 0.0)
                 data = ((view.camera, image) if cfg.batch_size == 1
                         else self.batch_inputs(views, images))
                 scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)

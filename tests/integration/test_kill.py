@@ -229,7 +229,7 @@ STRETCH = textwrap.dedent("""
     runpy.run_module(module, run_name="__main__")
 """)
 
-TRAIN_ARGS = ["--method", "2dgs", "--preset", "tiny", "--iters-2dgs", "24", "--log-every", "2",
+TRAIN_ARGS = ["--method", "2dgs", "--preset", "tiny", "--iters-2dgs", "24", "--iters-tex", "0", "--log-every", "2",
               "--max-gaussians", "300", "--checkpoint-on-stop", "0"]
 
 

@@ -114,13 +114,16 @@ def test_tables_plots_and_renders_are_written(study):
                 px = np.asarray(im.convert("RGB"))[14:14 + 48, 64 + 4:]
                 small = np.asarray(Image.open(out / "renders" / scene / "first" / f"{key}_x8.png").convert("RGB"))
                 np.testing.assert_array_equal(px[4::8, 4::8], small)
-    # ground truth | 2dgs | patexgs, at full size and at 1/8 enlarged to full size, under a header
+    # ground truth | 2dgs | patexgs, at full size and at 1/8 enlarged to full size, the sheet enlarged
+    # to readable tiles, under a header and beside a band of row labels (figs.sheet_layout)
     im = Image.open(out / "renders" / scene / "compare.png")
-    assert im.size == (3 * 64 + 2 * 4, 14 + 2 * (48 + 4))
+    lay = figs.sheet_layout((48, 64), ["ground-truth", *METHODS], [figs.row_label(s) for s in (1, 8)])
+    assert im.size == lay["size"][::-1] and min(lay["tile"]) >= figs.MIN_TILE
     px = np.asarray(im.convert("RGB"))
     first = np.asarray(Image.open(out / "renders" / scene / "first" / "patexgs_x8.png").convert("RGB"))
-    y0, x0 = 14 + 48 + 4, 2 * (64 + 4)
-    np.testing.assert_array_equal(px[y0 + 16:y0 + 48:8, x0 + 16:x0 + 64:8], first[2:6, 2:8])
+    (y0, x0), b = lay["origin"](1, 2), 8 * lay["enlarge"]
+    np.testing.assert_array_equal(px[y0 + b // 2:y0 + 48 * lay["enlarge"]:b, x0 + b // 2:x0 + 64 * lay["enlarge"]:b],
+                                  first)
 
 
 @pytest.mark.slow

@@ -451,26 +451,26 @@ def test_cli(synthetic_scene_dir, tmp_path, compile_cache):
     cache, out = compile_cache, tmp_path / "out"
     bad = run_cli("--data", synthetic_scene_dir, "--method", "4dgs", "--out", tmp_path / "bad", cache=cache)
     assert bad.returncode == 2 and "unknown method '4dgs'" in bad.stderr and "Traceback" not in bad.stderr
-    first = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
+    first = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30,
+                    "--iters-tex", 0, cache=cache)
     assert first.returncode == 0, first.stderr
     summary = json.loads((out / "summary.json").read_text())
     for key in ("train_psnr", "test_psnr", "num_gaussians", "texels", "storage_mb", "train_seconds"):
         assert key in summary, key
     assert summary["steps"] == 30 and summary["texels"] == 0 and summary["num_gaussians"] > 0
     assert np.isfinite(summary["train_psnr"]) and summary["train_seconds"] > 0
-    assert (out / "scene.ply").is_file() and (out / "scene.textures.npz").is_file()
+    assert (out / "scene.ply").is_file() and not (out / "scene.textures.npz").exists()  # (2dgs: no textures)
     assert ckpt_step(out) == 30
-    again = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, cache=cache)
+    plain = ("--method", "2dgs", "--iters-2dgs", 30, "--iters-tex", 0)  # (30 steps: no continued stage)
+    again = run_cli("--data", synthetic_scene_dir, "--out", out, *plain, cache=cache)
     assert again.returncode == 2 and "already holds checkpoints" in again.stderr and "--resume" in again.stderr
     assert "Traceback" not in again.stderr
     not_dir = tmp_path / "a_file"
     not_dir.write_text("")
-    blocked = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", not_dir, "--iters-2dgs", 30,
-                      cache=cache)
+    blocked = run_cli("--data", synthetic_scene_dir, "--out", not_dir, *plain, cache=cache)
     assert blocked.returncode == 2 and "error: cannot write to --out" in blocked.stderr
     assert "Traceback" not in blocked.stderr
-    resumed = run_cli("--data", synthetic_scene_dir, "--method", "2dgs", "--out", out, "--iters-2dgs", 30, "--resume",
-                      cache=cache)
+    resumed = run_cli("--data", synthetic_scene_dir, "--out", out, *plain, "--resume", cache=cache)
     assert resumed.returncode == 0, resumed.stderr
     assert "resuming from" in resumed.stdout and "at step 30" in resumed.stdout
     summary2 = json.loads((out / "summary.json").read_text())

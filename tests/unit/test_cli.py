@@ -152,3 +152,16 @@ def test_time_estimate_and_the_long_run_note():
     assert "--factor 4 " in long_run_note(paper, (0.4, 1.2), 1600, 1200, 1.0)  # 13 h 20 min: 4 x 4 smaller
     small = long_run_note(paper, (0.4, 1.2), 312, 175, 4.0)  # --factor 14 would leave 50 px: not offered
     assert "--factor" not in small and small.endswith("(1,000 + 400 steps, about 15 min) brings it down. Going on.")
+
+
+def test_mipnerf360_unknown_group_names_the_groups_and_leaves_no_out(tmp_path, capsys):
+    out = tmp_path / "study"
+    line = _one_error_line(capsys, mipnerf360.main(["--methods", "table9", "--out", str(out), "--no-compile-cache"]),
+                           "unknown method 'table9'", "2dgs", "patexgs")
+    for group in ("table1", "table2", "tables", "table4", "zoom-in"):
+        assert group in line, (group, line)
+    assert not out.exists()
+    # A failure after --out was checked (no such scene) leaves no empty folder either.
+    _one_error_line(capsys, mipnerf360.main(["--data", str(tmp_path / "nope"), "--out", str(out),
+                                             "--no-compile-cache"]), "does not exist")
+    assert not out.exists()

@@ -38,6 +38,7 @@ def test_round_trip(tmp_path, sh_degree, textured):
     scene = make_scene(sh_degree, textured)
     path = export_ply(scene, tmp_path / "scene.ply")
     assert sidecar_path(path).name == "scene.textures.npz"
+    assert sidecar_path(path).exists() == textured  # (no sidecar without textures)
     back = load_ply(path)
     rows = np.flatnonzero(np.asarray(scene.active) > 0)
     assert back.capacity == rows.size == back.num_active()

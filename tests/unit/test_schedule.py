@@ -19,8 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene
-from patexgs_jax import adaptive
+from patexgs_jax import Camera, Capacity, RenderConfig, adaptive, look_at, random_scene
 from patexgs_jax.adaptive import (
     ContributionCounts,
     GrowthSchedule,
