@@ -385,14 +385,14 @@ def step_main(kind: str, n: int, width: int, height: int, num_views: int, steps:
     """One training configuration's steps (forward + backward + Adam update, the real trainer) on the
     paper-scale state: ``2dgs`` untextured, ``textured`` with the real run's side distribution and the
     ``patexgs`` renderer. Returns bench_train's row plus the process's peak memory."""
-    import resource
-
     from experiments.bench_train import bench
 
     views = make_views(width, height, num_views)
     scene = make_state(n) if kind == "2dgs" else textured_state(n)
     r = bench("2dgs" if kind == "2dgs" else "tex8-mip-prefilter", n, views, steps, scene=scene, compositor=None)
-    r["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    # VmHWM, not ru_maxrss: a child started by fork + exec keeps its parent's ru_maxrss, while the
+    # high-water mark belongs to the new address space.
+    r["peak_rss_bytes"] = _hwm_bytes()
     r["device_peak_bytes"] = _device_peak()
     return r
 
