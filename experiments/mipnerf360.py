@@ -269,7 +269,8 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     return study.data
 
 
-def plan_study(data=None, *, scenes=None, methods=None, json_path=None, devices=(), **config) -> int:
+def plan_study(data=None, *, scenes=None, methods=None, json_path=None, devices=(), steps: int = 3,
+               **config) -> int:
     """``--plan``: the plan of every (scene, method) of the study (:func:`patexgs_jax.plan.make_plan`),
     printed and, with ``json_path``, written as a list; nothing else is written. Step times are
     measured once per scene for each kind of method (untextured, textured) and shared. A fraction
@@ -304,7 +305,8 @@ def plan_study(data=None, *, scenes=None, methods=None, json_path=None, devices=
                     continue
                 tc = cfg.train_config(m, max_g)
                 key = (tc.spec.textures is not None, tc.spec.primitive, max_g)
-                p = planning.make_plan(ds, tc, devices=targets, measured=timed.get(key))
+                p = planning.make_plan(ds, tc, devices=targets, measured=timed.get(key), measure=steps > 0,
+                                       steps=steps)
                 timed.setdefault(key, p.measured)
                 plans.append(p)
                 docs.append(dict(scene=name, label=label(m, budget), **p.to_json()))
@@ -396,7 +398,7 @@ def _study(args) -> int:
         config["train_overrides"] = dict(batch_size=args.batch_size)
     if args.plan:
         return plan_study(args.data, scenes=split(args.scenes), methods=split(args.methods), json_path=args.json,
-                          devices=args.plan_device, **config)
+                          devices=args.plan_device, steps=args.plan_steps, **config)
     if args.json is not None:
         raise StudyError("--json writes the plan: pass it with --plan (the study's results go to --out)")
     if jax.process_index() == 0:  # the process that writes; before any scene is loaded

@@ -2,6 +2,7 @@
 
     python -m experiments.plan_check [--cases tiny-2dgs,tiny-patexgs,beer8-2dgs,...] [--beer DIR]
                                      [--json benchmarks/plan_check_cpu.json]
+    python -m experiments.plan_check --repredict benchmarks/plan_check_cpu.json
 
 Each case is a short real training run (``python -m patexgs_jax.train`` with fewer steps than its
 preset, same caps and schedules otherwise) in a fresh process, and the plan of that same command
@@ -11,7 +12,9 @@ at the end of the 2DGS stage and before evaluation: each stage's figure is its o
 one including loading and compiling) and the median duration of each stage's steps (wall time
 between steps, host work included: what the plan's few steps measure). Processes are started
 through ``sh`` so they do not inherit this process's high-water mark. The table gives the plan's
-figure, the run's and the error (plan / run - 1).
+figure, the run's and the error (plan / run - 1). ``--repredict FILE`` recomputes the predicted
+peaks of FILE's rows with the current memory model (``--plan --plan-steps 0``), keeping the runs and
+the plans' step times, and names the commit it did so at (``peaks_model_at``).
 
 Cases: ``tiny-2dgs``, ``tiny-patexgs`` (the embedded scene, tiny preset, 300 + 100 steps);
 ``beer8-2dgs``, ``beer8-patexgs``, ``beer4-2dgs``, ``beer4-patexgs`` (the beer capture at
@@ -29,7 +32,7 @@ import sys
 import tempfile
 import time
 
-from experiments.provenance import write_benchmark_json
+from experiments.provenance import git_commit, write_benchmark_json, write_json
 
 SCHEMA = 1
 BEER = "/work/shared/data/beer"
@@ -142,14 +145,36 @@ def check_case(name: str, beer: str) -> dict:
                               total_seconds=plan["total_seconds"]),
                measured=dict(peak_bytes=run["peak_bytes"], step_seconds=run["step_seconds"],
                              total_seconds=run["total_seconds"], steps=run["steps"]))
-    err_ = {}
+    row["relative_error"] = _errors(row)
+    return row
+
+
+def _errors(row) -> dict:
+    err = {}
     for group in ("peak_bytes", "step_seconds"):
-        for k, p in plan[group].items():
-            m = run[group].get(k)
+        for k, p in row["predicted"][group].items():
+            m = row["measured"][group].get(k)
             if p and m:
-                err_[f"{group}.{k}"] = p / m - 1
-    err_["total_seconds"] = plan["total_seconds"] / run["total_seconds"] - 1
-    row["relative_error"] = err_
+                err[f"{group}.{k}"] = p / m - 1
+    err["total_seconds"] = row["predicted"]["total_seconds"] / row["measured"]["total_seconds"] - 1
+    return err
+
+
+def repredict(row: dict) -> dict:
+    """``row`` with its predicted peaks from the current memory model (``--plan --plan-steps 0``: the
+    peaks are pure functions of the views and the config); its step times and runs kept."""
+    if "error" in row:
+        return row
+    with tempfile.TemporaryDirectory() as tmp:
+        plan_json = os.path.join(tmp, "plan.json")
+        code, _, err = _child(["-m", "patexgs_jax.train", *row["argv"], "--plan", "--plan-steps", "0", "--json",
+                               plan_json])
+        if code != 0:
+            raise RuntimeError(f"plan of {row['case']}: exit {code}: {err.strip().splitlines()[-3:]}")
+        with open(plan_json) as f:
+            plan = json.load(f)
+    row = dict(row, predicted=dict(row["predicted"], peak_bytes=plan["peak_bytes"]), peaks_model_at=git_commit())
+    row["relative_error"] = _errors(row)
     return row
 
 
@@ -185,7 +210,17 @@ def main(argv=None) -> int:
     ap.add_argument("--beer", default=BEER, help=f"the beer capture (default {BEER})")
     ap.add_argument("--json", default=None, help="write the rows there (experiments.provenance's header)")
     ap.add_argument("--run-case", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--repredict", default=None, metavar="FILE",
+                    help="recompute the predicted peaks of FILE's rows with the current memory model (seconds; the "
+                    "runs and the step times are kept) and write them to --json (default: FILE)")
     args = ap.parse_args(argv)
+    if args.repredict is not None:
+        with open(args.repredict) as f:
+            doc = json.load(f)
+        doc["results"] = [repredict(r) for r in doc["results"]]
+        write_json(args.json or args.repredict, doc)
+        print(table(doc["results"]))
+        return 0
     if args.run_case is not None:
         print(json.dumps(run_case(json.loads(args.run_case))))
         return 0

@@ -452,7 +452,7 @@ class Plan:
     devices: list  # [{"device", "kind", "memory_bytes", "peak_bytes", "fits", "fixes"}]
     step_seconds: dict
     measured: dict
-    total_seconds: float
+    total_seconds: float | None
     time_terms: dict
 
     @property
@@ -485,13 +485,10 @@ class Plan:
         if self.texels_max:
             lines.append(f"  texels (RGBA): {self.texels_eq7:,} after Eq. 7 ({self.sigma_from}), up to "
                          f"{self.texels_max:,} with growth ({self.texels_max * 16 / 2**20:.1f} MiB)")
-        m = self.measured
-        lines.append(f"  step time (this device, {m['steps']} timed steps a stage at {m['gaussians']:,} Gaussians, "
-                     f"{m['seconds']:.0f} s): 2DGS {_s(self.step_seconds['stage1'])}, "
-                     f"texture {_s(self.step_seconds['texture'])}{'; ' + m['note'] if m.get('note') else ''}")
-        tt = self.time_terms
-        lines.append(f"  whole run: {_hms(self.total_seconds)} ({_hms(tt['stage1'])} 2DGS + {_hms(tt['texture'])} "
-                     f"textures + {_hms(tt['compile'])} compiling + {_hms(tt['eval'])} evaluation)")
+        if self.total_seconds is None:
+            lines.append("  step time: not measured (--plan-steps 0)")
+        else:
+            lines.extend(self._time_lines())
         for d in self.devices:
             p = d["peak_bytes"]
             lines.append(f"  peak memory on {d['device']}: 2DGS {p['stage1'] / GB:.2f} GB, texture "
@@ -502,6 +499,17 @@ class Plan:
             elif not d["fits"]:
                 lines.append("    no flag alone makes it fit: fewer or smaller images, or a larger device")
         return "\n".join(lines)
+
+    def _time_lines(self) -> list[str]:
+        m, lines = self.measured, []
+        lines.append(f"  step time (this device, {m['steps']} timed steps a stage at {m['gaussians']:,} Gaussians, "
+                     f"{m['seconds']:.0f} s): 2DGS {_s(self.step_seconds['stage1'])}, "
+                     f"texture {_s(self.step_seconds['texture'])}{'; ' + m['note'] if m.get('note') else ''}")
+        tt = self.time_terms
+        lines.append(f"  whole run: {_hms(self.total_seconds or 0.0)} ({_hms(tt['stage1'])} 2DGS + "
+                     f"{_hms(tt['texture'])} textures + {_hms(tt['compile'])} compiling + "
+                     f"{_hms(tt['eval'])} evaluation)")
+        return lines
 
 
 def _s(x):
@@ -593,7 +601,7 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     return Plan(method=config.method, views=views, steps=dict(stage1=steps1, texture=steps2), gaussians=n,
                 gaussians_from=n_from, texels_eq7=texels, texels_max=texels_max, sigma=sigma, sigma_from=sigma_from,
                 devices=plans, step_seconds=dict(stage1=t1, texture=t2), measured=measured,
-                total_seconds=float(sum(terms.values())), time_terms=terms)
+                total_seconds=None if t1 is None else float(sum(terms.values())), time_terms=terms)
 
 
 def check_fits(dataset, config, gaussians: int, device: Device | None = None) -> dict:

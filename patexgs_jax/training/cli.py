@@ -136,6 +136,8 @@ def add_plan_arguments(ap) -> None:
     ap.add_argument("--plan-device", action="append", default=[], metavar="DEVICE",
                     help="with --plan: also plan for h100-80gb, rtx4090-24gb, cpu-24gb or a memory size "
                     "(24e9, 24GB, 80GiB: a GPU's; cpu:24GB a CPU's); repeatable")
+    ap.add_argument("--plan-steps", type=int, default=3, metavar="N",
+                    help="with --plan: steps timed in each stage (default 3; 0: the memory plan alone, in seconds)")
 
 
 def print_plans(plans, json_path) -> None:
@@ -229,6 +231,8 @@ def _plan(args) -> None:
     from .. import plan as planning
 
     devices = [planning.parse_device(d) for d in args.plan_device]
+    if args.plan_steps < 0:
+        raise ValueError(f"--plan-steps {args.plan_steps}: give the steps to time in each stage, 0 or more.")
     compiled.enable_compile_cache()
     cfg = _config(args)
     if args.data is None:
@@ -236,7 +240,8 @@ def _plan(args) -> None:
 
         args.data = str(ensure_default_scene())
     ds = _load(args)
-    print_plans([planning.make_plan(ds, cfg, devices=devices)], args.json)
+    print_plans([planning.make_plan(ds, cfg, devices=devices, measure=args.plan_steps > 0, steps=args.plan_steps)],
+                args.json)
 
 
 def _load(args):
