@@ -269,7 +269,7 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     return study.data
 
 
-def plan_study(data=None, *, scenes=None, methods=None, json_path=None, devices=(), steps: int = 3,
+def plan_study(data=None, *, scenes=None, methods=None, json_path=None, devices=(), steps: int = 5,
                **config) -> int:
     """``--plan``: the plan of every (scene, method) of the study (:func:`patexgs_jax.plan.make_plan`),
     printed and, with ``json_path``, written as a list; nothing else is written. Step times are

@@ -349,13 +349,14 @@ def padded_pixels(width: int, height: int, tile_size: int = 16) -> int:
 # -- time ----------------------------------------------------------------------------------------
 
 
-def measure_steps(dataset, config, gaussians: int, *, steps: int = 3) -> dict:
+def measure_steps(dataset, config, gaussians: int, *, steps: int = 5) -> dict:
     """Times a few real training steps of each stage at ``gaussians`` Gaussians on this device.
 
     A scene of ``gaussians`` Gaussians is initialised from the dataset's points (repeated with a
     small jitter when it has fewer), densification is off, and the run's own loop trains ``steps``
     steps of each stage after the ones that compile (the texture stage of adaptive methods runs the
-    real Eq. 7 allocation on that scene after one warm-up step). Nothing is written.
+    real Eq. 7 allocation on that scene after one warm-up step), with nothing compiled in the
+    background (``PATEXGS_COMPILE_AHEAD=0`` meanwhile). Nothing is written.
 
     Returns:
       ``stage1``, ``texture``: median seconds of the last ``steps`` steps of each stage, which
@@ -366,6 +367,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 3) -> dict:
     """
     import jax
 
+    from .ahead import AHEAD_ENV
     from .densify import DensifyConfig
     from .evaluation import evaluate
     from .training.trainer import Trainer
@@ -391,8 +393,17 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 3) -> dict:
 
     run = Run(ds, cfg, None, verbose=False)
     run.fresh()
-    t0 = time.perf_counter()
-    run.run()
+    # No background compiles: on a few steps they would share the cores with the timed ones.
+    saved = os.environ.get(AHEAD_ENV)
+    os.environ[AHEAD_ENV] = "0"
+    try:
+        t0 = time.perf_counter()
+        run.run()
+    finally:
+        if saved is None:
+            os.environ.pop(AHEAD_ENV, None)
+        else:
+            os.environ[AHEAD_ENV] = saved
     # The last ``steps`` steps of each stage compile nothing (the schedule puts every compile first:
     # the first step, the texture stage's start, Eq. 7's allocation); the others' extra time is compiling.
     spans: dict[int, list[float]] = {1: [], 2: []}
@@ -550,7 +561,7 @@ MEASURE_MAX_GAUSSIANS = 50_000
 MEASURE_MAX_PIXELS = 1 << 20
 
 
-def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int = 3,
+def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int = 5,
               measured: dict | None = None) -> Plan:
     """The plan of training ``config`` on ``dataset`` (see the module docstring).
 

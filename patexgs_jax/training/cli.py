@@ -136,8 +136,8 @@ def add_plan_arguments(ap) -> None:
     ap.add_argument("--plan-device", action="append", default=[], metavar="DEVICE",
                     help="with --plan: also plan for h100-80gb, rtx4090-24gb, cpu-24gb or a memory size "
                     "(24e9, 24GB, 80GiB: a GPU's; cpu:24GB a CPU's); repeatable")
-    ap.add_argument("--plan-steps", type=int, default=3, metavar="N",
-                    help="with --plan: steps timed in each stage (default 3; 0: the memory plan alone, in seconds)")
+    ap.add_argument("--plan-steps", type=int, default=5, metavar="N",
+                    help="with --plan: steps timed in each stage (default 5; 0: the memory plan alone, in seconds)")
 
 
 def print_plans(plans, json_path) -> None:

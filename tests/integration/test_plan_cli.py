@@ -17,7 +17,7 @@ def test_plan_on_the_embedded_scene_times_real_steps_and_writes_only_its_json(tm
     assert code == 0, text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.json"]  # no run folder, no checkpoints
     doc = json.loads(out.read_text())
-    assert doc["measured"]["steps"] == 3 and doc["measured"]["gaussians"] == 500
+    assert doc["measured"]["steps"] == 5 and doc["measured"]["gaussians"] == 500
     assert doc["step_seconds"]["stage1"] > 0 and doc["step_seconds"]["texture"] > 0
     assert doc["total_seconds"] > 600 * doc["step_seconds"]["stage1"]  # the tiny preset's 600 + 200 steps
     assert doc["fits"] is True and set(doc["peak_bytes"]) == {"stage1", "texture", "eval"}
