@@ -2,7 +2,7 @@
 
     python -m experiments.plan_check [--cases tiny-2dgs,tiny-patexgs,beer8-2dgs,...] [--beer DIR]
                                      [--json benchmarks/plan_check_cpu.json]
-    python -m experiments.plan_check --repredict benchmarks/plan_check_cpu.json
+    python -m experiments.plan_check --replan benchmarks/plan_check_cpu.json
 
 Each case is a short real training run (``python -m patexgs_jax.train`` with fewer steps than its
 preset, same caps and schedules otherwise) in a fresh process, and the plan of that same command
@@ -12,9 +12,9 @@ at the end of the 2DGS stage and before evaluation: each stage's figure is its o
 one including loading and compiling) and the median duration of each stage's steps (wall time
 between steps, host work included: what the plan's few steps measure). Processes are started
 through ``sh`` so they do not inherit this process's high-water mark. The table gives the plan's
-figure, the run's and the error (plan / run - 1). ``--repredict FILE`` recomputes the predicted
-peaks of FILE's rows with the current memory model (``--plan --plan-steps 0``), keeping the runs and
-the plans' step times, and names the commit it did so at (``peaks_model_at``).
+figure, the run's and the error (plan / run - 1). ``--replan FILE`` makes FILE's plans again with the
+current code, keeping its runs (which the plan does not change), and names the commit of each
+(``plan_at``).
 
 Cases: ``tiny-2dgs``, ``tiny-patexgs`` (the embedded scene, tiny preset, 300 + 100 steps);
 ``beer8-2dgs``, ``beer8-patexgs``, ``beer4-2dgs``, ``beer4-patexgs`` (the beer capture at
@@ -160,20 +160,22 @@ def _errors(row) -> dict:
     return err
 
 
-def repredict(row: dict) -> dict:
-    """``row`` with its predicted peaks from the current memory model (``--plan --plan-steps 0``: the
-    peaks are pure functions of the views and the config); its step times and runs kept."""
+def replan(row: dict) -> dict:
+    """``row`` with its plan made again by the current code (``--plan``, timed), its run kept."""
     if "error" in row:
         return row
     with tempfile.TemporaryDirectory() as tmp:
         plan_json = os.path.join(tmp, "plan.json")
-        code, _, err = _child(["-m", "patexgs_jax.train", *row["argv"], "--plan", "--plan-steps", "0", "--json",
-                               plan_json])
+        t = time.perf_counter()
+        code, _, err = _child(["-m", "patexgs_jax.train", *row["argv"], "--plan", "--json", plan_json])
         if code != 0:
             raise RuntimeError(f"plan of {row['case']}: exit {code}: {err.strip().splitlines()[-3:]}")
         with open(plan_json) as f:
             plan = json.load(f)
-    row = dict(row, predicted=dict(row["predicted"], peak_bytes=plan["peak_bytes"]), peaks_model_at=git_commit())
+    row = dict(row, plan_seconds=time.perf_counter() - t, plan_at=git_commit(),
+               measured_steps=plan["measured"]["steps"],
+               predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
+                              total_seconds=plan["total_seconds"]))
     row["relative_error"] = _errors(row)
     return row
 
@@ -210,16 +212,20 @@ def main(argv=None) -> int:
     ap.add_argument("--beer", default=BEER, help=f"the beer capture (default {BEER})")
     ap.add_argument("--json", default=None, help="write the rows there (experiments.provenance's header)")
     ap.add_argument("--run-case", default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--repredict", default=None, metavar="FILE",
-                    help="recompute the predicted peaks of FILE's rows with the current memory model (seconds; the "
-                    "runs and the step times are kept) and write them to --json (default: FILE)")
+    ap.add_argument("--replan", default=None, metavar="FILE",
+                    help="make FILE's plans again with the current code (each in a fresh process), keep its runs, "
+                    "and write the rows to --json (default: FILE)")
     args = ap.parse_args(argv)
-    if args.repredict is not None:
-        with open(args.repredict) as f:
+    if args.replan is not None:
+        with open(args.replan) as f:
             doc = json.load(f)
-        doc["results"] = [repredict(r) for r in doc["results"]]
-        write_json(args.json or args.repredict, doc)
-        print(table(doc["results"]))
+        rows = []
+        for r in doc["results"]:
+            rows.append(replan(r))
+            print(table([rows[-1]]).split("\n", 2)[-1], flush=True)
+        doc = dict(doc, results=rows, replanned=f"plans made again at {git_commit()}; runs from {doc.get('git')}")
+        write_json(args.json or args.replan, doc)
+        print(table(rows))
         return 0
     if args.run_case is not None:
         print(json.dumps(run_case(json.loads(args.run_case))))

@@ -13,9 +13,11 @@ The memory model (pure functions; docs/memory.md has its terms and its measured 
   peak = base + per-pixel bytes x padded pixels of the largest view + per-Gaussian bytes x
          Gaussians + texture bytes x RGBA texels (+ on a CPU, the images the dataset caches)
 
-* CPU (the process's peak resident memory, ``ru_maxrss``): the base and the per-pixel term are
-  calibrated on fresh processes (:mod:`patexgs_jax.memory`'s estimate at 1-12 MP, and the small
-  runs of ``python -m experiments.plan_check``); the per-Gaussian and texture terms are counted.
+* CPU (the process's peak resident memory, ``ru_maxrss``): the per-stage base
+  (:data:`CPU_BASE_BYTES`) is calibrated on the short real runs of ``python -m
+  experiments.plan_check`` (fresh processes), the per-pixel term on :mod:`patexgs_jax.memory`'s
+  measurements at 1-12 MP; the per-Gaussian and texture terms are counted. (The memory check of
+  :mod:`patexgs_jax.memory` keeps its own, larger base: an upper bound, never under.)
 * GPU (the device's peak bytes in use): counted, not calibrated. Per pixel: the CPU's per-pixel
   arrays (accumulators and their cotangents, outputs, loss terms), and the compositor's working
   memory, :data:`patexgs_jax.rendering.tiling.PAIR_BYTES` per (tile pixel, chunk slot) of the
@@ -51,6 +53,7 @@ __all__ = [
     "fixes",
     "gaussian_bytes",
     "make_plan",
+    "mean_stage1_gaussians",
     "measure_steps",
     "parse_device",
     "pixel_bytes",
@@ -157,6 +160,20 @@ def planned_gaussians(config, num_points: int) -> tuple[int, str]:
                "scenes); --max-gaussians makes it a cap")
 
 
+def mean_stage1_gaussians(config, num_points: int, gaussians: int) -> int:
+    """The mean active Gaussian count over the first stage's steps: the initial points (at most
+    ``gaussians``) until densification starts, rising linearly to ``gaussians`` by its last event
+    (or the stage's end), then ``gaussians`` (a study's untextured runs continue at that count)."""
+    dc, steps = config.densify, config.iters_2dgs
+    p, n = min(int(num_points), int(gaussians)), int(gaussians)
+    start, stop = min(dc.start, steps), min(dc.stop, steps)
+    if stop <= start:
+        return p
+    extra = config.continue_2dgs if config.spec.textures is None else 0
+    total = p * start + 0.5 * (p + n) * (stop - start) + n * (steps - stop) + n * extra
+    return int(round(total / (steps + extra)))
+
+
 def eq7_texels(view_pixels, gaussians: int, config) -> tuple[int, int, float | None, str]:
     """Eq. 7's RGBA texels at ``gaussians`` Gaussians, with the real functions of
     :mod:`patexgs_jax.adaptive`.
@@ -210,9 +227,13 @@ GPU_BASE_BYTES = 256 * 2**20
 GPU_BYTES_PER_PIXEL = memory.BYTES_PER_PIXEL - 24.0
 #: An evaluation render keeps no cotangents: its per-pixel arrays are about half a training step's.
 EVAL_PIXEL_SHARE = 0.5
-#: CPU resident memory evaluation adds over the larger training stage's peak (calibrated: the
-#: allocator keeps what training freed, so evaluation's peak is the training peak plus its renders).
-CPU_EVAL_EXTRA = 0.02
+#: CPU resident memory of a run besides its per-pixel, per-Gaussian, texture and image terms, per
+#: stage (calibrated on ``python -m experiments.plan_check``'s runs, fresh processes, docs/memory.md):
+#: the Python and JAX runtime and compiling the step (``stage1``); a textured run's first stage also
+#: compiles the texture stage's first programs in the background near its end (``stage1_textured``);
+#: the texture stage compiles its start, Eq. 7's counting render and the allocated layout's step.
+#: Evaluation's peak is the training peak (the allocator keeps what training freed).
+CPU_BASE_BYTES = dict(stage1=940 * 2**20, stage1_textured=1240 * 2**20, texture=1450 * 2**20)
 
 
 def pixel_bytes(pixels: int, kind: str, device_bytes: int | None = None, *, training: bool = True,
@@ -278,9 +299,9 @@ def stage_peaks(kind: str, *, train_pixels: int, eval_pixels: int, gaussians: in
     tex = texture_bytes(rgba_texels, mip=mip)
     if kind == "cpu":
         px = pixel_bytes(train_pixels, "cpu")
-        s1 = memory.BASE_BYTES[False] + px + g + image_bytes
-        s2 = memory.BASE_BYTES[True] + px + g + tex + image_bytes if textured else 0.0
-        ev = max(s1, s2) * (1 + CPU_EVAL_EXTRA) + pixel_bytes(eval_pixels, "cpu", training=False)
+        s1 = CPU_BASE_BYTES["stage1_textured" if textured else "stage1"] + px + g + image_bytes
+        s2 = CPU_BASE_BYTES["texture"] + px + g + tex + image_bytes if textured else 0.0
+        ev = max(s1, s2, CPU_BASE_BYTES["stage1"] + pixel_bytes(eval_pixels, "cpu", training=False) + image_bytes)
     else:
         px = pixel_bytes(train_pixels, "gpu", device_bytes)
         s1 = GPU_BASE_BYTES + px + g
@@ -349,8 +370,10 @@ def padded_pixels(width: int, height: int, tile_size: int = 16) -> int:
 # -- time ----------------------------------------------------------------------------------------
 
 
-def measure_steps(dataset, config, gaussians: int, *, steps: int = 5) -> dict:
-    """Times a few real training steps of each stage at ``gaussians`` Gaussians on this device.
+def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gaussians: int | None = None) -> dict:
+    """Times a few real training steps of each stage on this device: the 2DGS stage's at
+    ``stage1_gaussians`` active Gaussians (default ``gaussians``; the others inactive, so no shape
+    changes), the texture stage's at ``gaussians``.
 
     A scene of ``gaussians`` Gaussians is initialised from the dataset's points (repeated with a
     small jitter when it has fewer), densification is off, and the run's own loop trains ``steps``
@@ -385,7 +408,16 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5) -> dict:
     ds = dataclasses.replace(dataset, points=pts, colors=cols)
     stamps: list[tuple[int, float]] = []
 
+    m = int(gaussians) if stage1_gaussians is None else max(1, min(int(stage1_gaussians), int(gaussians)))
+
     class Run(Trainer):
+        def before_step(self, step):
+            if m < gaussians and step in (0, n1):  # stage 1 at m active Gaussians, stage 2 at all of them
+                act = np.asarray(self.scene.active).copy()
+                act[m:gaussians] = act[0] if step == n1 else 0
+                self.scene = self.scene.replace(active=jax.numpy.asarray(act))
+            super().before_step(step)
+
         def after_step(self, step):
             super().after_step(step)
             jax.block_until_ready(self.scene.means)
@@ -424,7 +456,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5) -> dict:
     three = time.perf_counter() - t
     eval_view = max((three - one) / 2, 1e-4)
     eval_compile = max(one - eval_view, 0.0)
-    return dict(stage1=med[1], texture=med[2] if textured else None, compile_stage1=comp[1],
+    return dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
                 compile_texture=comp[2] if textured else 0.0, eval_view=eval_view, eval_compile=eval_compile,
                 steps=steps,
                 seconds=time.perf_counter() - t_all)
@@ -513,9 +545,11 @@ class Plan:
 
     def _time_lines(self) -> list[str]:
         m, lines = self.measured, []
-        lines.append(f"  step time (this device, {m['steps']} timed steps a stage at {m['gaussians']:,} Gaussians, "
-                     f"{m['seconds']:.0f} s): 2DGS {_s(self.step_seconds['stage1'])}, "
-                     f"texture {_s(self.step_seconds['texture'])}{'; ' + m['note'] if m.get('note') else ''}")
+        lines.append(f"  step time (this device, {m['steps']} timed steps a stage, {m['seconds']:.0f} s): 2DGS "
+                     f"{_s(self.step_seconds['stage1'])} (at {m.get('stage1_gaussians', m['gaussians']):,} Gaussians, "
+                     f"the stage's mean), "
+                     f"texture {_s(self.step_seconds['texture'])} (at {m['gaussians']:,})"
+                     f"{'; ' + m['note'] if m.get('note') else ''}")
         tt = self.time_terms
         lines.append(f"  whole run: {_hms(self.total_seconds or 0.0)} ({_hms(tt['stage1'])} 2DGS + "
                      f"{_hms(tt['texture'])} textures + {_hms(tt['compile'])} compiling + "
@@ -595,7 +629,9 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
             scale = max(n / m_n, 1.0)
             note = (f"measured at {m_n:,} Gaussians and scaled by {scale:.3g} (linear in the count: an "
                     "extrapolation)")
-        measured = dict(measure_steps(dataset, config, m_n, steps=steps), gaussians=m_n, scale=scale, note=note)
+        mean = mean_stage1_gaussians(config, len(dataset.points), n) * m_n // max(n, 1)
+        measured = dict(measure_steps(dataset, config, m_n, steps=steps, stage1_gaussians=mean), gaussians=m_n,
+                        scale=scale, note=note)
     elif measured is None:
         measured = dict(stage1=None, texture=None, compile_stage1=0.0, compile_texture=0.0, eval_view=0.0,
                         eval_compile=0.0, steps=0,

@@ -83,7 +83,9 @@ def test_memory_model_terms():
     assert plan.texture_bytes(1) == pytest.approx(16 * (4 + 2 / 3) * 1.25)
     assert small["eval"] < small["stage1"]
     cpu = plan.stage_peaks("cpu", gaussians=4000, **kw)
-    assert cpu["stage1"] == pytest.approx(memory.estimate_step_bytes(1237, 822, 4000), rel=1e-3)
+    assert cpu["stage1"] == pytest.approx(plan.CPU_BASE_BYTES["stage1_textured"] + memory.BYTES_PER_PIXEL * px
+                                          + memory.BYTES_PER_GAUSSIAN * 4000, rel=1e-6)
+    assert cpu["eval"] == max(cpu["stage1"], cpu["texture"])  # the allocator keeps what training freed
 
 
 @pytest.mark.parametrize("text,kind,size", [("h100-80gb", "gpu", 60e9), ("24GB", "gpu", 24e9),
@@ -176,3 +178,12 @@ def test_study_plan_covers_every_method_and_writes_nothing_else(scene, tmp_path,
     assert docs[0]["steps"] == dict(stage1=800, texture=0)  # 2dgs continues its stage: equal steps
     assert calls == ["2dgs", "textured-fixed-4"]  # step times shared by the textured methods
     assert "plan for patexgs" in capsys.readouterr().out
+
+
+def test_stage1_is_timed_at_the_mean_of_its_densification_ramp():
+    cfg = preset_config("tiny", method="patexgs")  # 600 steps, densification from step 100 to 450
+    assert plan.mean_stage1_gaussians(cfg, 3000, 4000) == round((3000 * 100 + 3500 * 350 + 4000 * 150) / 600)
+    assert plan.mean_stage1_gaussians(cfg, 9000, 4000) == 4000  # the points are sampled down to the cap
+    # A study's 2DGS run continues its stage at the final count.
+    cont = preset_config("tiny", method="2dgs", continue_2dgs=200)
+    assert plan.mean_stage1_gaussians(cont, 3000, 4000) == round((3000 * 100 + 3500 * 350 + 4000 * 350) / 800)
