@@ -130,6 +130,7 @@ not: docs/results.md);
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
@@ -142,6 +143,7 @@ from experiments.study_tables import (
     StudyError,
     join_budgets,
     label,
+    parse_budget,
     parse_budgets,
     tables_markdown,
 )
@@ -327,6 +329,54 @@ def run(data=None, *, scenes=None, methods=None, out="runs/mipnerf360", renders:
     return study.data
 
 
+def plan_study(data=None, *, scenes=None, methods=None, json_path=None, devices=(), steps: int = 5,
+               **config) -> int:
+    """``--plan``: the plan of every (scene, method) of the study (:func:`patexgs_jax.plan.make_plan`),
+    printed and, with ``json_path``, written as a list; nothing else is written. Step times are
+    measured once per scene for each kind of method (untextured, textured) and shared. A fraction
+    budget (10%) is planned as the unbudgeted run; a count budget as its cap."""
+    from patexgs_jax import plan as planning
+    from patexgs_jax.data import check_images, load
+    from patexgs_jax.training.cli import print_plans
+    from patexgs_jax.training.config import default_preset
+
+    targets = [planning.parse_device(d) for d in devices]
+    methods = expand_methods(methods or (EMBEDDED_METHODS if data is None else DEFAULT_METHODS))
+    if data is None:
+        from patexgs_jax.data.synthetic import ensure_default_scene
+
+        root = ensure_default_scene()
+    else:
+        root = Path(data)
+    config.setdefault("preset", default_preset(data))
+    budgets = parse_budgets(config.get("budget"))
+    config["budget"] = join_budgets(budgets)
+    cfg = StudyConfig(**config)
+    plans, docs = [], []
+    for name, path in find_scenes(root, scenes).items():
+        ds = check_images(load(path, factor=cfg.factor), skip_hint="remove their views from the scene")
+        timed: dict = {}
+        for budget in budgets:
+            spec = parse_budget(budget)
+            max_g = spec[1] if spec is not None and spec[0] == "count" else None
+            for m in methods:
+                if m == MATCHED:  # (its Gaussian count comes from the patexgs run: not known before it)
+                    print(f"[{name}] {MATCHED}: not planned (its Gaussian count matches the patexgs run's storage)")
+                    continue
+                tc = cfg.train_config(m, max_g)
+                key = (tc.spec.textures is not None, tc.spec.primitive, max_g)
+                p = planning.make_plan(ds, tc, devices=targets, measured=timed.get(key), measure=steps > 0,
+                                       steps=steps)
+                timed.setdefault(key, p.measured)
+                plans.append(p)
+                docs.append(dict(scene=name, label=label(m, budget), **p.to_json()))
+    print_plans(plans, None)
+    if json_path:
+        Path(json_path).write_text(json.dumps(docs, indent=1) + "\n")
+        print(f"plans written to {json_path}", flush=True)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.mipnerf360", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -370,7 +420,9 @@ def main(argv=None) -> int:
                     "as divide it); on CPU this many CPU devices are created")
     from patexgs_jax import parallel
     from patexgs_jax.checkpoint import CheckpointError
+    from patexgs_jax.training.cli import add_plan_arguments
 
+    add_plan_arguments(ap)
     parallel.add_cli_arguments(ap)
     argv = list(sys.argv[1:] if argv is None else argv)
     args = ap.parse_args(argv)
@@ -413,6 +465,11 @@ def _study(args) -> int:
     methods = split(args.methods)
     if methods:
         expand_methods(methods)  # (an unknown name fails before --out is made)
+    if args.plan:
+        return plan_study(args.data, scenes=split(args.scenes), methods=methods, json_path=args.json,
+                          devices=args.plan_device, steps=args.plan_steps, **config)
+    if args.json is not None:
+        raise StudyError("--json writes the plan: pass it with --plan (the study's results go to --out)")
     with tidy_output_dir(args.out):  # (a study that fails before writing anything leaves no empty --out)
         if jax.process_index() == 0:  # the process that writes; before any scene is loaded
             ckpt.check_output_dir(args.out)

@@ -89,8 +89,8 @@ def main(argv=None) -> int:
                     "default: the embedded synthetic scene")
     ap.add_argument("--method", default="patexgs", help="what to train (default: patexgs); the methods are "
                     "listed above")
-    ap.add_argument("--out", required=True, help="the run's folder: checkpoints/, log.jsonl, scene.ply (+ texture "
-                    "sidecar for a textured method) and summary.json (no default: required)")
+    ap.add_argument("--out", default=None, help="the run's folder: checkpoints/, log.jsonl, scene.ply (+ texture "
+                    "sidecar for a textured method) and summary.json (no default: required, but with --plan)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
                     "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
@@ -124,11 +124,42 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint-on-stop", type=int, default=None, metavar="STEPS",
                     help="on Ctrl-C / SIGTERM, write a checkpoint when the newest is more than STEPS steps old "
                     "(default 10)")
+    add_plan_arguments(ap)
     parallel.add_cli_arguments(ap)
     argv = list(sys.argv[1:] if argv is None else argv)
     args = ap.parse_args(argv)
+    if args.out is None and not args.plan:
+        ap.error("the following arguments are required: --out (the run's folder; or --plan to plan without training)")
+    if args.json is not None and not args.plan:
+        ap.error("--json writes the plan: pass it with --plan")
     args.resume_command = resume_command("patexgs_jax.train", argv)
     return parallel.run_cli(args, _train_cli, user_errors=(ckpt.CheckpointError,))
+
+
+def add_plan_arguments(ap) -> None:
+    """The ``--plan``, ``--json`` and ``--plan-device`` flags (train's and the study's command lines)."""
+    ap.add_argument("--plan", action="store_true", help="print the run's plan and stop: views and padded sizes, "
+                    "steps, Gaussians, Eq. 7 texels, each stage's peak memory, step times measured by a few real "
+                    "steps, the run's time, and the flags that make it fit (nothing is trained or written)")
+    ap.add_argument("--json", default=None, metavar="FILE", help="with --plan: write the plan there as JSON")
+    ap.add_argument("--plan-device", action="append", default=[], metavar="DEVICE",
+                    help="with --plan: also plan for h100-80gb, rtx4090-24gb, cpu-24gb or a memory size "
+                    "(24e9, 24GB, 80GiB: a GPU's; cpu:24GB a CPU's); repeatable")
+    ap.add_argument("--plan-steps", type=int, default=5, metavar="N",
+                    help="with --plan: steps timed in each stage (default 5; 0: the memory plan alone, in seconds)")
+
+
+def print_plans(plans, json_path) -> None:
+    """Prints each plan and, with ``json_path``, writes them there (one plan: its object; several: a
+    list)."""
+    import json as _json
+
+    for p in plans:
+        print(p.text(), flush=True)
+    if json_path:
+        doc = plans[0].to_json() if len(plans) == 1 else [p.to_json() for p in plans]
+        Path(json_path).write_text(_json.dumps(doc, indent=1) + "\n")
+        print(f"plan written to {json_path}", flush=True)
 
 
 def resume_command(module: str, argv: list[str]) -> str:
@@ -163,6 +194,9 @@ def tidy_output_dir(out):
 
 
 def _train_cli(args) -> int:
+    if args.plan:
+        _plan(args)
+        return 0
     with interrupt.guard(resume=args.resume_command):
         try:
             with tidy_output_dir(args.out):
@@ -174,18 +208,10 @@ def _train_cli(args) -> int:
 
 def _train(args) -> None:
     from .. import compiled
-    from ..data import DatasetError, check_images, load
 
     compiled.enable_compile_cache()
     interrupt.set_phase("checking the arguments")
-    args.preset = args.preset or default_preset(args.data)
-    cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
-                        iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
-                        texture_budget_mb=args.texture_budget_mb, seed=args.seed,
-                        checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-                        checkpoint_on_stop=args.checkpoint_on_stop, batch_size=args.batch_size,
-                        devices=args.devices)
-    cfg = equal_steps(cfg)  # (an untextured method continues its first stage for the --iters-tex steps)
+    cfg = _config(args)
     if args.data is None:
         from ..data.synthetic import ensure_default_scene
 
@@ -193,6 +219,44 @@ def _train(args) -> None:
         args.data = str(ensure_default_scene())
     if jax.process_index() == 0:  # the process that writes; before the data is loaded
         ckpt.check_output_dir(args.out)
+    ds = _load(args)
+    interrupt.set_phase("setting up the run")
+    train(ds, cfg, args.out, resume=args.resume, end_distributed=True, preset=args.preset)
+
+
+def _config(args):
+    args.preset = args.preset or default_preset(args.data)
+    cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
+                         iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
+                         texture_budget_mb=args.texture_budget_mb, seed=args.seed,
+                         checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+                         checkpoint_on_stop=args.checkpoint_on_stop, batch_size=args.batch_size,
+                         devices=args.devices)
+    return equal_steps(cfg)  # (an untextured method continues its first stage for the --iters-tex steps)
+
+
+def _plan(args) -> None:
+    """``--plan``: the run's plan (:func:`patexgs_jax.plan.make_plan`), printed and in ``--json``."""
+    from .. import compiled
+    from .. import plan as planning
+
+    devices = [planning.parse_device(d) for d in args.plan_device]
+    if args.plan_steps < 0:
+        raise ValueError(f"--plan-steps {args.plan_steps}: give the steps to time in each stage, 0 or more.")
+    compiled.enable_compile_cache()
+    cfg = _config(args)
+    if args.data is None:
+        from ..data.synthetic import ensure_default_scene
+
+        args.data = str(ensure_default_scene())
+    ds = _load(args)
+    print_plans([planning.make_plan(ds, cfg, devices=devices, measure=args.plan_steps > 0, steps=args.plan_steps)],
+                args.json)
+
+
+def _load(args):
+    from ..data import DatasetError, check_images, load
+
     interrupt.set_phase(f"loading {args.data}")
     try:
         ds = load(args.data, factor=args.factor, skip_missing=args.skip_unreadable)
@@ -202,8 +266,7 @@ def _train(args) -> None:
     except DatasetError as e:
         raise skip_flag_hint(e) from None
     interrupt.check()
-    interrupt.set_phase("setting up the run")
-    train(ds, cfg, args.out, resume=args.resume, end_distributed=True, preset=args.preset)
+    return ds
 
 
 if __name__ == "__main__":

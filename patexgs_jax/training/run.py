@@ -124,7 +124,8 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         so the other processes can exit while process 0 evaluates and writes (the command line's
         choice; nothing cross-process can follow).
       check_memory: before the first step, compare the step's estimated memory with the memory
-        available (:func:`patexgs_jax.memory.check_training_memory`; CPU backend only).
+        available (:func:`patexgs_jax.memory.check_training_memory` on a CPU, then every stage's
+        peak on this device, CPU or GPU: :func:`patexgs_jax.plan.check_fits`).
       preset: the name of the preset ``config`` was made from, for the start line.
       prepare: configs of runs this process will start from this run's stage-1 checkpoint
         (``stage1=``): when this run reaches the end of its 2DGS stage, their texture stage's first
@@ -186,10 +187,11 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
                             "--data and, to resume, must see process 0's --out folder (a shared filesystem)",
                             [run.step, parallel.tree_checksum(run.scene)])
     if check_memory:  # a clear stop now rather than the kernel's OOM kill mid-step
-        from .. import memory
+        from .. import memory, plan
 
-        memory.check_training_memory(dataset, gaussians=max(run.scene.capacity, config.max_gaussians or 0),
-                                     textured=run.spec.textures is not None)
+        slots = max(run.scene.capacity, config.max_gaussians or 0)
+        memory.check_training_memory(dataset, gaussians=slots, textured=run.spec.textures is not None)
+        plan.check_fits(dataset, config, slots)  # every stage, on a GPU too
     run.say(start_line(dataset, config, run, preset))
     run.run()
     interrupt.check()

@@ -1,0 +1,252 @@
+"""The run plan (``--plan``) against real runs: predicted and measured peak memory and step times.
+
+    python -m experiments.plan_check [--cases tiny-2dgs,tiny-patexgs,beer8-2dgs,...] [--beer DIR]
+                                     [--json benchmarks/plan_check_cpu.json]
+    python -m experiments.plan_check --replan benchmarks/plan_check_cpu.json
+
+Each case is a short real training run (``python -m patexgs_jax.train`` with fewer steps than its
+preset, same caps and schedules otherwise) in a fresh process, and the plan of that same command
+line (``--plan --json``) in another. The run's process reports its peak resident memory per stage
+(the Linux high-water mark, ``VmHWM`` = ``ru_maxrss``, read and reset through /proc/self/clear_refs
+at the end of the 2DGS stage and before evaluation: each stage's figure is its own peak, the first
+one including loading and compiling) and the median duration of each stage's steps (wall time
+between steps, host work included: what the plan's few steps measure). Processes are started
+through ``sh`` so they do not inherit this process's high-water mark. The table gives the plan's
+figure, the run's and the error (plan / run - 1). ``--replan FILE`` makes FILE's plans again with the
+current code, keeping its runs (which the plan does not change), and names the commit of each
+(``plan_at``).
+
+Cases: ``tiny-2dgs``, ``tiny-patexgs`` (the embedded scene, tiny preset, 300 + 100 steps);
+``beer8-2dgs``, ``beer8-patexgs``, ``beer4-2dgs``, ``beer4-patexgs`` (the beer capture at
+``--factor`` 8 and 4, cpu preset, 150 + 100 steps).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+
+from experiments.provenance import git_commit, write_benchmark_json, write_json
+
+SCHEMA = 1
+BEER = "/work/shared/data/beer"
+
+#: case: (uses the beer capture, train's arguments)
+CASES = {
+    "tiny-2dgs": (False, ["--method", "2dgs", "--preset", "tiny", "--iters-2dgs", "300"]),
+    "tiny-patexgs": (False, ["--method", "patexgs", "--preset", "tiny", "--iters-2dgs", "300", "--iters-tex", "100"]),
+    "beer8-2dgs": (True, ["--factor", "8", "--method", "2dgs", "--preset", "cpu", "--iters-2dgs", "150"]),
+    "beer8-patexgs": (True, ["--factor", "8", "--method", "patexgs", "--preset", "cpu", "--iters-2dgs", "150",
+                             "--iters-tex", "100"]),
+    "beer4-2dgs": (True, ["--factor", "4", "--method", "2dgs", "--preset", "cpu", "--iters-2dgs", "150"]),
+    "beer4-patexgs": (True, ["--factor", "4", "--method", "patexgs", "--preset", "cpu", "--iters-2dgs", "150",
+                             "--iters-tex", "100"]),
+}
+
+
+def _high_water(reset: bool = False) -> int:
+    """This process's resident-memory high-water mark (bytes); ``reset`` lowers it to the resident
+    memory now."""
+    with open("/proc/self/status") as f:
+        hwm = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) * 1024
+    if reset:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    return hwm
+
+
+def run_case(argv: list[str]) -> dict:
+    """In its own process: trains ``python -m patexgs_jax.train argv`` and returns each stage's
+    peak resident memory (bytes), step durations (median seconds per stage) and the time it took."""
+    import statistics
+
+    import jax
+
+    import patexgs_jax.training.run as run_mod
+    from patexgs_jax.training.cli import main
+    from patexgs_jax.training.trainer import Trainer
+
+    peaks: dict[str, int] = {}
+    stamps: list[tuple[int, int, float]] = []  # (stage, step, time)
+    before, after, evaluate = Trainer.before_step, Trainer.after_step, run_mod.evaluate
+    t: dict[str, float | None] = {"start": None, "eval": None}
+
+    def before_step(self, step):
+        if t["start"] is None:
+            t["start"] = time.perf_counter()
+            stamps.append((0, step, t["start"]))
+        if step == self.cfg.iters_2dgs and "stage1" not in peaks:
+            peaks["stage1"] = _high_water(reset=True)
+        before(self, step)
+
+    def after_step(self, step):
+        after(self, step)
+        jax.block_until_ready(self.scene.means)
+        stamps.append((1 if step <= self.cfg.iters_2dgs else 2, step, time.perf_counter()))
+
+    def evaluate_(*a, **k):
+        if t["eval"] is None:
+            t["eval"] = time.perf_counter()
+            peaks["stage1" if "stage1" not in peaks else "texture"] = _high_water(reset=True)
+        return evaluate(*a, **k)
+
+    Trainer.before_step, Trainer.after_step, run_mod.evaluate = before_step, after_step, evaluate_
+    code = main(argv)
+    t_end = time.perf_counter()
+    peaks["eval"] = _high_water()
+    spans: dict[int, list[float]] = {1: [], 2: []}
+    for (_, _, t0), (stage, _, t1) in zip(stamps, stamps[1:]):
+        spans[stage].append(t1 - t0)
+    return dict(code=code, peak_bytes=dict(stage1=peaks.get("stage1"), texture=peaks.get("texture"),
+                                           eval=peaks.get("eval")),
+                step_seconds={("stage1" if k == 1 else "texture"): (statistics.median(v) if v else None)
+                              for k, v in spans.items()},
+                steps={("stage1" if k == 1 else "texture"): len(v) for k, v in spans.items()},
+                train_seconds=sum(spans[1]) + sum(spans[2]),
+                total_seconds=t_end - (t["start"] or t_end))
+
+
+def _child(args: list[str]) -> tuple[int, str, str]:
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
+    # `; exit $?` keeps sh from exec-ing the command in its own process (which keeps the high-water mark).
+    proc = subprocess.run(["sh", "-c", shlex.join([sys.executable, *args]) + "; exit $?"], capture_output=True,
+                          text=True, env=env)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def check_case(name: str, beer: str) -> dict:
+    """One case: its plan, then its run, each in a fresh process; the row of figures."""
+    uses_beer, argv = CASES[name]
+    argv = (["--data", beer] if uses_beer else []) + argv
+    with tempfile.TemporaryDirectory() as tmp:
+        plan_json = os.path.join(tmp, "plan.json")
+        t = time.perf_counter()
+        code, out, err = _child(["-m", "patexgs_jax.train", *argv, "--plan", "--json", plan_json])
+        plan_seconds = time.perf_counter() - t
+        if code != 0:
+            return dict(case=name, argv=argv, error=f"plan: exit {code}: {err.strip().splitlines()[-3:]}")
+        with open(plan_json) as f:
+            plan = json.load(f)
+        code, out, err = _child(["-m", "experiments.plan_check", "--run-case",
+                                 json.dumps([*argv, "--out", os.path.join(tmp, "run")])])
+        if code != 0:
+            return dict(case=name, argv=argv, plan=plan, error=f"run: exit {code}: {err.strip().splitlines()[-3:]}")
+        run = json.loads(out.strip().splitlines()[-1])
+    row = dict(case=name, argv=argv, plan_seconds=plan_seconds, gaussians=plan["gaussians"],
+               texels_eq7=plan["texels_eq7"], measured_steps=plan["measured"]["steps"],
+               predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
+                              total_seconds=plan["total_seconds"]),
+               measured=dict(peak_bytes=run["peak_bytes"], step_seconds=run["step_seconds"],
+                             total_seconds=run["total_seconds"], steps=run["steps"]))
+    row["relative_error"] = _errors(row)
+    return row
+
+
+def _errors(row) -> dict:
+    err = {}
+    for group in ("peak_bytes", "step_seconds"):
+        for k, p in row["predicted"][group].items():
+            m = row["measured"][group].get(k)
+            if p and m:
+                err[f"{group}.{k}"] = p / m - 1
+    err["total_seconds"] = row["predicted"]["total_seconds"] / row["measured"]["total_seconds"] - 1
+    return err
+
+
+def replan(row: dict) -> dict:
+    """``row`` with its plan made again by the current code (``--plan``, timed), its run kept."""
+    if "error" in row:
+        return row
+    with tempfile.TemporaryDirectory() as tmp:
+        plan_json = os.path.join(tmp, "plan.json")
+        t = time.perf_counter()
+        code, _, err = _child(["-m", "patexgs_jax.train", *row["argv"], "--plan", "--json", plan_json])
+        if code != 0:
+            raise RuntimeError(f"plan of {row['case']}: exit {code}: {err.strip().splitlines()[-3:]}")
+        with open(plan_json) as f:
+            plan = json.load(f)
+    row = dict(row, plan_seconds=time.perf_counter() - t, plan_at=git_commit(),
+               measured_steps=plan["measured"]["steps"],
+               predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
+                              total_seconds=plan["total_seconds"]))
+    row["relative_error"] = _errors(row)
+    return row
+
+
+def _fmt(x, unit):
+    if x is None:
+        return "-"
+    return f"{x / 2**20:.0f} MiB" if unit == "B" else f"{x * 1e3:.0f} ms" if unit == "s" else f"{x:.0f} s"
+
+
+def table(rows) -> str:
+    lines = ["| case | figure | plan | run | error |", "|---|---|---:|---:|---:|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['case']} | failed: {r['error']} | | | |")
+            continue
+        for group, unit in (("peak_bytes", "B"), ("step_seconds", "s")):
+            for k, p in r["predicted"][group].items():
+                m = r["measured"][group].get(k)
+                if not p and not m:
+                    continue
+                e = r["relative_error"].get(f"{group}.{k}")
+                lines.append(f"| {r['case']} | {group}.{k} | {_fmt(p, unit)} | {_fmt(m, unit)} | "
+                             f"{'-' if e is None else f'{e:+.0%}'} |")
+        lines.append(f"| {r['case']} | total_seconds | {_fmt(r['predicted']['total_seconds'], 'T')} | "
+                     f"{_fmt(r['measured']['total_seconds'], 'T')} | {r['relative_error']['total_seconds']:+.0%} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.plan_check", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
+    ap.add_argument("--beer", default=BEER, help=f"the beer capture (default {BEER})")
+    ap.add_argument("--json", default=None, help="write the rows there (experiments.provenance's header)")
+    ap.add_argument("--run-case", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--replan", default=None, metavar="FILE",
+                    help="make FILE's plans again with the current code (each in a fresh process), keep its runs, "
+                    "and write the rows to --json (default: FILE)")
+    args = ap.parse_args(argv)
+    if args.replan is not None:
+        with open(args.replan) as f:
+            doc = json.load(f)
+        rows = []
+        for r in doc["results"]:
+            rows.append(replan(r))
+            print(table([rows[-1]]).split("\n", 2)[-1], flush=True)
+        doc = dict(doc, results=rows, replanned=f"plans made again at {git_commit()}; runs from {doc.get('git')}")
+        write_json(args.json or args.replan, doc)
+        print(table(rows))
+        return 0
+    if args.run_case is not None:
+        print(json.dumps(run_case(json.loads(args.run_case))))
+        return 0
+    names = [c.strip() for c in args.cases.split(",") if c.strip()]
+    unknown = [c for c in names if c not in CASES]
+    if unknown:
+        ap.error(f"unknown case(s) {', '.join(unknown)}; choose from {', '.join(CASES)}")
+    if any(CASES[c][0] for c in names) and not os.path.isdir(args.beer):
+        ap.error(f"--beer {args.beer}: no such folder (the beer capture, COLMAP layout)")
+    rows = []
+    for name in names:
+        row = check_case(name, args.beer)
+        rows.append(row)
+        print(table([row]).split("\n", 2)[-1], flush=True)
+        if args.json:  # after every case: a stopped check keeps what it measured
+            write_benchmark_json(args.json, rows, SCHEMA, mode="plan_check")
+    print()
+    print(table(rows))
+    return 1 if any("error" in r for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,25 @@
+"""``python -m patexgs_jax.train --plan`` on the embedded scene, with its real timed steps: the plan
+is printed and written to ``--json`` only, with each stage's measured step time and peak memory."""
+
+from __future__ import annotations
+
+import json
+
+from patexgs_jax.training import cli
+
+
+def test_plan_on_the_embedded_scene_times_real_steps_and_writes_only_its_json(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "plan.json"
+    code = cli.main(["--method", "textured-fixed-2", "--max-gaussians", "500", "--plan", "--json", str(out),
+                     "--plan-device", "rtx4090-24gb"])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.json"]  # no run folder, no checkpoints
+    doc = json.loads(out.read_text())
+    assert doc["measured"]["steps"] == 5 and doc["measured"]["gaussians"] == 500
+    assert doc["step_seconds"]["stage1"] > 0 and doc["step_seconds"]["texture"] > 0
+    assert doc["total_seconds"] > 600 * doc["step_seconds"]["stage1"]  # the tiny preset's 600 + 200 steps
+    assert doc["fits"] is True and set(doc["peak_bytes"]) == {"stage1", "texture", "eval"}
+    assert doc["devices"][1]["kind"] == "gpu" and doc["devices"][1]["fits"]
+    assert "2DGS" in text and "texture" in text and "whole run" in text

@@ -1,0 +1,189 @@
+"""The run plan (:mod:`patexgs_jax.plan`, ``--plan``): its JSON and units, its memory model, the flag
+it names when a run does not fit, and training's refusal before step 1 with the same advice.
+
+Step times are stubbed here (``measured=``): the real steps are timed by the one integration test
+(tests/integration/test_plan_cli.py) and checked against real runs by ``python -m experiments.plan_check``.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import patexgs_jax.data as data
+from data_builders import make_colmap_scene  # noqa: E402
+from patexgs_jax import memory, plan
+from patexgs_jax.training import cli
+from patexgs_jax.training.config import TrainConfig, preset_config
+from patexgs_jax.training.run import train
+
+MEASURED = dict(stage1=0.05, texture=0.08, compile_stage1=3.0, compile_texture=2.0, eval_view=0.01, eval_compile=1.0,
+                steps=3, seconds=9.0, gaussians=500, scale=1.0, note="")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("plan") / "scene"
+    make_colmap_scene(root, n_images=6, W=64, H=48, n_points=40)
+    return root
+
+
+@pytest.fixture
+def ds(scene):
+    return data.load(scene, test_every=3, verbose=False)
+
+
+def test_plan_json_keeps_every_figure_with_its_unit(ds):
+    cfg = preset_config("tiny", method="patexgs", max_gaussians=500)
+    p = plan.make_plan(ds, cfg, devices=[plan.parse_device("rtx4090-24gb")], measured=dict(MEASURED))
+    doc = json.loads(json.dumps(p.to_json()))
+    assert doc["units"] == dict(bytes="B", seconds="s", texels="RGBA texels (float32 x 4 each)")
+    assert set(doc["peak_bytes"]) == {"stage1", "texture", "eval"}
+    assert all(isinstance(v, int) and v > 0 for v in doc["peak_bytes"].values())
+    assert doc["peak_bytes"]["texture"] > doc["peak_bytes"]["stage1"]  # textures on top
+    assert doc["step_seconds"] == dict(stage1=0.05, texture=0.08)
+    assert isinstance(doc["fits"], bool) and doc["fits"] and doc["fixes"] == []
+    t = doc["time_terms_seconds"]
+    assert t["stage1"] == pytest.approx(600 * 0.05) and t["texture"] == pytest.approx(200 * 0.08)
+    assert doc["total_seconds"] == pytest.approx(sum(t.values()))
+    assert doc["steps"] == dict(stage1=600, texture=200)
+    assert doc["gaussians"] == 500 and "cap" in doc["gaussians_from"]
+    assert doc["texels_eq7"] > 0 and doc["texels_max"] >= doc["texels_eq7"] and doc["sigma"] > 0
+    views = {(v["split"], v["padded_width"], v["padded_height"]) for v in doc["views"]}
+    assert views == {("train", 64, 48), ("test", 64, 48)}
+    assert [d["kind"] for d in doc["devices"]] == ["cpu", "gpu"]
+    assert doc["devices"][1]["memory_bytes"] == int(0.75 * 24e9)
+    # An untextured method has no texture stage.
+    p2 = plan.make_plan(ds, TrainConfig(method="2dgs", max_gaussians=500), measured=dict(MEASURED, texture=None))
+    assert p2.to_json()["peak_bytes"]["texture"] == 0 and p2.steps["texture"] == 0 and p2.texels_max == 0
+
+
+def test_eq7_texels_use_the_real_allocation():
+    """Every Gaussian the same share of every view: sigma is the pixel share, the side Eq. 7's."""
+    from patexgs_jax import adaptive
+
+    cfg = TrainConfig(method="patexgs")
+    px = [128 * 96] * 20
+    t, t_max, sigma, _ = plan.eq7_texels(px, 4000, cfg)
+    assert sigma == pytest.approx(adaptive.pixel_share_sigma(sum(px), 4000))
+    assert t == 4000 * 3 ** 2 and t_max > t  # 20 log2(1 + 2/20) = 2.75 -> side 3
+    budget = plan.eq7_texels(px, 4000, TrainConfig(method="patexgs", texture_budget_mb=1.0))
+    assert budget[0] == round(0.8 * (2**20 // 16)) and budget[1] == 2**20 // 16
+    assert plan.eq7_texels(px, 10, TrainConfig(method="textured-fixed-8"))[:2] == (640, 640)
+
+
+def test_memory_model_terms():
+    px = plan.padded_pixels(1237, 822)
+    kw = dict(train_pixels=px, eval_pixels=px, rgba_texels=9_000_000, textured=True)
+    small = plan.stage_peaks("gpu", gaussians=1_000_000, device_bytes=int(18e9), **kw)
+    large = plan.stage_peaks("gpu", gaussians=3_000_000, device_bytes=int(18e9), **kw)
+    assert large["stage1"] - small["stage1"] == pytest.approx(2e6 * memory.BYTES_PER_GAUSSIAN, rel=1e-6)
+    assert small["texture"] - small["stage1"] == pytest.approx(plan.texture_bytes(9_000_000), rel=1e-6)
+    assert plan.texture_bytes(1) == pytest.approx(16 * (4 + 2 / 3) * 1.25)
+    assert small["eval"] < small["stage1"]
+    cpu = plan.stage_peaks("cpu", gaussians=4000, **kw)
+    assert cpu["stage1"] == pytest.approx(plan.CPU_BASE_BYTES["stage1_textured"] + memory.BYTES_PER_PIXEL * px
+                                          + memory.BYTES_PER_GAUSSIAN * 4000, rel=1e-6)
+    assert cpu["eval"] == max(cpu["stage1"], cpu["texture"])  # the allocator keeps what training freed
+
+
+@pytest.mark.parametrize("text,kind,size", [("h100-80gb", "gpu", 60e9), ("24GB", "gpu", 24e9),
+                                            ("80GiB", "gpu", 80 * 2**30), ("cpu:16e9", "cpu", 16e9),
+                                            ("25769803776", "gpu", 25769803776)])
+def test_parse_device(text, kind, size):
+    d = plan.parse_device(text)
+    assert d.kind == kind and d.memory_bytes == int(size)
+
+
+def test_parse_device_bad_input_names_the_forms():
+    with pytest.raises(ValueError, match="h100-80gb, rtx4090-24gb, cpu-24gb or a memory size"):
+        plan.parse_device("a100")
+
+
+def test_a_plan_that_does_not_fit_names_the_flag(ds):
+    cfg = preset_config("tiny", method="patexgs", max_gaussians=500_000)
+    tight = plan.Device("tiny gpu", "gpu", int(1.2e9))
+    p = plan.make_plan(ds, cfg, devices=[tight], measured=dict(MEASURED))
+    d = p.devices[1]
+    assert not d["fits"] and max(d["peak_bytes"].values()) > tight.memory_bytes
+    assert any(f.startswith("--max-gaussians ") for f in d["fixes"]), d["fixes"]
+    n = int(next(f for f in d["fixes"] if f.startswith("--max-gaussians")).split()[1])
+    assert 0 < n < 500_000
+    smaller = plan.make_plan(ds, preset_config("tiny", method="patexgs", max_gaussians=n), devices=[tight],
+                             measured=dict(MEASURED))
+    assert smaller.devices[1]["fits"]  # the named cap fits
+    assert "to fit, pass --max-gaussians" in p.text()
+
+
+def test_plan_cli_writes_nothing_but_its_json(scene, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(plan, "measure_steps", lambda *a, **k: {k_: v for k_, v in MEASURED.items()
+                                                                 if k_ not in ("gaussians", "scale", "note")})
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "plan.json"
+    code = cli.main(["--data", str(scene), "--method", "patexgs", "--preset", "tiny", "--plan", "--json", str(out),
+                     "--max-gaussians", "100000", "--plan-device", "400MB"])
+    text = capsys.readouterr().out
+    assert code == 0 and "plan for patexgs" in text and "does NOT fit" in text and "to fit, pass" in text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.json"]
+    doc = json.loads(out.read_text())
+    assert {"peak_bytes", "step_seconds", "total_seconds", "fits"} <= set(doc)
+    assert not doc["devices"][1]["fits"] and doc["devices"][1]["fixes"]
+
+
+def test_plan_flags_need_plan(scene, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["--data", str(scene), "--json", str(tmp_path / "x.json"), "--out", str(tmp_path / "o")])
+    assert "--json writes the plan" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["--data", str(scene)])
+    assert "--out" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
+def test_training_refuses_before_step_one_with_the_plans_advice(ds, tmp_path, monkeypatch):
+    """A device too small: train() stops before its first step with the flags the plan names."""
+    tight = plan.Device("tiny gpu", "gpu", int(0.6e9))
+    monkeypatch.setattr(plan, "this_device", lambda: tight)
+    monkeypatch.delenv("PATEXGS_SKIP_MEMORY_CHECK", raising=False)
+    cfg = TrainConfig(method="2dgs", iters_2dgs=5, max_gaussians=200_000, checkpoint_every=1)
+    advice = plan.memory_plan(ds, cfg, 200_000, 0, tight)["fixes"]
+    assert advice
+    with pytest.raises(memory.NotEnoughMemory) as err:
+        train(ds, cfg, tmp_path / "run", verbose=False)
+    msg = str(err.value)
+    assert "To fit, pass " + "; or ".join(advice) in msg and "PATEXGS_SKIP_MEMORY_CHECK=1" in msg
+    assert not list((tmp_path / "run").glob("checkpoints/*.npz"))
+
+
+def test_study_plan_covers_every_method_and_writes_nothing_else(scene, tmp_path, monkeypatch, capsys):
+    from experiments import mipnerf360
+
+    calls = []
+
+    def measure(*a, **k):
+        calls.append(a[1].method)
+        return {k_: v for k_, v in MEASURED.items() if k_ not in ("gaussians", "scale", "note")}
+
+    monkeypatch.setattr(plan, "measure_steps", measure)
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "plans.json"
+    code = mipnerf360.main(["--data", str(scene), "--methods", "2dgs,textured-fixed-4,patexgs", "--preset", "tiny",
+                            "--plan", "--json", str(out)])
+    assert code == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plans.json"]  # no runs/mipnerf360
+    docs = json.loads(out.read_text())
+    assert [d["label"] for d in docs] == ["2dgs", "textured-fixed-4", "patexgs"]
+    assert all({"scene", "peak_bytes", "step_seconds", "total_seconds", "fits"} <= set(d) for d in docs)
+    assert docs[0]["steps"] == dict(stage1=800, texture=0)  # 2dgs continues its stage: equal steps
+    assert calls == ["2dgs", "textured-fixed-4"]  # step times shared by the textured methods
+    assert "plan for patexgs" in capsys.readouterr().out
+
+
+def test_stage1_is_timed_at_the_mean_of_its_densification_ramp():
+    cfg = preset_config("tiny", method="patexgs")  # 600 steps, densification from step 100 to 450
+    assert plan.mean_stage1_gaussians(cfg, 3000, 4000) == round((3000 * 100 + 3500 * 350 + 4000 * 150) / 600)
+    assert plan.mean_stage1_gaussians(cfg, 9000, 4000) == 4000  # the points are sampled down to the cap
+    # A study's 2DGS run continues its stage at the final count.
+    cont = preset_config("tiny", method="2dgs", continue_2dgs=200)
+    assert plan.mean_stage1_gaussians(cont, 3000, 4000) == round((3000 * 100 + 3500 * 350 + 4000 * 350) / 800)
