@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     ap.add_argument("--method", default="patexgs", help="what to train (default: patexgs); the methods are "
                     "listed above")
     ap.add_argument("--out", default=None, help="the run's folder: checkpoints/, log.jsonl, scene.ply (+ texture "
-                    "sidecar for a textured method) and summary.json (no default: required, but with --plan)")
+                    "sidecar for a textured method) and summary.json (no default: required); --plan needs none")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: the Mip-NeRF 360 "
                     "factors for those scenes, else images wider than 1600 px resized to 1600 wide; 1: full size)")
     ap.add_argument("--preset", default=None, choices=sorted(PRESETS),
