@@ -18,8 +18,11 @@ The memory model (pure functions; docs/memory.md has its terms and its measured 
   experiments.plan_check`` (fresh processes), the per-pixel term on :mod:`patexgs_jax.memory`'s
   measurements at 1-12 MP; the per-Gaussian and texture terms are counted. (The memory check of
   :mod:`patexgs_jax.memory` keeps its own, larger base: an upper bound, never under.)
-* GPU (the device's peak bytes in use): counted, not calibrated. Per pixel: the CPU's per-pixel
-  arrays (accumulators and their cotangents, outputs, loss terms), and the compositor's working
+* GPU (the device's peak bytes in use): the per-Gaussian and per-texel terms measured on one H100
+  (:data:`GPU_BYTES_PER_GAUSSIAN`, :data:`GPU_BYTES_PER_TEXEL`: ``experiments.bench_scale``'s
+  training steps at 1M and 3M Gaussians); the rest counted. Per pixel: the CPU's per-pixel
+  arrays (accumulators and their cotangents, outputs, loss terms), and, with the XLA compositor
+  (the Pallas kernel, a GPU's default, keeps its per-pair state on the chip), the compositor's working
   memory, :data:`patexgs_jax.rendering.tiling.PAIR_BYTES` per (tile pixel, chunk slot) of the
   tiles it advances at once (all of them, up to a quarter of the device:
   :func:`patexgs_jax.rendering.tiling.choose_tile_batch`). Per Gaussian: parameters, gradients, two
@@ -237,7 +240,7 @@ CPU_BASE_BYTES = dict(stage1=940 * 2**20, stage1_textured=1240 * 2**20, texture=
 
 
 def pixel_bytes(pixels: int, kind: str, device_bytes: int | None = None, *, training: bool = True,
-                tile_size: int = 16, chunk: int = 32) -> float:
+                tile_size: int = 16, chunk: int = 32, compositor: str = "pallas") -> float:
     """Bytes that grow with the padded pixels of one view.
 
     Args:
@@ -245,12 +248,18 @@ def pixel_bytes(pixels: int, kind: str, device_bytes: int | None = None, *, trai
       kind: ``"cpu"`` or ``"gpu"``.
       device_bytes: a GPU's memory for JAX (sizes the compositor's tile batch).
       training: a training step (forward and backward) or an evaluation render (forward).
+      compositor: on a GPU, ``"pallas"`` (the default there) or ``"xla"``, whose chunked compositor
+        holds a working memory that grows with the tiles it advances at once.
     Returns:
       bytes (float).
     """
     share = 1.0 if training else EVAL_PIXEL_SHARE
     if kind == "cpu":
         return share * memory.BYTES_PER_PIXEL * pixels
+    if compositor != "xla":
+        # The Pallas kernel (a GPU's default compositor) keeps its per-pair state on the chip: the
+        # H100's 2DGS step at 1.04 MP left 0.31 GB besides the Gaussians for everything else.
+        return share * GPU_BYTES_PER_PIXEL * pixels
     tiles = max(1, -(-int(pixels) // (tile_size * tile_size)))
     env = os.environ.get(tiling.ENV_TILE_BATCH, "").strip()
     batch = min(int(env), tiles) if env.isdigit() and int(env) > 0 else tiling.choose_tile_batch(
@@ -259,11 +268,26 @@ def pixel_bytes(pixels: int, kind: str, device_bytes: int | None = None, *, trai
     return share * (GPU_BYTES_PER_PIXEL * pixels + working)
 
 
-def gaussian_bytes(gaussians: int, *, training: bool = True) -> float:
+#: GPU bytes a Gaussian slot of a training step, measured: the slope of the 2DGS step's device peak
+#: between 1.1M and 3.3M slots on one H100 (1.76 and 4.70 GiB, ``experiments.bench_scale``,
+#: benchmarks/bench_scale_h100_{1m,3m}_43b446a.json). The CPU keeps the counted 2,000 B (XLA's CPU
+#: buffers are not the GPU allocator's).
+GPU_BYTES_PER_GAUSSIAN = 1435.0
+#: GPU bytes an allocated RGBA texel adds to the texture stage's step, measured the same way (the
+#: textured step less the 2DGS one: 3.48 GiB for 13.5M texels at 1M Gaussians, 11.09 GiB for 40.7M
+#: at 3M: 277 and 292 B): the parameter, gradient, Adam moments and ages in power-of-two bucket
+#: slots with the buckets' headroom (1.3x the texels' own size, then up to 2x in capacity), the atlas
+#: and mip levels the renderer builds, and their cotangents.
+GPU_BYTES_PER_TEXEL = 285.0
+
+
+def gaussian_bytes(gaussians: int, *, training: bool = True, kind: str = "cpu") -> float:
     """Bytes per Gaussian slot times ``gaussians``: training holds parameters, gradients, Adam
-    moments, the updated copy and the projection's rows (:data:`patexgs_jax.memory.BYTES_PER_GAUSSIAN`);
-    evaluation the parameters and the projection's rows (a fifth of it)."""
-    return (1.0 if training else 0.2) * memory.BYTES_PER_GAUSSIAN * int(gaussians)
+    moments, the updated copy and the projection's rows (:data:`patexgs_jax.memory.BYTES_PER_GAUSSIAN`
+    counted; on a GPU :data:`GPU_BYTES_PER_GAUSSIAN` measured); evaluation the parameters and the
+    projection's rows (a fifth of it)."""
+    per = GPU_BYTES_PER_GAUSSIAN if kind == "gpu" else memory.BYTES_PER_GAUSSIAN
+    return (1.0 if training else 0.2) * per * int(gaussians)
 
 
 #: Texture buckets keep this share of spare texels (:data:`patexgs_jax.schedule.TEXTURE_HEADROOM`).
@@ -304,10 +328,13 @@ def stage_peaks(kind: str, *, train_pixels: int, eval_pixels: int, gaussians: in
         ev = max(s1, s2, CPU_BASE_BYTES["stage1"] + pixel_bytes(eval_pixels, "cpu", training=False) + image_bytes)
     else:
         px = pixel_bytes(train_pixels, "gpu", device_bytes)
+        g = gaussian_bytes(gaussians, kind="gpu")
+        tex = GPU_BYTES_PER_TEXEL * int(rgba_texels)
         s1 = GPU_BASE_BYTES + px + g
         s2 = GPU_BASE_BYTES + px + g + tex if textured else 0.0
         ev = (GPU_BASE_BYTES + pixel_bytes(eval_pixels, "gpu", device_bytes, training=False)
-              + gaussian_bytes(gaussians, training=False) + texture_bytes(rgba_texels, mip=mip, training=False))
+              + gaussian_bytes(gaussians, training=False, kind="gpu")
+              + texture_bytes(rgba_texels, mip=mip, training=False))
     return dict(stage1=int(s1), texture=int(s2), eval=int(ev))
 
 
@@ -347,7 +374,8 @@ def fixes(device: Device, peaks: dict[str, int], *, sizes, factor: float, gaussi
         out.append(f"--max-gaussians {lo} (peak {max(p.values()) / GB:.1f} GB)")
     if textured and rgba_texels > 0:
         room = device.memory_bytes - max(peaks_at(sizes, gaussians, 0, eval_pixels, image_bytes).values())
-        mb = math.floor(max(room, 0) / texture_bytes(1, mip=mip) * 16 / 2**20 * 10) / 10
+        per_texel = GPU_BYTES_PER_TEXEL if device.kind == "gpu" else texture_bytes(1, mip=mip)
+        mb = math.floor(max(room, 0) / per_texel * 16 / 2**20 * 10) / 10
         if mb > 0:
             out.append(f"--texture-budget-mb {mb:g} (the planned textures are {rgba_texels * 16 / 2**20:.0f} MiB "
                        "of texels)")

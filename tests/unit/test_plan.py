@@ -78,10 +78,16 @@ def test_memory_model_terms():
     kw = dict(train_pixels=px, eval_pixels=px, rgba_texels=9_000_000, textured=True)
     small = plan.stage_peaks("gpu", gaussians=1_000_000, device_bytes=int(18e9), **kw)
     large = plan.stage_peaks("gpu", gaussians=3_000_000, device_bytes=int(18e9), **kw)
-    assert large["stage1"] - small["stage1"] == pytest.approx(2e6 * memory.BYTES_PER_GAUSSIAN, rel=1e-6)
-    assert small["texture"] - small["stage1"] == pytest.approx(plan.texture_bytes(9_000_000), rel=1e-6)
+    assert large["stage1"] - small["stage1"] == pytest.approx(2e6 * plan.GPU_BYTES_PER_GAUSSIAN, rel=1e-6)
+    assert small["texture"] - small["stage1"] == pytest.approx(9_000_000 * plan.GPU_BYTES_PER_TEXEL, rel=1e-6)
     assert plan.texture_bytes(1) == pytest.approx(16 * (4 + 2 / 3) * 1.25)
     assert small["eval"] < small["stage1"]
+    # The H100's measured step peaks (bench_scale, 1237x822, 1.1M / 3.3M slots) within 25%.
+    for slots, texels, two_d, textured in ((1_100_000, 13_506_982, 1.76, 5.24), (3_300_000, 40_704_722, 4.70, 15.79)):
+        p = plan.stage_peaks("gpu", gaussians=slots, device_bytes=int(60e9), train_pixels=px, eval_pixels=px,
+                             rgba_texels=texels, textured=True)
+        assert p["stage1"] == pytest.approx(two_d * 2**30, rel=0.25)
+        assert p["texture"] == pytest.approx(textured * 2**30, rel=0.25)
     cpu = plan.stage_peaks("cpu", gaussians=4000, **kw)
     assert cpu["stage1"] == pytest.approx(plan.CPU_BASE_BYTES["stage1_textured"] + memory.BYTES_PER_PIXEL * px
                                           + memory.BYTES_PER_GAUSSIAN * 4000, rel=1e-6)
@@ -143,11 +149,11 @@ def test_plan_flags_need_plan(scene, tmp_path, capsys):
 
 def test_training_refuses_before_step_one_with_the_plans_advice(ds, tmp_path, monkeypatch):
     """A device too small: train() stops before its first step with the flags the plan names."""
-    tight = plan.Device("tiny gpu", "gpu", int(0.6e9))
+    tight = plan.Device("tiny gpu", "gpu", int(0.5e9))
     monkeypatch.setattr(plan, "this_device", lambda: tight)
     monkeypatch.delenv("PATEXGS_SKIP_MEMORY_CHECK", raising=False)
-    cfg = TrainConfig(method="2dgs", iters_2dgs=5, max_gaussians=200_000, checkpoint_every=1)
-    advice = plan.memory_plan(ds, cfg, 200_000, 0, tight)["fixes"]
+    cfg = TrainConfig(method="2dgs", iters_2dgs=5, max_gaussians=400_000, checkpoint_every=1)
+    advice = plan.memory_plan(ds, cfg, 400_000, 0, tight)["fixes"]
     assert advice
     with pytest.raises(memory.NotEnoughMemory) as err:
         train(ds, cfg, tmp_path / "run", verbose=False)
