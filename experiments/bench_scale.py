@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from experiments.bench_train import _high_water_bytes
 from experiments.provenance import header, write_json
 
 SCHEMA = 1
@@ -73,21 +74,6 @@ DENSIFY_SHARE = 0.02
 # ---------------------------------------------------------------------------------------------
 # Memory readings (Linux)
 # ---------------------------------------------------------------------------------------------
-def _hwm_bytes(reset: bool = False) -> int:
-    """Resident-memory high-water mark (VmHWM); ``reset`` lowers it to the current resident size."""
-    try:
-        with open("/proc/self/status") as f:
-            hwm = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) * 1024
-        if reset:
-            with open("/proc/self/clear_refs", "w") as f:
-                f.write("5")
-    except (OSError, StopIteration):
-        import resource
-
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    return hwm
-
-
 def _device_peak() -> int | None:
     import jax
 
@@ -106,13 +92,13 @@ class Rows:
     @contextlib.contextmanager
     def time(self, event: str, host: bool, **extra):
         gc.collect()
-        _hwm_bytes(reset=True)
+        _high_water_bytes(reset=True)
         t0 = time.perf_counter()
         note: dict = {}
         yield note
         seconds = time.perf_counter() - t0
         row = dict(event=event, gaussians=self.gaussians, seconds=seconds, host=host,
-                   peak_rss_bytes=_hwm_bytes(), device_peak_bytes=_device_peak(), **extra, **note)
+                   peak_rss_bytes=_high_water_bytes(), device_peak_bytes=_device_peak(), **extra, **note)
         self.rows.append(row)
         self.say(f"{event:<22} {seconds:9.3f} s  peak RSS {row['peak_rss_bytes'] / 2**30:6.2f} GiB"
                  + ("" if row["device_peak_bytes"] is None else f"  device {row['device_peak_bytes'] / 2**30:6.2f} GiB")
@@ -392,7 +378,7 @@ def step_main(kind: str, n: int, width: int, height: int, num_views: int, steps:
     r = bench("2dgs" if kind == "2dgs" else "tex8-mip-prefilter", n, views, steps, scene=scene, compositor=None)
     # VmHWM, not ru_maxrss: a child started by fork + exec keeps its parent's ru_maxrss, while the
     # high-water mark belongs to the new address space.
-    r["peak_rss_bytes"] = _hwm_bytes()
+    r["peak_rss_bytes"] = _high_water_bytes()
     r["device_peak_bytes"] = _device_peak()
     return r
 

@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 
+from experiments.bench_train import _high_water_bytes
 from experiments.provenance import git_commit, write_benchmark_json, write_json
 
 SCHEMA = 1
@@ -48,17 +49,6 @@ CASES = {
     "beer4-patexgs": (True, ["--factor", "4", "--method", "patexgs", "--preset", "cpu", "--iters-2dgs", "150",
                              "--iters-tex", "100"]),
 }
-
-
-def _high_water(reset: bool = False) -> int:
-    """This process's resident-memory high-water mark (bytes); ``reset`` lowers it to the resident
-    memory now."""
-    with open("/proc/self/status") as f:
-        hwm = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) * 1024
-    if reset:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    return hwm
 
 
 def run_case(argv: list[str]) -> dict:
@@ -82,7 +72,7 @@ def run_case(argv: list[str]) -> dict:
             t["start"] = time.perf_counter()
             stamps.append((0, step, t["start"]))
         if step == self.cfg.iters_2dgs and "stage1" not in peaks:
-            peaks["stage1"] = _high_water(reset=True)
+            peaks["stage1"] = _high_water_bytes(reset=True)
         before(self, step)
 
     def after_step(self, step):
@@ -93,13 +83,13 @@ def run_case(argv: list[str]) -> dict:
     def evaluate_(*a, **k):
         if t["eval"] is None:
             t["eval"] = time.perf_counter()
-            peaks["stage1" if "stage1" not in peaks else "texture"] = _high_water(reset=True)
+            peaks["stage1" if "stage1" not in peaks else "texture"] = _high_water_bytes(reset=True)
         return evaluate(*a, **k)
 
     Trainer.before_step, Trainer.after_step, run_mod.evaluate = before_step, after_step, evaluate_
     code = main(argv)
     t_end = time.perf_counter()
-    peaks["eval"] = _high_water()
+    peaks["eval"] = _high_water_bytes()
     spans: dict[int, list[float]] = {1: [], 2: []}
     for (_, _, t0), (stage, _, t1) in zip(stamps, stamps[1:]):
         spans[stage].append(t1 - t0)
