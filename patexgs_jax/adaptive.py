@@ -153,8 +153,8 @@ class ContributionCounts:
         pos[keep] = np.arange(keep.size)
         new = pos[self.index]
         sel = new >= 0
-        per_view = np.add.reduceat(sel, self.offsets[:-1]) if sel.size else np.zeros(self.num_views, np.int64)
-        per_view = np.where(np.diff(self.offsets) > 0, per_view, 0)  # reduceat of an empty view reads the next
+        view_of = np.repeat(np.arange(self.num_views), np.diff(self.offsets))
+        per_view = np.bincount(view_of[sel], minlength=self.num_views)
         offsets = np.concatenate([[0], np.cumsum(per_view)]).astype(np.int64)
         return ContributionCounts(self.values[sel], new[sel].astype(np.int32), offsets, int(keep.size))
 

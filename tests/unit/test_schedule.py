@@ -519,6 +519,10 @@ def test_contribution_counts_keep_only_nonzeros_and_match_the_dense_sums():
     np.testing.assert_allclose(sp.column_sum(), S.sum(axis=0))
     keep = np.array([3, 10, 11, 400])
     np.testing.assert_allclose(sp.columns(keep).sizes(5.0), np.sum(np.log2(1 + S[:, keep] / 5.0), axis=0))
+    S[-2:] = 0  # views where no kept Gaussian (or none at all) contributes
+    sub = ContributionCounts.from_dense(S).columns(keep)
+    np.testing.assert_array_equal(sub.column_max(), S[:, keep].max(axis=0))
+    assert sub.num_views == 7 and sub.offsets[-1] == np.count_nonzero(S[:, keep])
     with pytest.raises(ValueError, match="non-negative"):
         ContributionCounts.from_views([np.array([1.0, -2.0])])
     with pytest.raises(ValueError, match=r"shape \(C,\)"):
