@@ -359,7 +359,7 @@ def _write_npy(f, arr: np.ndarray) -> None:
         np.lib.format.write_array_header_1_0(f, header)
     except ValueError:  # a header of over 64 KiB (never for this package's shapes)
         np.lib.format.write_array_header_2_0(f, header)
-    f.write(memoryview(arr).cast("B"))
+    f.write(arr.data.cast("B"))
 
 
 def _npy_view(data: bytes) -> np.ndarray:

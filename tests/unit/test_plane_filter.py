@@ -69,8 +69,8 @@ def test_zero_filter_is_no_filter():
     cam = camera()
     a = tile_render(sc, cam, PREFILTER)
     b = tile_render(sc.replace(filter3d=jnp.zeros(C, jnp.float32)), cam, PREFILTER)
-    for name in ("rgb", "alpha", "depth", "normal"):
-        np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-6, rtol=0)
+    for name in ("rgb", "alpha", "depth", "normal"):  # (depths of ~2.4 differ by 5e-6 on an AMD EPYC)
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-6, rtol=1e-5)
 
 
 @pytest.mark.parametrize("scale_px", [0.2, 1.0, 4.0])
