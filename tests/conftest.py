@@ -6,6 +6,8 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
+import time
 
 # The suite compiles far more than it runs (hundreds of small programs, most run a few times), and
 # on the CPU most of a compile is LLVM optimising the generated code. Level 0 gives the same
@@ -74,3 +76,75 @@ def viewer_run_dir(viewer_scene, tmp_path_factory):
     from viewer_scenes import study_of_two_runs
 
     return study_of_two_runs(tmp_path_factory.mktemp("viewer"), viewer_scene)
+
+
+class _Heartbeat:
+    """Prints a line when a minute passes without one (``-q`` prints a dot per test, nothing while
+    one runs), naming the tests that are running and for how long: a long test is then told from a
+    hung one. Runs in pytest-xdist's controller; ``PATEXGS_TEST_HEARTBEAT_S``
+    sets the period."""
+
+    def __init__(self, config, period: float):
+        self.reporter = config.pluginmanager.get_plugin("terminalreporter")
+        self.period = period
+        self.running: dict[str, float] = {}
+        self.last = time.monotonic()
+        self.lock = threading.Lock()
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._beat, name="test-heartbeat", daemon=True)
+
+    def pytest_sessionstart(self, session):
+        self.thread.start()
+
+    def pytest_sessionfinish(self, session):
+        self.done.set()
+
+    def pytest_runtest_logstart(self, nodeid, location):
+        with self.lock:
+            self.running[nodeid] = time.monotonic()
+
+    def pytest_runtest_logreport(self, report):
+        with self.lock:
+            if report.when == "call" or report.outcome != "passed":  # (what -q prints a character for)
+                self.last = time.monotonic()
+            if report.when == "teardown":
+                self.running.pop(report.nodeid, None)
+
+    def _beat(self):
+        while not self.done.wait(1.0):
+            with self.lock:
+                now = time.monotonic()
+                if now - self.last < self.period or self.reporter is None:
+                    continue
+                self.last = now
+                tests = ", ".join(f"{n} ({now - t:.0f} s)" for n, t in sorted(self.running.items(), key=lambda x: x[1]))
+            self.reporter.write_line(f"[{self.period:.0f} s without a result; running: {tests or 'no test yet'}]")
+
+
+#: XLA's CPU fusion emitters (MLIR, on by default in jax 0.10) take twice the compile time of the
+#: older LLVM emitters on the renderer's programs (a float64 render + gradient: 6.6 s with them, 3.3 s
+#: without; tests/unit/test_render.py + test_coverage.py 206 -> 116 s in one process, the unit tier
+#: 11 min 11 s -> 5 min 47 s with two workers, on this project's 2-core AMD EPYC). The unit tier's
+#: checks hold with either (two compare two programs' depths and normals at float32 rounding);
+#: seven of the integration tier's (tie flips, bit-equal programs, a sharded gradient) do not yet,
+#: so only a run of tests/unit alone turns them off (docs/performance.md).
+UNIT_ONLY_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def _unit_tier_only(config) -> bool:
+    unit = os.path.join(os.path.dirname(os.path.abspath(__file__)), "unit")
+    paths = [os.path.abspath(str(a).split("::")[0]) for a in config.args]
+    return bool(paths) and all(p == unit or p.startswith(unit + os.sep) for p in paths)
+
+
+@pytest.hookimpl(trylast=True)  # (after the terminal reporter is made)
+def pytest_configure(config):
+    # (before any test starts JAX's backend; pytest-xdist's workers, started later, inherit it)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if _unit_tier_only(config) and UNIT_ONLY_XLA_FLAG.split("=")[0] not in flags:
+        os.environ["XLA_FLAGS"] = (flags + " " + UNIT_ONLY_XLA_FLAG).strip()
+    # (xdist's controller only: it runs no test, so nothing captures what it prints)
+    if (getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput")
+            and config.pluginmanager.get_plugin("terminalreporter") is not None):
+        period = float(os.environ.get("PATEXGS_TEST_HEARTBEAT_S", "60"))
+        config.pluginmanager.register(_Heartbeat(config, period), "patexgs-heartbeat")

@@ -69,8 +69,12 @@ def test_zero_filter_is_no_filter():
     cam = camera()
     a = tile_render(sc, cam, PREFILTER)
     b = tile_render(sc.replace(filter3d=jnp.zeros(C, jnp.float32)), cam, PREFILTER)
-    for name in ("rgb", "alpha", "depth", "normal"):  # (depths of ~2.4 differ by 5e-6 on an AMD EPYC)
-        np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-6, rtol=1e-5)
+    # Two programs' float32 roundings differ by up to 1.5e-6 in a normal's component (unit vectors
+    # summed over many pairs) and 1.1e-5 of a depth (values ~2-3) with the suite's codegen
+    # (tests/conftest.py); 2e-6 of a depth with an AMD EPYC's default one.
+    for name in ("rgb", "alpha", "normal"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=3e-6, rtol=1e-5)
+    np.testing.assert_allclose(a.depth, b.depth, atol=1e-6, rtol=1e-4)
 
 
 @pytest.mark.parametrize("scale_px", [0.2, 1.0, 4.0])
