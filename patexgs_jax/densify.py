@@ -7,7 +7,8 @@ float a Gaussian, or two or three) and the statistics, plus the split Gaussians'
 rotations, gathered on the device. When the capacity is kept (the common case) the rows that change
 are then written on the device in place (:mod:`patexgs_jax.densify_device`), in the parameters and
 in each Adam moment tree, so that a densification moves a few percent of the rows, not a copy of
-every leaf through the host and back (seconds at a million Gaussians). When the capacity doubles
+every leaf through the host and back (seconds at a million Gaussians); the statistics (three floats
+a Gaussian) are rebuilt on the host. When the capacity doubles
 (a few times a run) the shapes change anyway and every leaf is gathered on the host; that path
 (also reachable with ``in_place=False`` of the private ``_densify_and_prune``) gives the same
 result bit for bit. :func:`resize_capacity`, :func:`prune_gaussians` and :func:`reset_opacity`

@@ -1,7 +1,8 @@
 """Adaptive density control: clone / split / prune counts, slot and moment bookkeeping, capacity
-growth, the Gaussian budget, split geometry, opacity reset and textured pruning.
+growth, the Gaussian budget, split geometry, opacity reset and textured pruning; the device path
+(capacity kept: rows written in place) against the host path, bit for bit, and its compile count.
 
-All host-side numpy (no renderer compile)."""
+Host-side numpy and the small jitted row writes (no renderer compile)."""
 
 from __future__ import annotations
 
