@@ -21,7 +21,9 @@ Builds a paper-scale state without training it and times each stage of a run on 
 * ``eq8_10_growth``: one growth event's selection (Eqs. 8-10) from a gradient statistic, and
   ``rebucket``: re-bucketing the grown textures with their Adam moments; ``rebucket_again``: a
   second event (the first one compiles the programs that write a kept layout in place).
-* ``densify``: one densification step's bookkeeping (clone, split, prune; moments moved).
+* ``densify``: one densification step's bookkeeping (clone, split, prune; moments moved), on a
+  copy of the state that it donates, as the trainer does (the first call compiles its row writes);
+  ``densify_again``: a second event on its result (nothing to compile).
 * ``checkpoint_save`` / ``checkpoint_load``: the trainer's checkpoint of this state.
 * ``ply_export`` / ``ply_load``: the PLY and its texture sidecar.
 * ``eval_render_1/2/4/8``: one view rendered at full size and zoomed out by 2, 4, 8 (renders).
@@ -245,10 +247,18 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
         g[active & hot] = 1e-3
         stats = DensifyStats(grad_sum=jax.device_put(g), count=jax.device_put(active.astype(np.float32)),
                              max_radius=jax.device_put(np.where(active, 3.0, 0.0).astype(np.float32)))
+        # The trainer's call donates the state (written in place); the rows below still need this one.
+        d_scene, d_state = _block(jax.tree_util.tree_map(lambda x: jax.device_put(np.array(x)), (scene, opt_state)))
         with rows.time("densify", host=True) as note:  # the 2DGS stage's: untextured
-            d_scene, d_state, _, dinfo = densify_and_prune(scene, opt_state, stats, DensifyConfig(), 2.0, 0)
+            d_scene, d_state, _, dinfo = densify_and_prune(d_scene, d_state, stats, DensifyConfig(), 2.0, 0,
+                                                           donate=True)
             _block((d_scene, d_state))
             note.update({k: v for k, v in vars(dinfo).items() if isinstance(v, (int, float, bool))})
+        with rows.time("densify_again", host=True) as note:  # a second event: nothing to compile
+            d_scene, d_state, _, dinfo = densify_and_prune(d_scene, d_state, stats, DensifyConfig(), 2.0, 1,
+                                                           donate=True)
+            _block((d_scene, d_state))
+            note.update(cloned=dinfo.cloned, split=dinfo.split, pruned=dinfo.pruned)
         del d_scene, d_state, stats
 
     # Stage 2's textures: the real run's side distribution (1 x 1 RGB / 5 x 5 alpha first, as at its start).

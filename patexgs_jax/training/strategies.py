@@ -42,7 +42,7 @@ class Densification:
         if dc.densify_at(step):
             scene, opt_state, stats, _ = dens.densify_and_prune(
                 scene, opt_state, stats, dc, self.radius, np.random.default_rng([self.seed, step]),
-                prune_large=dc.prune_large(step))
+                prune_large=dc.prune_large(step), donate=True)  # (the old state is not used again)
         if dc.reset_opacity_at(step):
             scene, opt_state = dens.reset_opacity(scene, opt_state, dc.opacity_reset_value)
         return TrainState(scene, opt_state, stats)

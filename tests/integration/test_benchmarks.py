@@ -109,7 +109,7 @@ def test_bench_scale_times_every_host_stage(tmp_path, capsys):
     data = json.loads(out.read_text())
     assert data["schema"] == bench_scale.SCHEMA and data["config"]["eq7_views"] == 6
     rows = {r["event"]: r for r in data["rows"]}
-    host = ["build_state", "eq7_allocation", "eq7_budget_solve", "densify", "textures_start",
+    host = ["build_state", "eq7_allocation", "eq7_budget_solve", "densify", "densify_again", "textures_start",
             "allocation_rebucket", "eq8_10_growth", "rebucket", "rebucket_again", "checkpoint_save",
             "checkpoint_load", "ply_export", "ply_load"]
     assert list(rows) == host
@@ -120,6 +120,7 @@ def test_bench_scale_times_every_host_stage(tmp_path, capsys):
     assert rows["rebucket"]["grown"] > 0 and rows["rebucket"]["layout_changed"] is False
     assert rows["checkpoint_save"]["bytes"] > 0 and rows["ply_export"]["bytes"] > 0
     assert rows["densify"]["cloned"] + rows["densify"]["split"] > 0
+    assert rows["densify_again"]["cloned"] + rows["densify_again"]["split"] > 0
     assert rows["eq7_allocation"]["texels"] >= 3000  # at least one texel a Gaussian
     printed = capsys.readouterr().out
     assert "rebucket_again" in printed

@@ -1,7 +1,8 @@
 """Adaptive density control: clone / split / prune counts, slot and moment bookkeeping, capacity
-growth, the Gaussian budget, split geometry, opacity reset and textured pruning.
+growth, the Gaussian budget, split geometry, opacity reset and textured pruning; the device path
+(capacity kept: rows written in place) against the host path, bit for bit, and its compile count.
 
-All host-side numpy (no renderer compile)."""
+Host-side numpy and the small jitted row writes (no renderer compile)."""
 
 from __future__ import annotations
 
@@ -325,3 +326,144 @@ def test_textured_prune_and_clone_refused():
     assert info.pruned == 1 and info.cloned == 0
     with pytest.raises(NotImplementedError, match="grow=False"):
         densify_and_prune(low, state, hot, DensifyConfig(), 1.0, 0)
+
+
+# ------------------------------------------------------------------------------------------------
+# The device path (capacity kept: rows written in place) against the host path, bit for bit.
+def _device_copy(tree):
+    return jax.tree_util.tree_map(lambda x: jax.device_put(np.array(x)), tree)
+
+
+def random_state(seed, C, n_active, dims=2, filter3d=False):
+    """A scene with ``n_active`` active rows scattered over C slots (garbage in the inactive ones,
+    which the device path must leave alone as the host path copies them), scales straddling the
+    clone / split and world-prune thresholds, some low opacities; random Adam moments (mu, nu, age)."""
+    rng = np.random.default_rng(seed)
+    act = np.zeros(C, np.float32)
+    act[rng.choice(C, n_active, replace=False)] = 1.0
+    f = np.float32
+    scale = np.exp(rng.uniform(np.log(0.003), np.log(0.15), C))  # a third cloned, a tenth too large
+    scene = Scene(means=jax.device_put(rng.uniform(-1, 1, (C, 3)).astype(f)),
+                  log_scales=jax.device_put(np.log(scale[:, None] * rng.uniform(0.6, 1.0, (C, dims))).astype(f)),
+                  quats=jax.device_put(rng.normal(size=(C, 4)).astype(f)),
+                  opacity_logits=jax.device_put(rng.normal(1.0, 2.5, C).astype(f)),
+                  sh=jax.device_put(rng.normal(size=(C, 4, 3)).astype(f)), active=jax.device_put(act),
+                  filter3d=jax.device_put(rng.uniform(0, 1e-3, C).astype(f)) if filter3d else None)
+    return scene, random_moments(scene, rng)
+
+
+def random_moments(scene, rng):
+    def tree():
+        return jax.tree_util.tree_map(lambda x: jax.device_put(rng.normal(size=np.shape(x)).astype(np.float32)),
+                                      scene)
+    return (AdamState(count=jnp.asarray(7, jnp.int32), mu=tree(), nu=tree(), age=tree()),
+            GroupLRState(count=jnp.asarray(7, jnp.int32)))
+
+
+def random_stats(seed, scene):
+    rng = np.random.default_rng(seed + 1)
+    C = scene.capacity
+    act = np.asarray(scene.active) > 0
+    g = np.where(act & (rng.random(C) < 0.3), HI, LO).astype(np.float32) * rng.uniform(1, 3, C).astype(np.float32)
+    cnt = np.where(act, rng.integers(1, 4, C), 0).astype(np.float32)
+    return DensifyStats(grad_sum=jax.device_put(g * cnt), count=jax.device_put(cnt),
+                        max_radius=jax.device_put(rng.uniform(0, 24, C).astype(np.float32)))
+
+
+def assert_same_result(a, b):
+    (sa, sta, sta_s, ia), (sb, stb, stb_s, ib) = a, b
+    assert ia == ib
+    for x, y in ((sa, sb), (sta, stb), (sta_s, stb_s)):
+        la, ta = jax.tree_util.tree_flatten_with_path(x)
+        lb, tb = jax.tree_util.tree_flatten_with_path(y)
+        assert ta == tb
+        for (path, u), (_, v) in zip(la, lb, strict=True):
+            u, v = np.asarray(u), np.asarray(v)
+            assert u.dtype == v.dtype and u.shape == v.shape, jax.tree_util.keystr(path)
+            assert np.array_equal(u, v), jax.tree_util.keystr(path)   # bit for bit (no NaNs here)
+
+
+CASES = [dict(), dict(split_count=1), dict(split_count=3), dict(copy_clone_moments=True),
+         dict(reset_all_stats=False), dict(max_gaussians=44), dict(max_gaussians=46, split_count=3),
+         dict(prune_large=False), dict(grow=False), dict(dims=3), dict(filter3d=True),
+         dict(dims=3, filter3d=True, copy_clone_moments=True, reset_all_stats=False)]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[",".join(f"{k}={v}" for k, v in c.items()) or "default"
+                                             for c in CASES])
+def test_device_path_matches_host_path(case):
+    from patexgs_jax.densify import _densify_and_prune
+
+    case = dict(case)
+    dims, f3 = case.pop("dims", 2), case.pop("filter3d", False)
+    kw = dict(prune_large=case.pop("prune_large", True), grow=case.pop("grow", True))
+    cfg = DensifyConfig(**case)
+    for seed in range(3):   # C = 64 for every case: one padded shape
+        scene, state = random_state(seed, 64, 40, dims, f3)
+        stats = random_stats(seed, scene)
+        host = _densify_and_prune(_device_copy(scene), _device_copy(state), stats, cfg, 1.0, seed,
+                                  in_place=False, donate=False, **kw)
+        assert host[3].capacity_after == 64
+        old_means = scene.means
+        dev = densify_and_prune(scene, state, stats, cfg, 1.0, seed, donate=True, **kw)
+        assert_same_result(host, dev)
+        if host[3].pruned or host[3].cloned or host[3].split:
+            assert old_means.is_deleted()   # donated: written in place
+        # Without donation the inputs stay usable and the result is the same.
+        scene, state = random_state(seed, 64, 40, dims, f3)
+        assert_same_result(host, densify_and_prune(scene, state, stats, cfg, 1.0, seed, **kw))
+        assert not scene.means.is_deleted()
+
+
+def test_device_path_matches_host_path_textured_prune():
+    from patexgs_jax.densify import _densify_and_prune
+
+    rng = np.random.default_rng(3)
+    n = 12
+    scene = random_scene(1, n, rgb_sizes=rng.integers(0, 5, n), alpha_sizes=rng.integers(0, 4, n), capacity=16)
+    op = np.asarray(scene.opacity_logits).copy()
+    op[[1, 4, 5, 9]] = -10.0                   # pruned: textured and untextured rows
+    scene = scene.replace(opacity_logits=jax.device_put(op))
+    state = random_moments(scene, rng)
+    stats = stats_of([HI] * n, radii=rng.uniform(0, 30, n), C=16)
+    host = _densify_and_prune(_device_copy(scene), _device_copy(state), stats, DensifyConfig(), 1.0, 0,
+                              prune_large=True, grow=False, in_place=False, donate=False)
+    assert host[3].pruned >= 4
+    assert_same_result(host, densify_and_prune(scene, state, stats, DensifyConfig(), 1.0, 0, grow=False,
+                                               donate=True))
+
+
+def test_device_path_compiles_a_few_times():
+    """Densification events at one capacity with different numbers of changed rows compile the row
+    writes once per padded size (powers of 8), not once an event."""
+    compiles = []
+
+    def listen(event, seconds, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(event)
+
+    C = 8192
+    scene, state = random_state(11, C, 2000)
+    cfg = DensifyConfig(max_screen_radius=None, max_world_scale=None)
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        per_event = []
+        for k, n_hot in enumerate([3, 20, 50, 300, 9, 200, 35]):
+            act = np.asarray(scene.active) > 0
+            rows = np.flatnonzero(act)[:n_hot]
+            g = np.zeros(C, np.float32)
+            g[rows] = HI
+            stats = DensifyStats(grad_sum=jax.device_put(g), count=jax.device_put(act.astype(np.float32)),
+                                 max_radius=jax.device_put(np.zeros(C, np.float32)))
+            before = len(compiles)
+            scene, state, _, info = densify_and_prune(scene, state, stats, cfg, 1.0, k, donate=True)
+            jax.block_until_ready((scene, state))
+            assert info.capacity_after == C and info.cloned + info.split == n_hot
+            per_event.append(len(compiles) - before)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    # The changed rows (the first event's low-opacity prunes, then 2 a split) pad to 64, 512 or 4096
+    # rows and the split rows to 64 or 512: per padded size the parameter write and the moment write
+    # (one program for mu, nu and age) compile once, and the split-row gather once: 8 programs.
+    assert sum(per_event) <= 9, per_event
+    assert per_event[4:] == [0, 0, 0], per_event
