@@ -25,24 +25,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .scene import Scene
+from .textures.rebucket import pad_pow8
 
 _PARAM_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
 _BANKS = ("rgb", "alpha")
 _BANK_INDEX_FIELDS = ("bucket", "slot", "size")
-
-
-def pad_rows(x: np.ndarray, fill, limit: int) -> np.ndarray:
-    """``x`` padded along its first axis with ``fill`` to a power of 8 (at least 64), cut to
-    ``limit`` (the capacity: more rows than that never change) but never below ``x``'s length."""
-    k = x.shape[0]
-    size = 64
-    while size < k:
-        size *= 8
-    size = max(min(size, int(limit)), k)
-    out = np.empty((size,) + x.shape[1:], x.dtype)
-    out[:k] = x
-    out[k:] = fill
-    return out
 
 
 def row_leaves(tree: Scene) -> dict:
@@ -93,7 +80,7 @@ def _take_rows(arrays, rows):
 def take_rows(arrays, rows: np.ndarray) -> list[np.ndarray]:
     """Host copies of ``a[rows]`` for each device array (a padded gather: few compiled shapes)."""
     C = int(np.shape(arrays[0])[0])
-    got = _take_rows(tuple(arrays), jax.device_put(pad_rows(rows.astype(np.int32), 0, C)))
+    got = _take_rows(tuple(arrays), jax.device_put(pad_pow8(rows.astype(np.int32), 0, limit=C)))
     return [np.asarray(g)[: rows.size] for g in got]
 
 
@@ -142,11 +129,11 @@ def write_rows(tree: Scene, idx: np.ndarray, src: np.ndarray, fill_of: Callable[
     (:func:`texel_slots`) zeroed."""
     leaves = row_leaves(tree)
     C = int(np.shape(leaves["active"])[0])
-    args = {key: (jax.device_put(pad_rows(vals, 0, C)), jax.device_put(pad_rows(use, False, C)))
+    args = {key: (jax.device_put(pad_pow8(vals, 0, limit=C)), jax.device_put(pad_pow8(use, False, limit=C)))
             for key, (vals, use) in over.items()}
     new = (_write_donated if donate else _write_kept)(
-        leaves, jax.device_put(pad_rows(idx.astype(np.int32), C, C)),
-        jax.device_put(pad_rows(src.astype(np.int32), 0, C)), args,
+        leaves, jax.device_put(pad_pow8(idx.astype(np.int32), C, limit=C)),
+        jax.device_put(pad_pow8(src.astype(np.int32), 0, limit=C)), args,
         tuple(sorted((key, _static(fill_of(key.split(".")[-1]))) for key in leaves)))
     kw = {f: new[f] for f in _PARAM_FIELDS}
     if tree.filter3d is not None:
@@ -159,7 +146,7 @@ def write_rows(tree: Scene, idx: np.ndarray, src: np.ndarray, fill_of: Callable[
         for b, slots in texels.get(name, {}).items():
             cap = int(np.shape(buckets[b])[0])
             buckets[b] = (_zero_donated if donate else _zero_kept)(
-                buckets[b], jax.device_put(pad_rows(slots.astype(np.int32), cap, cap)))
+                buckets[b], jax.device_put(pad_pow8(slots.astype(np.int32), cap, limit=cap)))
         kw[name] = dataclasses.replace(bank, buckets=tuple(buckets),
                                        **{f: new[f"{name}.{f}"] for f in _BANK_INDEX_FIELDS})
     return tree.replace(**kw)

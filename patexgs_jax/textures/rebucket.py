@@ -288,14 +288,17 @@ def _apply_plan(plan: _BankPlan, old_buckets, fresh_value: float | np.ndarray):
     return new
 
 
-def _pad_pow8(x: np.ndarray, fill, floor: int = 64) -> np.ndarray:
-    """``x`` padded along its first axis to a power of 8 (at least ``floor``) with ``fill``: it bounds
-    the shapes, so that the programs below compile a few times in a run, not once an event (powers
-    of two still compiled 16 programs at the seventh event of a 1M-Gaussian scene)."""
+def pad_pow8(x: np.ndarray, fill, floor: int = 64, limit: int | None = None) -> np.ndarray:
+    """``x`` padded along its first axis to a power of 8 (at least ``floor``) with ``fill``, cut to
+    ``limit`` when given (never below ``x``'s length): it bounds the shapes, so that the programs
+    fed with it (here, and densification's row writes) compile a few times in a run, not once an
+    event (powers of two still compiled 16 programs at the seventh event of a 1M-Gaussian scene)."""
     k = x.shape[0]
     size = floor
     while size < k:
         size *= 8
+    if limit is not None:
+        size = max(min(size, int(limit)), k)
     out = np.empty((size,) + x.shape[1:], x.dtype)
     out[:k] = x
     out[k:] = fill
@@ -331,7 +334,7 @@ def _apply_plan_in_place(plan: _BankPlan, old_buckets, fresh_value):
         writes[int(b)][1].append(blocks)
 
     def read(b, slots):
-        got = _take_slots(old_buckets[b], jnp.asarray(_pad_pow8(slots.astype(np.int32), 0)))
+        got = _take_slots(old_buckets[b], jnp.asarray(pad_pow8(slots.astype(np.int32), 0)))
         return np.asarray(got)[: slots.size]
 
     # Slots left behind (the texture moved, was resized into another slot or removed): zeros.
@@ -360,8 +363,8 @@ def _apply_plan_in_place(plan: _BankPlan, old_buckets, fresh_value):
         _, last = np.unique(slots[::-1], return_index=True)
         keep = slots.size - 1 - last
         cap = int(plan.capacities[b])
-        new[b] = _set_slots(old_buckets[b], jnp.asarray(_pad_pow8(slots[keep].astype(np.int32), cap)),
-                            jnp.asarray(_pad_pow8(blocks[keep], 0.0)))
+        new[b] = _set_slots(old_buckets[b], jnp.asarray(pad_pow8(slots[keep].astype(np.int32), cap)),
+                            jnp.asarray(pad_pow8(blocks[keep], 0.0)))
     return new
 
 
