@@ -4,6 +4,7 @@
 import atexit
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 import threading
@@ -124,25 +125,31 @@ class _Heartbeat:
 #: XLA's CPU fusion emitters (MLIR, on by default in jax 0.10) take twice the compile time of the
 #: older LLVM emitters on the renderer's programs (a float64 render + gradient: 6.6 s with them, 3.3 s
 #: without; tests/unit/test_render.py + test_coverage.py 206 -> 116 s in one process, the unit tier
-#: 11 min 11 s -> 5 min 47 s with two workers, on this project's 2-core AMD EPYC). The unit tier's
-#: checks hold with either (two compare two programs' depths and normals at float32 rounding);
-#: seven of the integration tier's (tie flips, bit-equal programs, a sharded gradient) do not yet,
-#: so only a run of tests/unit alone turns them off (docs/performance.md).
-UNIT_ONLY_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
+#: 11 min 11 s -> 5 min 47 s with two workers, on this project's 2-core AMD EPYC). The suite's checks
+#: hold with either (those comparing two programs allow float32 rounding; docs/performance.md).
+#: Users' runs keep XLA's defaults.
+OLDER_EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 
-def _unit_tier_only(config) -> bool:
-    unit = os.path.join(os.path.dirname(os.path.abspath(__file__)), "unit")
-    paths = [os.path.abspath(str(a).split("::")[0]) for a in config.args]
-    return bool(paths) and all(p == unit or p.startswith(unit + os.sep) for p in paths)
+def _xla_accepts(flag: str) -> bool:
+    """Whether this jaxlib's XLA knows ``flag``: an unknown XLA_FLAGS entry aborts the process that
+    starts a backend, so a jaxlib without the older emitters runs the suite with its defaults."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " " + flag).strip())
+    try:
+        done = subprocess.run([sys.executable, "-c", "import jax; jax.numpy.zeros(1).block_until_ready()"],
+                              env=env, capture_output=True, timeout=300)
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return done.returncode == 0
 
 
 @pytest.hookimpl(trylast=True)  # (after the terminal reporter is made)
 def pytest_configure(config):
-    # (before any test starts JAX's backend; pytest-xdist's workers, started later, inherit it)
+    # (before any test starts JAX's backend; pytest-xdist's workers, started later, inherit it, and
+    # so do the subprocesses tests start; an explicit setting in XLA_FLAGS is kept)
     flags = os.environ.get("XLA_FLAGS", "")
-    if _unit_tier_only(config) and UNIT_ONLY_XLA_FLAG.split("=")[0] not in flags:
-        os.environ["XLA_FLAGS"] = (flags + " " + UNIT_ONLY_XLA_FLAG).strip()
+    if OLDER_EMITTERS_FLAG.split("=")[0] not in flags and _xla_accepts(OLDER_EMITTERS_FLAG):
+        os.environ["XLA_FLAGS"] = (flags + " " + OLDER_EMITTERS_FLAG).strip()
     # (xdist's controller only: it runs no test, so nothing captures what it prints)
     if (getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput")
             and config.pluginmanager.get_plugin("terminalreporter") is not None):

@@ -79,6 +79,29 @@ def composite_grad(scene, cam, config, capacity, compositor):
     return jax.grad(loss)(proj.packed)
 
 
+def render_float64(scene, cam, config, capacity):
+    """The XLA compositor's outputs in float64 (the arbiter of :func:`_as_accurate`)."""
+    with jax.enable_x64(True):
+        out = render_only(scene.astype(jnp.float64), cam, dataclasses.replace(config, compositor="xla"), capacity)
+        return jax.tree_util.tree_map(np.asarray, out)
+
+
+def _composited(out, field):
+    """An output as compared: depth weighted by alpha (depth alone divides by tiny alphas)."""
+    x = getattr(out, field)
+    return x * out.alpha if field == "depth" else x
+
+
+def _per_pixel(err):
+    return err.max(axis=-1) if err.ndim == 3 else err
+
+
+def _as_accurate(p, x, ref, tol, reduce=lambda e: e):
+    """Where the kernel's ``p`` is as close to float64's ``ref`` as the XLA compositor's float32
+    ``x`` is: within twice its error, plus ``tol``."""
+    return reduce(np.abs(p - ref)) <= 2.0 * reduce(np.abs(x - ref)) + tol
+
+
 def compare(scene, cam, config, capacity, flips=0.0, grads=True, level="scene", packed_rtol=None, leaves=None):
     """The Pallas compositor's outputs (and gradients) against the XLA compositor's for ``config``;
     ``flips``: the share of pixels where a threshold may flip on rounding (outputs beyond the
@@ -88,7 +111,16 @@ def compare(scene, cam, config, capacity, flips=0.0, grads=True, level="scene", 
     errors of 1e-3 of the scene gradients (the XLA compositor's against its float64 self too),
     within ``packed_rtol`` (default :data:`PACKED_RTOL`) of each column's largest entry; "texels", the
     scene's texture gradients alone (linear in the texels: no projection between them and the
-    compositor)."""
+    compositor).
+
+    At the "packed" level (the hard scenes), where the two float32 compositors disagree beyond the
+    tolerance, float64 decides: the kernel passes where it is within twice the XLA compositor's own
+    float32 error of the XLA compositor in float64, plus the tolerance (outputs pixel by pixel,
+    :func:`_as_accurate`; gradients against the XLA compositor's largest error in the column). An
+    ill-conditioned pixel or column (a huge splat seen nearly edge-on, a whole scene inside one
+    pixel) is off float64 by more than the tolerance in either compositor, by how much and where
+    depending on the order of float32 sums and products, which XLA's code generation sets (the
+    focal case's whole scene in one pixel: 17% of a column's largest entry in both)."""
     xla = dataclasses.replace(config, compositor="xla")
     pal = dataclasses.replace(config, compositor="pallas")
     if level == "packed":
@@ -98,14 +130,17 @@ def compare(scene, cam, config, capacity, flips=0.0, grads=True, level="scene", 
         out_x, g_x = jax.tree_util.tree_map(np.asarray, render_and_grad(scene, cam, xla, capacity))
         out_p, g_p = jax.tree_util.tree_map(np.asarray, render_and_grad(scene, cam, pal, capacity))
     assert not out_x.overflow
+    out_64 = None
     bad = np.zeros(out_x.alpha.shape, bool)
     for f in FIELDS:
-        x, p = getattr(out_x, f), getattr(out_p, f)
-        if f == "depth":  # the composited (alpha-weighted) depth: depth alone divides by tiny alphas
-            x, p = x * out_x.alpha, p * out_p.alpha
-        err = np.abs(p - x)
-        err = err.max(axis=-1) if err.ndim == 3 else err
-        bad |= err > ATOL[f] * max(1.0, float(np.abs(x).max()))  # relative to the output's range
+        x, p = _composited(out_x, f), _composited(out_p, f)
+        tol = ATOL[f] * max(1.0, float(np.abs(x).max()))  # relative to the output's range
+        bad_f = _per_pixel(np.abs(p - x)) > tol
+        if level == "packed" and bad_f.any():
+            if out_64 is None:
+                out_64 = render_float64(scene, cam, xla, capacity)
+            bad_f &= ~_as_accurate(p, x, _composited(out_64, f), tol, _per_pixel)
+        bad |= bad_f
     assert np.mean(bad) <= flips, (np.mean(bad), {f: np.abs(getattr(out_p, f) - getattr(out_x, f)).max()
                                                   for f in FIELDS})
     same = out_p.dominant == out_x.dominant
@@ -118,10 +153,17 @@ def compare(scene, cam, config, capacity, flips=0.0, grads=True, level="scene", 
         g_p = np.asarray(composite_grad(scene, cam, pal, capacity, "pallas"))
         scale = np.abs(g_x).max(axis=0)  # per packed column
         err = np.abs(g_p - g_x)
-        ratio = err / (scale + 1e-30)
-        i = np.unravel_index(np.argmax(ratio), ratio.shape)
         rtol = PACKED_RTOL if packed_rtol is None else packed_rtol
-        assert np.all(err <= rtol * scale + 1e-7), (i, ratio[i], g_x[i], g_p[i], scale[i[1]])
+        off = err > rtol * scale + 1e-7
+        if off.any():
+            with jax.enable_x64(True):
+                g_64 = np.asarray(composite_grad(scene.astype(jnp.float64), cam, xla, capacity, "xla"))
+            # (column-wise: which entries of an ill-conditioned column are off depends on the rounding)
+            xla_error = np.abs(g_x - g_64).max(axis=0)
+            off &= np.abs(g_p - g_64) > 2.0 * xla_error + rtol * np.abs(g_64).max(axis=0) + 1e-7
+        ratio = np.where(off, err / (scale + 1e-30), 0.0)
+        i = np.unravel_index(np.argmax(ratio), ratio.shape)
+        assert not off.any(), (i, ratio[i], g_x[i], g_p[i], scale[i[1]])
         return out_x, out_p
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_x), jax.tree_util.tree_leaves(g_p), strict=True):
         if not np.issubdtype(a.dtype, np.floating) or not a.size:

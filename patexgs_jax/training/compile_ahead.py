@@ -127,13 +127,16 @@ class CompileAhead:
 
     ``prepare_for``: configs of runs that start from this run's stage-1 checkpoint in this process
     (``train(..., prepare=)``); ``took``: whether the last step waited for (or took) a program
-    compiled ahead (its time is then not a step's).
+    compiled ahead (its time is then not a step's); ``outcomes``: each program this run needed
+    and found compiled ahead (``hit``) or prepared for something else (the step's ``why``), in
+    order (:meth:`record`, summary.json's ``compile_ahead``).
     """
 
     def __init__(self, run: Trainer):
         self.run = run
         self.prepare_for: tuple[TrainConfig, ...] = ()
         self.took = False
+        self.outcomes: list[dict] = []
         self._prepared_own = False
         dc = run.densification.config
         self._last_densify = max((t for t in range(1, run.cfg.iters_2dgs) if dc.densify_at(t)), default=0)
@@ -319,24 +322,51 @@ class CompileAhead:
         return next((p for p in PREPARED if p.identity == identity and p.render_cfg == render_cfg
                      and p.layout == layout), None)
 
+    def record(self, program: str, hit: bool, why: str = "") -> None:
+        """Notes whether ``program``, needed at the current step, had been compiled ahead (``why``
+        not, for a miss)."""
+        entry: dict[str, Any] = dict(step=self.run.step, program=program, hit=hit)
+        if not hit:
+            entry["why"] = why
+        self.outcomes.append(entry)
+
+    def summary(self) -> dict:
+        """summary.json's ``compile_ahead``: hits, misses and each outcome (:meth:`record`)."""
+        hits = sum(o["hit"] for o in self.outcomes)
+        return dict(hits=hits, misses=len(self.outcomes) - hits, outcomes=list(self.outcomes))
+
+    def _predicted(self, render_cfg: RenderConfig) -> bool:
+        """Whether a step of this run's settings and ``render_cfg`` was compiled ahead for any layout."""
+        identity = step_identity(self.run.radius, self.run.cfg)
+        return any(p.identity == identity and p.render_cfg == render_cfg for p in PREPARED)
+
     def claim_step(self, render_cfg: RenderConfig, capacity, layout: tuple) -> Prepared | None:
         """The step prepared ahead for this render config, capacity and layout, if any (see
-        :meth:`prepare`); a job not started yet is cancelled (compiling here is sooner)."""
+        :meth:`prepare`); a job not started yet is cancelled (compiling here is sooner). Where a
+        step was prepared for this run's settings, a miss is recorded here (:meth:`record`), a hit
+        when the step first runs (:meth:`take`)."""
         if self.run.cfg.batch_size != 1:
             return None
+        predicted = self._predicted(render_cfg)
         prep = self._find(render_cfg, layout)
         if prep is None:
             self._settle_predictions(render_cfg)
             prep = self._find(render_cfg, layout)
+        what = "the textured step"
         if prep is None or prep.step_job is None:
+            if predicted:
+                self.record(what, False, "compiled ahead for another texture layout")
             return None
         job = prep.step_job
         if job.cancel() or job.cancelled:
             PREPARED.remove(prep)
             prep.cancel()
+            self.record(what, False, "its background compile had not started")
             return None
         prep.counted.wait()  # (the capacity is counted first, in seconds)
         if prep.capacity != capacity or prep.fn is None:
+            self.record(what, False, f"compiled ahead for tile capacity {prep.capacity}, the run uses {capacity}"
+                        if prep.fn is not None else "its background compile failed")
             return None  # (a capacity the run does not use; Eq. 7's programs may still serve)
         prep.owner = id(self)
         if prep.then is not None:
@@ -363,14 +393,21 @@ class CompileAhead:
     def claim_eq7(self) -> dict | None:
         """Eq. 7's programs prepared ahead for the current layout (see :meth:`prepare`), waiting
         for them if they are being compiled; None if there are none."""
-        prep = self._find(self.run.render_cfgs[1], layout_of(self.run.scene))
+        render_cfg = self.run.render_cfgs[1]
+        predicted = self._predicted(render_cfg)
+        prep = self._find(render_cfg, layout_of(self.run.scene))
+        what = "Eq. 7's pair counter and renderer"
         if prep is None or prep.eq7_job is None:
+            if predicted:
+                self.record(what, False, "compiled ahead for another texture layout")
             return None
         PREPARED.remove(prep)
         job = prep.eq7_job
         if job.cancel():
+            self.record(what, False, "its background compile had not started")
             return None
         self.wait(job)
+        self.record(what, job.ok, "" if job.ok else "its background compile failed")
         return job.value if job.ok else None
 
     def wait(self, job: ahead.Job) -> None:
@@ -386,8 +423,12 @@ class CompileAhead:
     def take(self, job: ahead.Job | None, what: str) -> bool:
         """Whether the step's program for a new padded size was compiled ahead by ``job`` (waited for
         if still compiling); False (the step compiles it) if the job failed or had not started."""
-        if job is None or job.cancel():
+        if job is None:
+            return False
+        if job.cancel():
+            self.record(what, False, "its background compile had not started")
             return False
         self.wait(job)
         self.took = True
+        self.record(what, job.ok, "" if job.ok else "its background compile failed")
         return job.ok

@@ -200,7 +200,8 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     summary: dict[str, Any] = dict(
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
-        storage_mb=size["storage_mb"], recompiles=run.recompiles, skipped_steps=run.skipped,
+        storage_mb=size["storage_mb"], recompiles=run.recompiles, compiled_at_steps=run.compiled_at,
+        compile_ahead=run.ahead.summary(), skipped_steps=run.skipped,
         allocation=run.textures.allocation, growth_events=run.textures.growth_events,
         sides_final=None if scene.rgb is None else side_histogram(np.asarray(scene.rgb.size),
                                                                   np.asarray(scene.active) > 0),

@@ -134,6 +134,7 @@ class Trainer:
         self.bad_streak = 0
         self.skipped = 0
         self.recompiles = 0
+        self.compiled_at: list[int] = []  # steps whose program this process traced in the main thread
         self.t_train = 0.0
         self.stage1_saved = False
         # With several processes (jax.distributed) only process 0 writes and prints progress.
@@ -541,6 +542,7 @@ class Trainer:
                     interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if sum(STEP_TRACES.values()) > traces:
                     self.recompiles += 1
+                    self.compiled_at.append(step)
                     compiled_last = True
                     interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"])):

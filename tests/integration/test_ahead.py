@@ -130,6 +130,14 @@ def test_stage2_compiled_ahead_is_hit_and_bit_identical(dataset, tmp_path, monke
         assert traces1[step] == 0 and not [f for f in comp1.get(step, []) if "lambda" in f], (step, traces1, comp1)
         assert traces0[step] == 1 and [f for f in comp0[step] if "lambda" in f], (step, traces0, comp0)  # (without)
     assert r1.summary["recompiles"] == r0.summary["recompiles"] - 2
+    # summary.json says so: the two steps and Eq. 7's programs hit, nothing missed; the steps this
+    # run compiled itself are neither the stage's start nor the allocation's.
+    ca = r1.summary["compile_ahead"]
+    assert (ca["hits"], ca["misses"]) == (3, 0), ca
+    assert {o["step"] for o in ca["outcomes"]} == {start, allocation}, ca
+    assert not {start, allocation} & set(r1.summary["compiled_at_steps"]), r1.summary["compiled_at_steps"]
+    assert {start, allocation} <= set(r0.summary["compiled_at_steps"]), r0.summary["compiled_at_steps"]
+    assert r0.summary["compile_ahead"] == dict(hits=0, misses=0, outcomes=[])
     _assert_same_state(t1, t0)
     for k in ("train_psnr", "test_psnr", "test_ssim", "texels", "allocation", "growth_events"):
         assert r1.summary[k] == r0.summary[k], k
@@ -152,6 +160,9 @@ def test_own_stage2_compiled_ahead_is_bit_identical(dataset, tmp_path, monkeypat
     # (the predictions, the warm-up's capacity and Eq. 7's layout, are right on this scene)
     assert traces["1"][cfg.iters_2dgs] == 0 and traces["1"][cfg.iters_2dgs + cfg.warmup_tex] == 0, traces["1"]
     assert traces["0"][cfg.iters_2dgs + cfg.warmup_tex] == 1, traces["0"]
+    ca = summaries["1"]["compile_ahead"]
+    assert ca["misses"] == 0 and ca["hits"] == 3, ca  # (the two steps, Eq. 7's programs)
+    assert len(summaries["1"]["compiled_at_steps"]) == len(summaries["0"]["compiled_at_steps"]) - 2
 
 
 def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeypatch):

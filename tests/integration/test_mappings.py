@@ -199,5 +199,9 @@ def test_padded_step_matches_the_cropped_loss(mixed_sizes):
     for a, b in ((loss, want), (l1, l1_want), (mse, mse_want)):
         assert float(a) == pytest.approx(float(b), rel=1e-5)
     pairs = ((off, off_want), (g.means, g_want.means), (g.sh, g_want.sh), (g.opacity_logits, g_want.opacity_logits))
+    # Each entry sums per-pixel terms, here in another order (tile grid, SSIM's windows): an entry
+    # far below its leaf's largest keeps an absolute float32 error of a fraction of that largest
+    # (1.7e-4 of it on 9 of 1,024 screen-offset entries with XLA's older CPU emitters, 1e-7 with
+    # its default ones). A pixel lost or counted twice would move entries by their own size.
     for a, b in pairs:
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-7 * float(np.max(np.abs(b))))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=5e-4 * float(np.max(np.abs(b))))

@@ -12,8 +12,13 @@ compiles are paid once. The checks:
   overflow on the first batch is grown and retried, a batch holding a non-finite image is skipped)
   and traces the step once per capacity: no recompile in steady state.
 
-Tolerances (float32): the three ways differ only in the order the per-view gradients are summed,
-so every gradient entry agrees to ``RTOL * |g| + ATOL * max|g of its leaf|``.
+Tolerances (float32): the three ways do the same arithmetic in three programs (sharded over the
+mesh, scanned on one device, one view at a time) and sum the per-view gradients in another order.
+XLA may fuse each program's per-pixel sums its own way, so every gradient entry agrees to
+``RTOL * |g| + ATOL * max|g of its leaf|`` (the densification statistics likewise). With XLA's
+default CPU code generation they agreed within RTOL 2e-5 and ATOL 2e-6; with its older emitters
+(the test suite's) gradients were up to 12 times and statistics 1.3 times that bound apart, all
+entries within 4.3e-8 of each other (the largest gradient entry is 0.011).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import numpy as np
 
 DEVICES = 4
 W, H = 64, 48
-RTOL, ATOL = 2e-5, 2e-6  # ATOL relative to the largest magnitude in each leaf
+RTOL, ATOL = 2e-5, 5e-5  # ATOL relative to the largest magnitude in each leaf
 
 
 # ------------------------------------------------------------------------------------------------
