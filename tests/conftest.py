@@ -89,7 +89,7 @@ class _Heartbeat:
         self.reporter = config.pluginmanager.get_plugin("terminalreporter")
         self.period = period
         self.running: dict[str, float] = {}
-        self.last = time.monotonic()
+        self.last = self.last_result = time.monotonic()  # (the last line printed; the last result)
         self.lock = threading.Lock()
         self.done = threading.Event()
         self.thread = threading.Thread(target=self._beat, name="test-heartbeat", daemon=True)
@@ -107,7 +107,7 @@ class _Heartbeat:
     def pytest_runtest_logreport(self, report):
         with self.lock:
             if report.when == "call" or report.outcome != "passed":  # (what -q prints a character for)
-                self.last = time.monotonic()
+                self.last = self.last_result = time.monotonic()
             if report.when == "teardown":
                 self.running.pop(report.nodeid, None)
 
@@ -119,7 +119,8 @@ class _Heartbeat:
                     continue
                 self.last = now
                 tests = ", ".join(f"{n} ({now - t:.0f} s)" for n, t in sorted(self.running.items(), key=lambda x: x[1]))
-            self.reporter.write_line(f"[{self.period:.0f} s without a result; running: {tests or 'no test yet'}]")
+            self.reporter.write_line(f"[{now - self.last_result:.0f} s without a result; running: "
+                                     f"{tests or 'no test yet'}]")
 
 
 #: XLA's CPU fusion emitters (MLIR, on by default in jax 0.10) take twice the compile time of the

@@ -314,7 +314,9 @@ class CompileAhead:
         for i, other in enumerate(self.prepare_for):
             if len(PREPARED) >= MAX_PREPARED:
                 break  # (entries for runs further on would push out those of the runs trained first)
-            self.prepare(other, predict_allocation=i == 0)  # (the allocation: the next run's only)
+            # The allocation's step too, where its entry leaves room (a run's warm-up step and its
+            # allocation are two entries): the next run's always, later runs' while there is room.
+            self.prepare(other, predict_allocation=i == 0 or len(PREPARED) + 2 <= MAX_PREPARED)
         self.prepare_for = ()
 
     def _find(self, render_cfg: RenderConfig, layout: tuple) -> Prepared | None:

@@ -189,7 +189,9 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
         # patexgs-fixed-4 shares patexgs's warm-up programs; no-mip comes next in the list.
         assert [p.render_cfg for p in entries if p.layout is not None][:2] == [
             cfgs[0].render_config(stage=2), cfgs[2].render_config(stage=2)]
-        assert sum("predicted layout" in w for w in submitted) == 1
+        # The allocations of patexgs and of no-mip (there was room for its two entries).
+        assert sum("predicted layout" in w for w in submitted) == 2, submitted
+        assert len(entries) == compile_ahead.MAX_PREPARED
     finally:
         for p in list(compile_ahead.PREPARED):
             p.cancel()
