@@ -221,10 +221,12 @@ class TextureSchedule:
         self.state, sides, sel = self.state.step(grad, step, self.schedule, active=act,
                                                  texel_budget=self.texel_budget)
         if sel.any():
-            scene, opt_state, _ = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
-                                                  min_spare=TEXTURE_MIN_SPARE)
+            scene, opt_state, info = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
+                                                     min_spare=TEXTURE_MIN_SPARE)
+            # (layout_changed: a bucket overflowed and every bucket was sized afresh; the step recompiles)
             event = dict(step=step, grown=int(np.sum(sides[act] > before[act])),
-                         texels_added=_texels(sides, act) - _texels(before, act), texels=_texels(sides, act))
+                         texels_added=_texels(sides, act) - _texels(before, act), texels=_texels(sides, act),
+                         layout_changed=bool(info.shapes_changed))
             self.growth_events.append(event)
             self.log(dict(event="growth", **event))
             grew = f"{event['grown']} Gaussian{'' if event['grown'] == 1 else 's'} grew"

@@ -325,8 +325,8 @@ class CompileAhead:
                      and p.layout == layout), None)
 
     def record(self, program: str, hit: bool, why: str = "") -> None:
-        """Notes whether ``program``, needed at the current step, had been compiled ahead (``why``
-        not, for a miss)."""
+        """Notes whether ``program``, needed at the current step, had been compiled ahead; for a
+        miss, ``why`` not."""
         entry: dict[str, Any] = dict(step=self.run.step, program=program, hit=hit)
         if not hit:
             entry["why"] = why

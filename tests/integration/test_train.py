@@ -215,6 +215,9 @@ def test_both_stages_improve(run_p):
     assert [r for r in log if r.get("event") == "growth"] == [dict(event="growth", **e) for e in events]
     assert len(events) >= 1 and all(e["step"] in (36, 39, 42, 45, 48) and e["grown"] > 0 for e in events)
     assert sum(e["grown"] for e in events) == counters[2]
+    # An event that overflowed a bucket says so, and its next step compiled (this process's record).
+    assert all(isinstance(e["layout_changed"], bool) for e in events)
+    assert {e["step"] for e in events if e["layout_changed"]} <= set(s["compiled_at_steps"]), (events, s)
     texels = alloc["texels"]
     for e in events:
         assert e["texels_added"] > 0 and e["texels"] == texels + e["texels_added"]
