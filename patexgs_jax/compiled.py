@@ -13,9 +13,11 @@ What keeps the count bounded:
 
 * few programs: views are rendered at a few padded sizes (:mod:`patexgs_jax.padding`), so a run
   compiles one program per padded size, not one per image size;
-* programs of retired layouts are released: :func:`release_programs` drops a jitted function's
-  compiled code (training does it when the scene's shapes or the tile capacity change, evaluation
-  when it is done with a scene), and :func:`trim_programs` bounds the programs a function keeps;
+* programs of retired layouts are released once the process holds a quarter of the cap
+  (:data:`KEEP_SHARE`; below it they are kept for the next run or evaluation of the same shapes):
+  :func:`retire_programs` drops a jitted function's compiled code (training does it when the scene's
+  shapes change, evaluation when it is done with a scene), and :func:`trim_programs` bounds the
+  programs a function keeps;
 * a guard (:class:`MapGuard`): above ``release_share`` of the cap, all of JAX's compiled code is
   dropped (:func:`release_compiled_code`); above ``stop_share`` even so, training checkpoints and
   stops with :class:`MapLimitReached` instead of crashing in the next compile.
@@ -102,15 +104,45 @@ def memory_maps() -> tuple[int, int] | None:
     return count, limit
 
 
-def release_compiled_code(threshold: float = 0.5) -> bool:
-    """Clears JAX's compilation caches (``jax.clear_caches``) and collects garbage when this process
-    holds more than ``threshold`` of its memory-map cap; returns whether it did. ``threshold=0``
-    always clears."""
-    maps = memory_maps()
-    if threshold > 0 and (maps is None or maps[0] <= threshold * maps[1]):
-        return False
+#: Callbacks run whenever this module clears JAX's caches: registries of jitted functions (e.g.
+#: training's shared steps) forget what they hold, whose programs are then gone.
+_ON_CLEAR: list = []
+
+
+def on_clear(callback) -> None:
+    """Registers ``callback()`` to run whenever :func:`release_compiled_code` or a :class:`MapGuard`
+    clears JAX's compiled code."""
+    _ON_CLEAR.append(callback)
+
+
+def _clear_all() -> None:
+    for callback in _ON_CLEAR:
+        callback()
     jax.clear_caches()
     gc.collect()
+
+
+#: Share of the memory-map cap under which the programs of a finished evaluation, or of a training
+#: layout left behind, are kept for reuse (the next evaluation of a scene of the same shapes, a resumed
+#: run, a study's next run take them instead of tracing and compiling again); above it they are
+#: released (:func:`retire_programs`).
+KEEP_SHARE = 0.25
+
+
+def over_share(share: float) -> bool:
+    """Whether this process holds more than ``share`` of its memory-map cap (False where /proc does
+    not say)."""
+    maps = memory_maps()
+    return maps is not None and maps[0] > share * maps[1]
+
+
+def release_compiled_code(threshold: float = 0.5) -> bool:
+    """Clears JAX's compilation caches (``jax.clear_caches``, and the registries of :func:`on_clear`)
+    and collects garbage when this process holds more than ``threshold`` of its memory-map cap;
+    returns whether it did. ``threshold=0`` always clears."""
+    if threshold > 0 and not over_share(threshold):
+        return False
+    _clear_all()
     return True
 
 
@@ -128,6 +160,15 @@ def release_programs(*fns) -> None:
         clear = getattr(fn, "clear_cache", None)
         if callable(clear):
             clear()
+
+
+def retire_programs(*fns) -> bool:
+    """Releases the programs of ``fns`` (:func:`release_programs`) when this process holds more than
+    :data:`KEEP_SHARE` of its memory-map cap, else keeps them for reuse; returns whether it released."""
+    if not over_share(KEEP_SHARE):
+        return False
+    release_programs(*fns)
+    return True
 
 
 def trim_programs(*fns, max_programs: int = 8) -> bool:
@@ -178,8 +219,7 @@ class MapGuard:
             return None
         if on_release is not None:
             on_release()
-        jax.clear_caches()
-        gc.collect()
+        _clear_all()
         maps = self.counts()
         if maps is None or maps[0] <= self.stop_share * maps[1]:
             return None

@@ -203,8 +203,11 @@ class ViewRenderer:
         return np.clip(np.asarray(self(camera).rgb, np.float32), 0.0, 1.0)
 
     def release(self) -> None:
-        """Releases the compiled renderer and pair counter (see :func:`release_scene_programs`)."""
-        release_scene_programs()
+        """Done with the scene: its capacities and programs are forgotten, and the compiled renderer
+        and pair counter released where the process holds more than :data:`compiled.KEEP_SHARE` of
+        its memory-map cap (below it they are kept for the next scene of these shapes; see
+        :func:`release_scene_programs`)."""
+        release_scene_programs(retire=True)
         self.capacities.clear()
         self.programs.clear()
         self._textures = None
@@ -217,9 +220,15 @@ class ViewRenderer:
         return False
 
 
-def release_scene_programs() -> None:
+def release_scene_programs(retire: bool = False) -> bool:
     """Releases the renderer's, the pair counter's and the texture preparer's compiled programs (one
-    per scene shape, image size and capacity), and the image metrics' (one per image size)."""
+    per scene shape, image size and capacity), and the image metrics' (one per image size); with
+    ``retire``, only where the process holds more than :data:`compiled.KEEP_SHARE` of its
+    memory-map cap (:func:`compiled.retire_programs`). Returns whether it released them."""
     from . import metrics
 
-    compiled.release_programs(render_jit, count_pairs, prepare_textures, metrics.ssim)
+    fns = (render_jit, count_pairs, prepare_textures, metrics.ssim)
+    if retire:
+        return compiled.retire_programs(*fns)
+    compiled.release_programs(*fns)
+    return True

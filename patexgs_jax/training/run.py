@@ -143,8 +143,8 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         one of them stopped (the message says what to do).
       memory.NotEnoughMemory: the step would not fit in memory (the message names a factor that fits).
     """
-    # Runs build their own jitted steps: in a process that trains many runs, free the compiled code of
-    # earlier ones before the kernel's memory-map cap is near (see patexgs_jax.compiled).
+    # A process that trains many runs keeps their programs (steps shared between runs, the renderer's)
+    # until half the kernel's memory-map cap is reached: then free them (see patexgs_jax.compiled).
     from .. import parallel
 
     compiled.release_compiled_code()

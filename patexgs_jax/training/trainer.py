@@ -20,8 +20,10 @@ Compiled programs (see :mod:`patexgs_jax.compiled`)
   distinct tile grid of the training images, not once per image size, and again only when the
   tile capacity or the scene's shapes change (densification; the texture stage's start and Eq. 7
   allocation; a growth event only when it overflows a texture bucket's headroom, see
-  :mod:`patexgs_jax.textures.rebucket`); the programs of earlier shapes are then released (and at most a
-  few capacities kept per shapes). Near the
+  :mod:`patexgs_jax.textures.rebucket`). The runs of one process share their steps (a resumed run, a
+  study's runs of one configuration, a notebook's second run take the executables an earlier run
+  compiled); a run that leaves a layout in a process holding a quarter of its memory-map cap
+  releases the programs of the layouts left behind. Near the
   kernel's memory-map cap the run releases all compiled code and, if that is not enough,
   checkpoints and stops with :class:`patexgs_jax.compiled.MapLimitReached` (resume with
   ``resume=True``).
@@ -51,13 +53,13 @@ from ..optim import make_optimizer, upgrade_state
 from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from ..schedule import TextureSchedule, TrainState
-from .compile_ahead import CompileAhead, layout_of, single_step_jit
+from .compile_ahead import CompileAhead, layout_of, single_step_jit, step_identity
 from .config import TrainConfig, config_dict, effective_config
 from .progress import Estimate
 from .step import STEP_TRACES, batch_step
 from .strategies import Densification, SmoothingFilter
 
-__all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
+__all__ = ["STAGE1_DIR", "Trainer", "init_scene", "release_steps"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
@@ -67,6 +69,28 @@ _MAP_CHECK_EVERY = 25
 
 #: Jitted steps (capacities) kept for one scene layout.
 _MAX_STEP_FNS = 4
+
+#: Jitted single-view steps shared by the runs of this process (Trainer._compiled_step): (step
+#: identity (compile_ahead.step_identity: scene radius, learning rates, loss weights), (render config,
+#: capacity), scene layout) -> (the jitted step, the padded sizes it has compiled). A resumed run, a
+#: study's runs of one configuration, or a notebook's second run then call the executables an
+#: earlier run compiled instead of tracing, lowering and compiling them again (in the test suite,
+#: the resume test took half the time).
+_SHARED_STEPS: collections.OrderedDict[tuple, tuple[Callable, set]] = collections.OrderedDict()
+
+#: Shared steps kept at most (the least recently used released first).
+_MAX_SHARED_STEPS = 16
+
+
+def release_steps() -> None:
+    """Releases the jitted steps the runs of this process share (:data:`_SHARED_STEPS`) and their
+    programs: the next run traces and compiles its own."""
+    for fn, _ in _SHARED_STEPS.values():
+        compiled.release_programs(fn)
+    _SHARED_STEPS.clear()
+
+
+compiled.on_clear(_SHARED_STEPS.clear)  # (JAX's caches cleared: the steps hold no programs any more)
 
 #: A jitted step as Trainer._compiled_step keeps it: the function, the padded sizes it has been
 #: called with (a new one compiles), and the background jobs compiling it ahead, per padded size.
@@ -129,6 +153,7 @@ class Trainer:
         # same run whatever the method (and can be shared: ``train(..., stage1=)``, see .run).
         self.lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
         self.optimizer = make_optimizer(self.radius, self.lr)
+        self.identity = step_identity(self.radius, config)  # (what else defines the step: see _SHARED_STEPS)
         self.capacity = None
         self.step = 0
         self.bad_streak = 0
@@ -258,30 +283,46 @@ class Trainer:
         return self.train_views[perm[i]]
 
     def _compiled_step(self, key, make: Callable[[], Callable],
-                       claim: Callable[[tuple], Any] | None = None) -> StepEntry:
+                       claim: Callable[[tuple], Any] | None = None, shared: bool = False) -> StepEntry:
         """The jitted step for ``key`` (render config, capacity, ...) and the scene's current layout,
         made by ``make()`` when new (or taken from a step compiled ahead, ``claim(layout)``); returns
         (the jitted step, the padded sizes it has been called with, the background jobs compiling it
-        ahead per padded size). A layout, once left, is rarely met again within a run (the
-        Gaussian capacity only grows; texture buckets are sized afresh when one overflows), so when
-        the layout changes the steps of the old one are dropped, with the renderer's and pair
-        counter's programs of the old layout, and their memory mappings returned (see
-        :mod:`patexgs_jax.compiled`). Within a layout at most :data:`_MAX_STEP_FNS` steps
-        (capacities) are kept, the oldest dropped first."""
+        ahead per padded size). Within a layout at most :data:`_MAX_STEP_FNS` steps (capacities) are
+        kept, the oldest dropped first.
+
+        With ``shared``, the step is also kept for the other runs of this process
+        (:data:`_SHARED_STEPS`, keyed by the step's identity as well), and taken from there when
+        another run (or this run's earlier attempt, before a resume) made it: the same executable,
+        nothing traced, lowered or compiled again. A layout, once left, is rarely met again within a
+        run (the Gaussian capacity only grows; texture buckets are sized afresh when one overflows),
+        so when the layout changes in a process holding more than :data:`compiled.KEEP_SHARE`
+        of its memory-map cap, the steps of the layouts left are released, with the renderer's and pair
+        counter's programs, and their memory mappings returned (see :mod:`patexgs_jax.compiled`)."""
         layout = layout_of(self.scene)
         if self._jit_layout != layout:
             if self._jit_cache:
                 self._jit_cache.clear()
-                padding.release_scene_programs()
+                if padding.release_scene_programs(retire=True):
+                    release_steps()
             self._jit_layout = layout
         if key not in self._jit_cache:
             while len(self._jit_cache) >= _MAX_STEP_FNS:
                 self._jit_cache.pop(next(iter(self._jit_cache)))
+            process_key = (self.identity, key, layout) if shared else None
+            if process_key in _SHARED_STEPS:
+                _SHARED_STEPS.move_to_end(process_key)
+                fn, seen = _SHARED_STEPS[process_key]
+                self._jit_cache[key] = (fn, seen, {})
+                return self._jit_cache[key]
             prepared = None if claim is None else claim(layout)
             if prepared is not None:
                 self._jit_cache[key] = (prepared.fn, set(), {prepared.padded: prepared.step_job})
             else:
                 self._jit_cache[key] = (make(), set(), {})
+            if process_key is not None:
+                _SHARED_STEPS[process_key] = self._jit_cache[key][:2]
+                while len(_SHARED_STEPS) > _MAX_SHARED_STEPS:
+                    compiled.release_programs(_SHARED_STEPS.popitem(last=False)[1][0])
         return self._jit_cache[key]
 
     def stage_name(self, step: int | None = None) -> str:
@@ -309,7 +350,7 @@ class Trainer:
         fn, buckets_seen, ahead_jobs = self._compiled_step(
             (render_cfg, capacity),
             lambda: single_step_jit(self.optimizer, render_cfg, capacity, cfg.lambda_dssim, cfg.lambda_dist),
-            claim=lambda layout: self.ahead.claim_step(render_cfg, capacity, layout))
+            claim=lambda layout: self.ahead.claim_step(render_cfg, capacity, layout), shared=True)
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
             cam = padding.padded_camera(camera, render_cfg.tile_size)

@@ -27,7 +27,7 @@ from patexgs_jax.data import load
 from patexgs_jax.training import compile_ahead
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.trainer import Trainer
+from patexgs_jax.training.trainer import Trainer, release_steps
 from train_configs import tiny_config
 
 
@@ -109,6 +109,7 @@ def test_stage2_compiled_ahead_is_hit_and_bit_identical(dataset, tmp_path, monke
     results = {}
     ck = None
     for mode in ("1", "0"):
+        release_steps()  # (each run compiles its own: the steps shared within a process would serve the second)
         monkeypatch.setenv(ahead.AHEAD_ENV, mode)
         out = tmp_path / f"ahead{mode}"
         ahead_traces = sum(AHEAD_STEP_TRACES.values())
@@ -150,6 +151,7 @@ def test_own_stage2_compiled_ahead_is_bit_identical(dataset, tmp_path, monkeypat
     cfg = tiny_config(iters_tex=6, warmup_tex=3, growth_interval=2)
     trees, summaries, traces = {}, {}, {}
     for mode in ("1", "0"):
+        release_steps()
         monkeypatch.setenv(ahead.AHEAD_ENV, mode)
         out = tmp_path / f"own{mode}"
         summaries[mode] = _train_recorded(monkeypatch, dataset, cfg, out, verbose=False).summary
@@ -205,7 +207,11 @@ def test_stop_during_a_background_compile(synthetic_scene_dir, tmp_path, sig):
     wait for the compile."""
     out = tmp_path / "run"
     args = ["--data", str(synthetic_scene_dir), "--out", str(out), "--method", "patexgs", "--preset", "tiny",
-            "--iters-2dgs", "30", "--iters-tex", "24", "--max-gaussians", "700", "--log-every", "2"]
+            "--iters-2dgs", "30", "--iters-tex", "24", "--max-gaussians", "700", "--log-every", "2",
+            "--checkpoint-on-stop", "0"]
+    # (checkpoint-on-stop 0: the stop writes its checkpoint however few steps ran. The background
+    # compile starts at step 0 here, and 2 s later an idle machine is at about step 6: with the default
+    # of 10 the stop saved nothing and the test failed; under load it had passed.)
     # A cold compile at XLA's default optimisation level (tens of seconds for the textured step), so
     # that the signal lands inside it.
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "optimization_level" not in f)

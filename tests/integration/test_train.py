@@ -40,7 +40,7 @@ from patexgs_jax.schedule import TextureSchedule, growth_schedule, growth_steps
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
+from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene, release_steps
 from train_configs import tiny_config
 
 PER_GAUSSIAN = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
@@ -376,10 +376,16 @@ def test_repeated_nonfinite_steps_stop_the_run(dataset, tmp_path):
         l1 = jnp.mean(jnp.abs(rgb - target))
         return l1 * jnp.nan, l1
 
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(losses, "photometric", nan_loss)
-        with pytest.raises(FloatingPointError, match="3 consecutive non-finite steps"):
-            train(dataset, cfg, out, resume=True, verbose=False)
+    # (the loss is traced into the step: the steps shared by this process's runs are released before
+    # and after, so that the patched loss is traced, and then is not reused)
+    release_steps()
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(losses, "photometric", nan_loss)
+            with pytest.raises(FloatingPointError, match="3 consecutive non-finite steps"):
+                train(dataset, cfg, out, resume=True, verbose=False)
+    finally:
+        release_steps()
     assert ckpt.latest_checkpoint(out / "checkpoints") == good and good.read_bytes() == good_bytes
     tree, _ = ckpt.load_checkpoint(good)
     assert all_finite(tree["scene"]) and all_finite(tree["opt_state"])
