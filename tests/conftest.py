@@ -75,7 +75,7 @@ def _release_compiled_code():
     The training steps that runs of one process share are released after every module, so that a
     module's counts of traces do not depend on which modules ran before it in its worker."""
     yield
-    from patexgs_jax.training.trainer import release_steps
+    from patexgs_jax.training.step_cache import release_steps
 
     release_steps()
     compiled.release_compiled_code(threshold=0.25)

@@ -44,8 +44,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import ahead, compiled, interrupt, padding, progress
 from .. import checkpoint as ckpt
+from .. import compiled, interrupt, padding, progress
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
 from ..evaluation import camera_problem, image_problem
@@ -57,45 +57,16 @@ from .compile_ahead import CompileAhead, layout_of, single_step_jit, step_identi
 from .config import TrainConfig, config_dict, effective_config
 from .progress import Estimate
 from .step import STEP_TRACES, batch_step
+from .step_cache import StepCache, StepEntry
 from .strategies import Densification, SmoothingFilter
 
-__all__ = ["STAGE1_DIR", "Trainer", "init_scene", "release_steps"]
+__all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
 
 #: Steps between two looks at the memory-map count (it is also read after every compile).
 _MAP_CHECK_EVERY = 25
-
-#: Jitted steps (capacities) kept for one scene layout.
-_MAX_STEP_FNS = 4
-
-#: Jitted single-view steps shared by the runs of this process (Trainer._compiled_step): (step
-#: identity (compile_ahead.step_identity: scene radius, learning rates, loss weights), (render config,
-#: capacity), scene layout) -> (the jitted step, the padded sizes it has compiled). A resumed run, a
-#: study's runs of one configuration, or a notebook's second run then call the executables an
-#: earlier run compiled instead of tracing, lowering and compiling them again (in the test suite,
-#: the resume test took half the time).
-_SHARED_STEPS: collections.OrderedDict[tuple, tuple[Callable, set]] = collections.OrderedDict()
-
-#: Shared steps kept at most (the least recently used released first).
-_MAX_SHARED_STEPS = 16
-
-
-def release_steps() -> None:
-    """Releases the jitted steps the runs of this process share (:data:`_SHARED_STEPS`) and their
-    programs: the next run traces and compiles its own."""
-    for fn, _ in _SHARED_STEPS.values():
-        compiled.release_programs(fn)
-    _SHARED_STEPS.clear()
-
-
-compiled.on_clear(_SHARED_STEPS.clear)  # (JAX's caches cleared: the steps hold no programs any more)
-
-#: A jitted step as Trainer._compiled_step keeps it: the function, the padded sizes it has been
-#: called with (a new one compiles), and the background jobs compiling it ahead, per padded size.
-StepEntry = tuple[Callable, set, dict[tuple[int, int], "ahead.Job | None"]]
-
 
 def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
     """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
@@ -153,7 +124,6 @@ class Trainer:
         # same run whatever the method (and can be shared: ``train(..., stage1=)``, see .run).
         self.lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
         self.optimizer = make_optimizer(self.radius, self.lr)
-        self.identity = step_identity(self.radius, config)  # (what else defines the step: see _SHARED_STEPS)
         self.capacity = None
         self.step = 0
         self.bad_streak = 0
@@ -171,9 +141,8 @@ class Trainer:
         self.strategies = (self.densification, SmoothingFilter(config, self.train_views),
                            self.textures)
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
-        # program per padded size; released when the layout changes (see _compiled_step).
-        self._jit_cache: dict[Any, StepEntry] = {}
-        self._jit_layout = None
+        # program per padded size; the single-view ones shared with the process's other runs.
+        self.steps = StepCache(step_identity(self.radius, config))
         self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
         self.t_start = time.perf_counter()
         self.estimate = Estimate(self)  # how long the run takes, from the steps that compiled nothing
@@ -284,46 +253,8 @@ class Trainer:
 
     def _compiled_step(self, key, make: Callable[[], Callable],
                        claim: Callable[[tuple], Any] | None = None, shared: bool = False) -> StepEntry:
-        """The jitted step for ``key`` (render config, capacity, ...) and the scene's current layout,
-        made by ``make()`` when new (or taken from a step compiled ahead, ``claim(layout)``); returns
-        (the jitted step, the padded sizes it has been called with, the background jobs compiling it
-        ahead per padded size). Within a layout at most :data:`_MAX_STEP_FNS` steps (capacities) are
-        kept, the oldest dropped first.
-
-        With ``shared``, the step is also kept for the other runs of this process
-        (:data:`_SHARED_STEPS`, keyed by the step's identity as well), and taken from there when
-        another run (or this run's earlier attempt, before a resume) made it: the same executable,
-        nothing traced, lowered or compiled again. A layout, once left, is rarely met again within a
-        run (the Gaussian capacity only grows; texture buckets are sized afresh when one overflows),
-        so when the layout changes in a process holding more than :data:`compiled.KEEP_SHARE`
-        of its memory-map cap, the steps of the layouts left are released, with the renderer's and pair
-        counter's programs, and their memory mappings returned (see :mod:`patexgs_jax.compiled`)."""
-        layout = layout_of(self.scene)
-        if self._jit_layout != layout:
-            if self._jit_cache:
-                self._jit_cache.clear()
-                if padding.release_scene_programs(retire=True):
-                    release_steps()
-            self._jit_layout = layout
-        if key not in self._jit_cache:
-            while len(self._jit_cache) >= _MAX_STEP_FNS:
-                self._jit_cache.pop(next(iter(self._jit_cache)))
-            process_key = (self.identity, key, layout) if shared else None
-            if process_key in _SHARED_STEPS:
-                _SHARED_STEPS.move_to_end(process_key)
-                fn, seen = _SHARED_STEPS[process_key]
-                self._jit_cache[key] = (fn, seen, {})
-                return self._jit_cache[key]
-            prepared = None if claim is None else claim(layout)
-            if prepared is not None:
-                self._jit_cache[key] = (prepared.fn, set(), {prepared.padded: prepared.step_job})
-            else:
-                self._jit_cache[key] = (make(), set(), {})
-            if process_key is not None:
-                _SHARED_STEPS[process_key] = self._jit_cache[key][:2]
-                while len(_SHARED_STEPS) > _MAX_SHARED_STEPS:
-                    compiled.release_programs(_SHARED_STEPS.popitem(last=False)[1][0])
-        return self._jit_cache[key]
+        """The jitted step for ``key`` at the scene's current layout (see :meth:`StepCache.get`)."""
+        return self.steps.get(layout_of(self.scene), key, make, claim, shared)
 
     def stage_name(self, step: int | None = None) -> str:
         """``"2DGS"`` (``"3DGS"`` for 3D Gaussians) or ``"textured"``: which step ``step`` (default:
@@ -354,7 +285,7 @@ class Trainer:
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
             cam = padding.padded_camera(camera, render_cfg.tile_size)
-            if (cam.height, cam.width) not in buckets_seen:  # this call compiles (see _compiled_step)
+            if (cam.height, cam.width) not in buckets_seen:  # this call compiles (see StepCache.get)
                 buckets_seen.add((cam.height, cam.width))
                 job = ahead_jobs.pop((cam.height, cam.width), None)
                 what = f"{cam.width}x{cam.height} px"
@@ -452,7 +383,7 @@ class Trainer:
         checkpoint and raises :class:`compiled.MapLimitReached` (a clear stop, not a crash in XLA)."""
         from .. import parallel
 
-        maps = self.map_guard.check(on_release=self._jit_cache.clear)
+        maps = self.map_guard.check(on_release=self.steps.clear)
         other = None
         if jax.process_count() > 1:  # the processes stop together: the checkpoint below is collective
             hit = parallel.process_allgather_ints([maps is not None])[:, 0]

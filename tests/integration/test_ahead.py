@@ -27,7 +27,8 @@ from patexgs_jax.data import load
 from patexgs_jax.training import compile_ahead
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.trainer import Trainer, release_steps
+from patexgs_jax.training.step_cache import release_steps
+from patexgs_jax.training.trainer import Trainer
 from train_configs import tiny_config
 
 

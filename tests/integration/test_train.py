@@ -40,7 +40,8 @@ from patexgs_jax.schedule import TextureSchedule, growth_schedule, growth_steps
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene, release_steps
+from patexgs_jax.training.step_cache import release_steps
+from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
 from train_configs import tiny_config
 
 PER_GAUSSIAN = ("means", "log_scales", "quats", "opacity_logits", "sh", "active")
