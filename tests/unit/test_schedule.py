@@ -523,6 +523,15 @@ def test_contribution_counts_keep_only_nonzeros_and_match_the_dense_sums():
     sub = ContributionCounts.from_dense(S).columns(keep)
     np.testing.assert_array_equal(sub.column_max(), S[:, keep].max(axis=0))
     assert sub.num_views == 7 and sub.offsets[-1] == np.count_nonzero(S[:, keep])
+    # Whole counts go through a table of logarithms, the others one by one: the same numbers.
+    capped = ContributionCounts.from_dense(np.minimum(S, 50))  # (the largest below the number of counts)
+    assert capped._whole_counts is not None
+    direct = np.bincount(capped.index, weights=np.log2(1.0 + capped.values.astype(np.float64) / 17.0), minlength=500)
+    np.testing.assert_array_equal(capped.sizes(17.0), direct)
+    for odd in (S + 0.25, S * 1000.0):  # fractional counts; a largest count past the number of counts
+        S_odd = ContributionCounts.from_dense(odd)
+        assert S_odd._whole_counts is None
+        np.testing.assert_allclose(S_odd.sizes(17.0), np.sum(np.log2(1.0 + odd / 17.0), axis=0), rtol=1e-12)
     with pytest.raises(ValueError, match="non-negative"):
         ContributionCounts.from_views([np.array([1.0, -2.0])])
     with pytest.raises(ValueError, match=r"shape \(C,\)"):
