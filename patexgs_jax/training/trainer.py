@@ -68,6 +68,7 @@ STAGE1_DIR = "stage1"
 #: Steps between two looks at the memory-map count (it is also read after every compile).
 _MAP_CHECK_EVERY = 25
 
+
 def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
     """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
 
