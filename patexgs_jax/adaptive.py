@@ -175,10 +175,11 @@ class ContributionCounts:
         """(the counts as int32, their largest) where every count is a whole number (pixel counts are)
         and the largest is below their number (a table of logarithms no longer than the counts), else
         None."""
-        if self.values.size == 0 or not float(self.values.max()) < min(self.values.size, 2**31 - 1):
+        top = float(self.values.max()) if self.values.size else 0.0
+        if self.values.size == 0 or not top < min(self.values.size, 2**31 - 1):
             return None
         whole = self.values.astype(np.int32)
-        return (whole, int(whole.max())) if np.array_equal(whole, self.values) else None
+        return (whole, int(top)) if np.array_equal(whole, self.values) else None
 
     def sizes(self, sigma: float) -> np.ndarray:
         """(C,) float64 Eq. 7 real sizes ``T_i = sum_j log2(1 + S_ij / sigma)``.
