@@ -158,6 +158,35 @@ def make_views(width: int, height: int, num_views: int, seed: int = 0):
     return views
 
 
+def _as_trained(opt_state, rng):
+    """Adam's state as after training, so that the copies and the checkpoint below move what a run's
+    would: moments that vary from element to element (zero in the frozen index leaves), and each
+    texture's age one whole number of steps for all its texels (zero outside the texels)."""
+    import jax
+
+    adam, group = opt_state
+    frozen = {"active", "bucket", "slot", "size"}
+
+    def name(path):
+        return str(getattr(path[-1], "name", ""))
+
+    def moment(path, x, scale):
+        if name(path) in frozen or np.size(x) == 0:
+            return x
+        return jax.device_put((scale * np.abs(rng.standard_normal(np.shape(x), np.float32))).astype(np.float32))
+
+    def age(path, x):
+        texel = any(str(getattr(k, "name", "")) == "buckets" for k in path)
+        if not texel or np.size(x) == 0:
+            return x
+        per_slot = rng.integers(1, 10_000, (np.shape(x)[0], 1, 1, 1)).astype(np.float32)
+        return jax.device_put(np.array(np.broadcast_to(per_slot, np.shape(x))))
+
+    return (adam._replace(mu=jax.tree_util.tree_map_with_path(lambda p, x: moment(p, x, 1e-3), adam.mu),
+                          nu=jax.tree_util.tree_map_with_path(lambda p, x: moment(p, x, 1e-6), adam.nu),
+                          age=jax.tree_util.tree_map_with_path(age, adam.age)), group)
+
+
 def _block(tree):
     import jax
 
@@ -185,7 +214,7 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
     )
     from patexgs_jax.densify import DensifyConfig, DensifyStats, densify_and_prune
     from patexgs_jax.export import export_ply, load_ply
-    from patexgs_jax.optim import make_optimizer
+    from patexgs_jax.optim import ages_per_slot, make_optimizer, upgrade_state
     from patexgs_jax.padding import ViewRenderer
     from patexgs_jax.schedule import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE
     from patexgs_jax.textures.rebucket import add_textures, resize_textures
@@ -272,9 +301,7 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
                                                  min_spare=TEXTURE_MIN_SPARE)
         _block((scene, opt_state))
         note["texels"] = int(total_texels(sides, active))
-    # Moments as after training (non-zero), so that the copies below move real data.
-    opt_state = jax.tree_util.tree_map(lambda x: x + 1e-3 if hasattr(x, "dtype") and x.dtype == np.float32 else x,
-                                       opt_state)
+    opt_state = _as_trained(opt_state, rng)
 
     schedule = GrowthSchedule(t0=1000, t_final=20_000)
     state = TextureScheduleState.create(sides)
@@ -298,13 +325,14 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
     tmp = Path(tempfile.mkdtemp(prefix="bench_scale_"))
     try:
         if "checkpoint" not in skip:
-            tree = dict(scene=scene, opt_state=opt_state, tex_sizes=state.sizes)
+            tree = dict(scene=scene, opt_state=ages_per_slot(opt_state), tex_sizes=state.sizes)  # (as a run's)
             path = ckpt.checkpoint_path(tmp / "checkpoints", 1)
             with rows.time("checkpoint_save", host=True) as note:
                 ckpt.save_checkpoint(path, tree, dict(step=1), keep=2)
                 note["bytes"] = sum(f.stat().st_size for f in path.parent.rglob("*") if f.is_file())
             with rows.time("checkpoint_load", host=True):
-                _block(ckpt.load_checkpoint(path, tree))
+                loaded, _ = ckpt.load_checkpoint(path)
+                _block((loaded, upgrade_state(loaded["opt_state"])))
             del tree
         if "ply" not in skip:
             with rows.time("ply_export", host=True) as note:

@@ -1,11 +1,12 @@
 """Atomic, self-describing checkpoints of arbitrary pytrees (scene, optimiser state, RNG, schedule).
 
-File format (version 1)
+File format (version 2; version 1, without repeated blocks, is read too)
   A ZIP archive (stored, no compression; every member CRC-checked on read) with
   * ``spec.json``: ``{"format": "patexgs-checkpoint", "version": 1, "metadata": {...},
     "tree": <node>}``, where a node is one of
       ``{"t": "none"}``; ``{"t": "py", "v": value}`` (bool, int, float, str);
-      ``{"t": "array", "i": k, "kind": "jax"|"numpy"|"scalar", "dtype": name}`` (array member k);
+      ``{"t": "array", "i": k, "kind": "jax"|"numpy"|"scalar", "dtype": name}`` (array member k),
+      with ``"shape": [...]`` when member k is the array's repeated block (see below);
       ``{"t": "key", "i": k, "impl": name}`` (a typed JAX PRNG key; member k holds its key data);
       ``{"t": "list"|"tuple", "v": [nodes]}``;
       ``{"t": "dict", "k": [keys], "v": [nodes]}`` (keys are str or int, JSON-typed);
@@ -14,6 +15,10 @@ File format (version 1)
       ``{"t": "np_generator", "bit_generator": name, "state": node}`` (a numpy Generator).
   * ``arrays/<k>.npy``: the array leaves in numpy's ``.npy`` format (no pickles). Dtypes numpy
     cannot name (bfloat16 etc.) are stored as unsigned integers of the same width and viewed back.
+    An array that is bitwise one value, or one value per row (along its first axis), is stored as
+    that value (shape (1, ..., 1)) or that column (shape (rows, 1, ..., 1)) and broadcast back to
+    its ``"shape"`` on reading: Adam's texel ages (one per texture, :mod:`patexgs_jax.optim`) and
+    the zero ages of every other parameter were a quarter of a textured run's checkpoint.
 
   So a checkpoint rebuilds itself without a template (Scenes of any capacity, texture banks with
   any bucket shapes, optax states). Classes are re-imported by name only from the modules in
@@ -51,7 +56,8 @@ import jax.numpy as jnp
 import numpy as np
 
 FORMAT = "patexgs-checkpoint"
-VERSION = 1
+VERSION = 2
+READABLE_VERSIONS = (1, 2)
 SUFFIX = ".ckpt"
 ALLOWED_MODULE_PREFIXES: list[str] = ["patexgs_jax", "optax", "experiments"]
 
@@ -103,6 +109,30 @@ def _storable(arr: np.ndarray) -> tuple[np.ndarray, str]:
     return arr.view(np.dtype(f"u{arr.dtype.itemsize}")), name
 
 
+_PROBE_ROWS = 16
+
+
+def _repeated_block(arr: np.ndarray) -> np.ndarray | None:
+    """The smallest block ``arr`` repeats bitwise (one value of shape (1, ..., 1), or one per row
+    of shape (rows, 1, ..., 1)), or None. A few rows are tried first, so that an array that varies
+    (most parameters and moments) costs one short comparison."""
+    if (arr.ndim == 0 or arr.size < 2 or arr.dtype.kind not in "biuf" or arr.dtype.itemsize not in (1, 2, 4, 8)
+            or not arr.flags.c_contiguous):
+        return None
+    bits = arr.view(np.dtype(f"u{arr.dtype.itemsize}"))  # (-0.0 is not 0.0, a NaN is its own payload)
+    for lead in (0, 1) if arr.ndim >= 2 else (0,):
+        block = bits[(slice(None),) * lead + (slice(0, 1),) * (arr.ndim - lead)]
+        if block.size == bits.size:
+            continue
+        rows = max(1, (1 << 24) // max(1, bits[0].size))  # compared in chunks of about 16M elements
+        probe = min(_PROBE_ROWS, len(bits))
+        chunks = [(0, probe)] + [(i, min(i + rows, len(bits))) for i in range(probe, len(bits), rows)]
+        if all(np.array_equal(bits[i:j], np.broadcast_to(block if lead == 0 else block[i:j], (j - i,) + bits.shape[1:]))
+               for i, j in chunks):
+            return np.ascontiguousarray(arr[(slice(None),) * lead + (slice(0, 1),) * (arr.ndim - lead)])
+    return None
+
+
 class _Encoder:
     def __init__(self):
         self.arrays: list[np.ndarray] = []
@@ -127,7 +157,10 @@ class _Encoder:
                 stored, dtype = _storable(arr)
             except TypeError as e:
                 raise TypeError(f"{path}: {e}") from None
-            return {"t": "array", "i": self._add(stored), "kind": kind, "dtype": dtype}
+            block = _repeated_block(stored)
+            if block is None:
+                return {"t": "array", "i": self._add(stored), "kind": kind, "dtype": dtype}
+            return {"t": "array", "i": self._add(block), "kind": kind, "dtype": dtype, "shape": list(stored.shape)}
         if isinstance(x, np.random.Generator):
             bg = x.bit_generator
             return {"t": "np_generator", "bit_generator": type(bg).__name__,
@@ -180,6 +213,12 @@ class _Decoder:
             return node["v"]
         if t == "array":
             arr = self._array(node["i"])
+            if "shape" in node:  # a repeated block (see the module docstring)
+                shape = tuple(node["shape"])
+                if arr.ndim != len(shape) or any(b not in (1, s) for b, s in zip(arr.shape, shape)):
+                    raise CorruptCheckpointError(f"array member {node['i']} of shape {arr.shape} is not a block "
+                                                 f"of shape {shape}")
+                arr = np.array(np.broadcast_to(arr, shape))
             dtype = np.dtype(jnp.dtype(node["dtype"]))
             if arr.dtype != dtype:
                 arr = arr.view(dtype)
@@ -388,9 +427,9 @@ def _read(path: Path, with_arrays: bool = True):
             spec = json.loads(zf.read("spec.json").decode("utf-8"))
             if not isinstance(spec, dict) or spec.get("format") != FORMAT:
                 raise CorruptCheckpointError("not a patexgs checkpoint")
-            if spec.get("version") != VERSION:
+            if spec.get("version") not in READABLE_VERSIONS:
                 raise CorruptCheckpointError(f"unsupported format version {spec.get('version')!r} "
-                                             f"(this code reads version {VERSION})")
+                                             f"(this code reads versions {READABLE_VERSIONS})")
             arrays = {}
             if with_arrays:
                 for name in names:

@@ -10,10 +10,12 @@ Texels have their own bias correction. Adam divides ``mu`` by ``1 - b1^t`` and `
 ``1 - b2^t``, with t the global step count. A texture that appears in the middle of a run starts
 with zero moments while t is large, so without correction its first updates would be up to
 ``(1 - b1^k) / sqrt(1 - b2^k)`` = 3.2 (k = 1) to 6.5 (k = 10) times the nominal rate, for hundreds
-of steps. ``age`` counts the steps each texel has been trained (0 for a new texture, carried
-through a resize by the same resampling as the moments, which keeps a texture's age because the
-weights of each new texel sum to one), and texels are corrected with their own age; every other
-group uses the global count, as plain Adam (``age`` stays zero there).
+of steps. ``age`` counts the steps each texture has been trained (0 for a new texture, carried
+through a resize by the same resampling as the moments, which keeps a texture's age up to rounding
+because the weights of each new texel sum to one; each step then takes the age of a slot's first
+texel for the whole slot, so a texture's texels share one age exactly), and texels are corrected
+with their texture's age; every other group uses the global count, as plain Adam (``age`` stays
+zero there).
 
 Groups and learning rates (2DGS / 3DGS defaults):
   means: 1.6e-4 x scene radius, decayed exponentially to 1.6e-6 x radius over ``means_steps``;
@@ -119,6 +121,14 @@ def _is_texel_path(path) -> bool:
     return _group(path) in ("texture_rgb", "texture_alpha")
 
 
+def _older(a: jax.Array) -> jax.Array:
+    """A bucket's texel ages (cap, P, P, ch) one step on: each slot's age is its first texel's + 1,
+    on every texel of the slot. A resize resamples a uniform age to a uniform one only up to
+    rounding (and pads a slot with zeros); one value per slot keeps a texture's age exact, and
+    a checkpoint stores it once per slot (:mod:`patexgs_jax.checkpoint`)."""
+    return jnp.broadcast_to(a[:, :1, :1, :1] + 1.0, a.shape)
+
+
 def scale_by_adam_with_texel_age(b1: float = 0.9, b2: float = 0.999, eps: float = 1e-15
                                  ) -> optax.GradientTransformation:
     """Adam's normalised update ``mu_hat / (sqrt(nu_hat) + eps)``, bias-corrected with the global
@@ -136,7 +146,7 @@ def scale_by_adam_with_texel_age(b1: float = 0.9, b2: float = 0.999, eps: float 
         nu = jax.tree_util.tree_map(lambda g, v: b2 * v + (1 - b2) * jnp.square(g), updates, state.nu)
         count = jnp.asarray(optax.safe_int32_increment(state.count))
         t = count.astype(jnp.float32)
-        age = jax.tree_util.tree_map_with_path(lambda path, a: a + 1.0 if _is_texel_path(path) else a, state.age)
+        age = jax.tree_util.tree_map_with_path(lambda path, a: _older(a) if _is_texel_path(path) else a, state.age)
 
         def normalised(path, m, v, a):
             steps = a if _is_texel_path(path) else t
@@ -160,12 +170,40 @@ def make_optimizer(scene_radius: float, lr: LearningRates = LearningRates(),
     return optax.chain(scale_by_adam_with_texel_age(eps=1e-15), scale_by_group_lr(lr, scene_radius, step_offset))
 
 
+def ages_per_slot(opt_state):
+    """The state with each bucket's texel ages (cap, P, P, ch) as one age per slot (cap, 1, 1, 1),
+    host arrays: what a checkpoint stores. The step reads only a slot's first texel (``_older``),
+    so :func:`upgrade_state` broadcasting it back gives a state that trains exactly as this one."""
+    adam, group = opt_state
+    if not isinstance(adam, AdamState) or not isinstance(adam.age, Scene):
+        return opt_state
+    age = jax.tree_util.tree_map_with_path(
+        lambda path, a: np.ascontiguousarray(np.asarray(a)[:, :1, :1, :1]) if _is_texel_path(path) else a, adam.age)
+    return (adam._replace(age=age), group)
+
+
+def _ages_in_full(adam: AdamState) -> AdamState:
+    """:func:`ages_per_slot` undone: each slot's age on every texel of the slot, as a device array."""
+    def full(a, m):
+        if np.shape(a) == np.shape(m):
+            return a
+        return jax.device_put(np.array(np.broadcast_to(np.asarray(a, np.float32), np.shape(m))))
+
+    return adam._replace(age=jax.tree_util.tree_map(full, adam.age, adam.mu))
+
+
 def upgrade_state(opt_state):
-    """An optimiser state from a checkpoint of an earlier version (optax's ``ScaleByAdamState``,
-    without ages) as :func:`make_optimizer` makes it now: every texel's age is the global count,
+    """An optimiser state as a checkpoint holds it, as :func:`make_optimizer` makes it: texel ages
+    stored one per slot (:func:`ages_per_slot`) back on every texel; and a state of an earlier
+    version (optax's ``ScaleByAdamState``, without ages) with every texel's age at the global count,
     which is the bias correction that state was trained with. Other states are returned as they are."""
     adam, group = opt_state
-    if isinstance(adam, AdamState) or not isinstance(adam, optax.ScaleByAdamState):
+    if isinstance(adam, AdamState):
+        leaves = jax.tree_util.tree_leaves
+        per_slot = isinstance(adam.age, Scene) and any(
+            np.shape(a) != np.shape(m) for a, m in zip(leaves(adam.age), leaves(adam.mu)))
+        return (_ages_in_full(adam), group) if per_slot else opt_state
+    if not isinstance(adam, optax.ScaleByAdamState):
         return opt_state
     count = jnp.asarray(adam.count)
     age = jax.tree_util.tree_map_with_path(

@@ -49,7 +49,7 @@ from .. import compiled, interrupt, padding, progress
 from .. import densify as dens
 from ..adaptive import TextureScheduleState
 from ..evaluation import camera_problem, image_problem
-from ..optim import make_optimizer, upgrade_state
+from ..optim import ages_per_slot, make_optimizer, upgrade_state
 from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from ..schedule import TextureSchedule, TrainState
@@ -171,7 +171,7 @@ class Trainer:
 
     def state_tree(self):
         tex = self.textures.state
-        return dict(scene=self.scene, opt_state=self.opt_state, stats=self.stats,
+        return dict(scene=self.scene, opt_state=ages_per_slot(self.opt_state), stats=self.stats,
                     tex_sizes=None if tex is None else tex.sizes,
                     tex_counters=None if tex is None else np.array(
                         [tex.last_growth_step, tex.num_growth_events, tex.num_grown]),

@@ -220,3 +220,56 @@ def test_fields_added_since_take_their_defaults(tmp_path):
     assert scene.filter3d is None and scene.num_active() == 5
     with pytest.raises(ckpt.CheckpointError, match="do not match"):
         load_checkpoint(rewrite(lambda f: f.update(gone={"t": "none"})))
+
+
+def test_repeated_blocks_are_stored_once(tmp_path, monkeypatch):
+    """An array that is bitwise one value, or one value per row, is stored as that value or column and
+    read back bitwise (signed zeros and NaN payloads kept; an array that varies anywhere, even past
+    the first rows compared, is stored whole); a version-1 file (no blocks) still reads; a block
+    whose shape does not fit its array is a corrupt file."""
+    import json
+    import zipfile
+
+    rows = np.arange(40, dtype=np.float32)[:, None, None, None] * np.ones((1, 3, 3, 2), np.float32)
+    late = np.zeros((40, 5), np.float32)
+    late[-1, -1] = 1.0  # differs only past the rows probed first
+    neg = np.zeros((8, 4), np.float32)
+    neg[5, 2] = -0.0
+    nan = np.full(6, np.nan, np.float32)
+    nan.view(np.uint32)[3] ^= 1  # another NaN payload
+    tree = {"zeros": jnp.zeros((50, 7), jnp.float32), "rows": jnp.asarray(rows), "late": late, "neg": neg,
+            "nan": nan, "flags": np.ones((9, 2), bool), "ints": np.full((4, 4), -3, np.int64),
+            "row_ints": np.repeat(np.arange(5, dtype=np.int32)[:, None], 3, axis=1), "one": np.zeros(1, np.float32),
+            "varied": np.random.default_rng(0).normal(size=(30, 4)).astype(np.float32),
+            "bf16": jnp.zeros((4, 2), jnp.bfloat16)}
+    path = save_checkpoint(tmp_path / "a.ckpt", tree)
+    with zipfile.ZipFile(path) as z:
+        spec = json.loads(z.read("spec.json"))
+        stored = {k: v.get("shape") for k, v in zip(spec["tree"]["k"], spec["tree"]["v"])}
+        sizes = {k: z.getinfo(f"arrays/{v['i']}.npy").file_size for k, v in zip(spec["tree"]["k"], spec["tree"]["v"])}
+    assert {k for k, v in stored.items() if v} == {"zeros", "rows", "flags", "ints", "row_ints", "bf16"}
+    assert sizes["zeros"] < 200 and sizes["rows"] < 40 * 4 + 200
+    back, _ = load_checkpoint(path)
+    for k, v in tree.items():
+        got = np.asarray(back[k])
+        assert got.shape == np.shape(v) and got.dtype == np.asarray(v).dtype, k
+        assert isinstance(back[k], jax.Array) or got.flags.writeable, k
+        assert got.tobytes() == np.asarray(v).tobytes(), k
+    assert isinstance(back["zeros"], jax.Array) and isinstance(back["late"], np.ndarray)
+
+    monkeypatch.setattr(ckpt, "VERSION", 1)
+    monkeypatch.setattr(ckpt, "_repeated_block", lambda arr: None)
+    old, _ = load_checkpoint(save_checkpoint(tmp_path / "v1.ckpt", tree))
+    assert all(np.asarray(old[k]).tobytes() == np.asarray(v).tobytes() for k, v in tree.items())
+    monkeypatch.undo()
+
+    with zipfile.ZipFile(path) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    spec["tree"]["v"][spec["tree"]["k"].index("rows")]["shape"] = [41, 3, 3, 2]
+    members["spec.json"] = json.dumps(spec).encode()
+    bad = tmp_path / "bad.ckpt"
+    with zipfile.ZipFile(bad, "w", zipfile.ZIP_STORED) as z:
+        for n, data in members.items():
+            z.writestr(n, data)
+    with pytest.raises(CorruptCheckpointError, match="not a block"):
+        load_checkpoint(bad)

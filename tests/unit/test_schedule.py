@@ -658,6 +658,13 @@ def test_new_texels_have_their_own_bias_correction():
         np.testing.assert_allclose(tex_of(age4.rgb, s4.rgb, i), 3.0, rtol=1e-6)
         np.testing.assert_allclose(tex_of(age4.alpha, s4.alpha, i), 3.0, rtol=1e-6)
     assert np.all(tex_of(age4.rgb, s4.rgb, 2) == 0.0) and np.all(tex_of(age4.alpha, s4.alpha, 2) == 0.0)
+    # The next step gives every texel of a slot its first texel's age + 1, exactly (a checkpoint
+    # stores one age per slot).
+    _, st5 = opt.update(random_like(s4), st4, s4)
+    for bank, bank4 in ((st5[0].age.rgb, age4.rgb), (st5[0].age.alpha, age4.alpha)):
+        for a, a4 in zip(bank.buckets, bank4.buckets):
+            a, a4 = np.asarray(a), np.asarray(a4)
+            assert np.array_equal(a, np.broadcast_to(a4[:, :1, :1, :1] + np.float32(1.0), a.shape))
     # An optax Adam state (no ages) upgrades with every texel's age at the count.
     adam = st4[0]
     old = (optax.ScaleByAdamState(count=adam.count, mu=adam.mu, nu=adam.nu), st4[1])
@@ -666,3 +673,12 @@ def test_new_texels_have_their_own_bias_correction():
     assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(st4)
     assert np.all(tex_of(new[0].age.rgb, s4.rgb, 2) == 23.0) and not np.any(np.asarray(new[0].age.means))
     assert upgrade_state(st4) is st4
+    # A checkpoint stores one age per slot; broadcast back, the state trains exactly as the one saved.
+    from patexgs_jax.optim import ages_per_slot
+
+    stored = ages_per_slot(st5)
+    assert all(np.shape(a)[1:] == (1, 1, 1) for a in stored[0].age.rgb.buckets + stored[0].age.alpha.buckets)
+    back = upgrade_state(stored)
+    assert jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(st5)
+    assert all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in
+               zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(st5)))
