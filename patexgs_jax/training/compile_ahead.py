@@ -39,6 +39,7 @@ from ..schedule import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, TextureSchedule
 from ..textures.rebucket import resize_textures
 from .config import TrainConfig
 from .step import single_view_step
+from .step_cache import shared_step
 
 if TYPE_CHECKING:
     from .trainer import Trainer
@@ -203,17 +204,20 @@ class CompileAhead:
         args = step_image_args(cam)
 
         def compile_step():
+            done = None
             try:
                 if keep:
                     prep.capacity = minimum
                 else:  # (its own program: the main thread releases the shared jitted ones at will)
                     needed, _ = count_pairs.lower(scene, cam, config=render_cfg).compile()(scene, cam)
                     prep.capacity = Capacity.fit(float(needed) * 1.25, minimum=minimum)
-                prep.fn = single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dssim,
-                                           config.lambda_dist)
+                done = shared_step(identity, (render_cfg, prep.capacity), layout, prep.padded)
+                prep.fn = done or single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dssim,
+                                                  config.lambda_dist)
             finally:
                 prep.counted.set()
-            prep.fn.lower(scene, opt_state, stats, cam, *args).compile()
+            if done is None:  # (else an earlier run of this process compiled it: the run takes it from there)
+                prep.fn.lower(scene, opt_state, stats, cam, *args).compile()
 
         def compile_eq7():
             programs, caps, cams = {}, {}, {}
@@ -266,6 +270,7 @@ class CompileAhead:
         args = step_image_args(cam)
 
         def compile_allocation():
+            done = None
             try:
                 cap = capacity()
                 if not eq7_job.ok or cap is None:
@@ -280,10 +285,12 @@ class CompileAhead:
                 new_scene, new_opt, _ = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                                         min_spare=TEXTURE_MIN_SPARE)
                 alloc.capacity, alloc.layout = cap, layout_of(new_scene)
-                alloc.fn = single_step_jit(optimizer, render_cfg, cap, config.lambda_dssim, config.lambda_dist)
+                done = shared_step(identity, (render_cfg, cap), alloc.layout, alloc.padded)
+                alloc.fn = done or single_step_jit(optimizer, render_cfg, cap, config.lambda_dssim, config.lambda_dist)
             finally:
                 alloc.counted.set()
-            alloc.fn.lower(new_scene, new_opt, stats, cam, *args).compile()
+            if done is None:
+                alloc.fn.lower(new_scene, new_opt, stats, cam, *args).compile()
 
         alloc.step_job = ahead.submit(f"the textured step{whose} for Eq. 7's predicted layout", compile_allocation,
                                       self.run.say)

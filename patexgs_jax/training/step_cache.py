@@ -21,7 +21,7 @@ from typing import Any
 
 from .. import ahead, compiled, padding
 
-__all__ = ["StepCache", "StepEntry", "release_steps"]
+__all__ = ["StepCache", "StepEntry", "release_steps", "shared_step"]
 
 #: Jitted steps (capacities) a run keeps for one scene layout.
 _MAX_STEP_FNS = 4
@@ -44,6 +44,14 @@ def release_steps() -> None:
     for fn, _ in _SHARED_STEPS.values():
         compiled.release_programs(fn)
     _SHARED_STEPS.clear()
+
+
+def shared_step(identity: tuple, key, layout: tuple, padded: tuple[int, int]) -> Callable | None:
+    """The jitted step an earlier run of this process shared for this step identity, key and scene
+    layout, if it has compiled the padded view size ``padded`` (else None): what compiling ahead
+    finds instead of compiling it again (safe from its thread: a lookup)."""
+    entry = _SHARED_STEPS.get((identity, key, layout))
+    return entry[0] if entry is not None and padded in entry[1] else None
 
 
 compiled.on_clear(_SHARED_STEPS.clear)  # (JAX's caches cleared: the steps hold no programs any more)

@@ -238,6 +238,7 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     if not bitwise_reproducible():
         pytest.skip(NOT_BITWISE)
     cfg, out = run_p["cfg"], tmp_path / "run_b"
+    ahead_traces = sum(AHEAD_STEP_TRACES.values())
     # Killed in stage 1 at step 5: the newest checkpoint (step 3) was written right after the
     # densification that doubled the capacity (no tile capacity fitted yet).
     train_killed(dataset, cfg, out, kill_after=5, resume=False)
@@ -260,6 +261,9 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     assert np.asarray(final["counters"])[0] == 54
     for key in ("allocation", "growth_events", "sides_final"):
         assert result.summary[key] == run_p["result"].summary[key], key
+    # Every step these runs took was one run_p's compiled (the steps of one process are shared), so
+    # compiling ahead, which found them there, traced none.
+    assert sum(AHEAD_STEP_TRACES.values()) == ahead_traces
     # A finished run resumes to itself; without resume the directory is refused.
     again = train(dataset, cfg, out, resume=True, verbose=False)
     assert_trees_equal(again.scene, result.scene, "scene after a no-op resume")
