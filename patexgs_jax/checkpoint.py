@@ -2,7 +2,7 @@
 
 File format (version 2; version 1, without repeated blocks, is read too)
   A ZIP archive (stored, no compression; every member CRC-checked on read) with
-  * ``spec.json``: ``{"format": "patexgs-checkpoint", "version": 1, "metadata": {...},
+  * ``spec.json``: ``{"format": "patexgs-checkpoint", "version": 2, "metadata": {...},
     "tree": <node>}``, where a node is one of
       ``{"t": "none"}``; ``{"t": "py", "v": value}`` (bool, int, float, str);
       ``{"t": "array", "i": k, "kind": "jax"|"numpy"|"scalar", "dtype": name}`` (array member k),
