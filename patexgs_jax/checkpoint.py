@@ -1,12 +1,12 @@
 """Atomic, self-describing checkpoints of arbitrary pytrees (scene, optimiser state, RNG, schedule).
 
-File format (version 2; version 1, without repeated blocks, is read too)
+File format (version 2; version 1, without repeated values, is read too)
   A ZIP archive (stored, no compression; every member CRC-checked on read) with
   * ``spec.json``: ``{"format": "patexgs-checkpoint", "version": 2, "metadata": {...},
     "tree": <node>}``, where a node is one of
       ``{"t": "none"}``; ``{"t": "py", "v": value}`` (bool, int, float, str);
       ``{"t": "array", "i": k, "kind": "jax"|"numpy"|"scalar", "dtype": name}`` (array member k),
-      with ``"shape": [...]`` when member k is the array's repeated block (see below);
+      with ``"shape": [...]`` when member k is the array's one repeated value (see below);
       ``{"t": "key", "i": k, "impl": name}`` (a typed JAX PRNG key; member k holds its key data);
       ``{"t": "list"|"tuple", "v": [nodes]}``;
       ``{"t": "dict", "k": [keys], "v": [nodes]}`` (keys are str or int, JSON-typed);
@@ -15,10 +15,9 @@ File format (version 2; version 1, without repeated blocks, is read too)
       ``{"t": "np_generator", "bit_generator": name, "state": node}`` (a numpy Generator).
   * ``arrays/<k>.npy``: the array leaves in numpy's ``.npy`` format (no pickles). Dtypes numpy
     cannot name (bfloat16 etc.) are stored as unsigned integers of the same width and viewed back.
-    An array that is bitwise one value, or one value per row (along its first axis), is stored as
-    that value (shape (1, ..., 1)) or that column (shape (rows, 1, ..., 1)) and broadcast back to
-    its ``"shape"`` on reading: Adam's texel ages (one per texture, :mod:`patexgs_jax.optim`) and
-    the zero ages of every other parameter were a quarter of a textured run's checkpoint.
+    An array that is bitwise one value is stored as that value (shape (1, ..., 1)) and broadcast
+    back to its ``"shape"`` on reading (the zero ages of every parameter but the texels, whose ages
+    :mod:`patexgs_jax.optim` stores one per texture; the frozen leaves' zero moments).
 
   So a checkpoint rebuilds itself without a template (Scenes of any capacity, texture banks with
   any bucket shapes, optax states). Classes are re-imported by name only from the modules in
@@ -109,27 +108,21 @@ def _storable(arr: np.ndarray) -> tuple[np.ndarray, str]:
     return arr.view(np.dtype(f"u{arr.dtype.itemsize}")), name
 
 
-_PROBE_ROWS = 16
+_PROBE = 64
 
 
 def _repeated_block(arr: np.ndarray) -> np.ndarray | None:
-    """The smallest block ``arr`` repeats bitwise (one value of shape (1, ..., 1), or one per row
-    of shape (rows, 1, ..., 1)), or None. A few rows are tried first, so that an array that varies
-    (most parameters and moments) costs one short comparison."""
+    """``arr``'s one value (shape (1, ..., 1)) where it is bitwise one value, else None. The first
+    elements are compared first, so that an array that varies (most parameters and moments) costs
+    one short comparison."""
     if (arr.ndim == 0 or arr.size < 2 or arr.dtype.kind not in "biuf" or arr.dtype.itemsize not in (1, 2, 4, 8)
             or not arr.flags.c_contiguous):
         return None
-    bits = arr.view(np.dtype(f"u{arr.dtype.itemsize}"))  # (-0.0 is not 0.0, a NaN is its own payload)
-    for lead in (0, 1) if arr.ndim >= 2 else (0,):
-        block = bits[(slice(None),) * lead + (slice(0, 1),) * (arr.ndim - lead)]
-        if block.size == bits.size:
-            continue
-        rows = max(1, (1 << 24) // max(1, bits[0].size))  # compared in chunks of about 16M elements
-        probe = min(_PROBE_ROWS, len(bits))
-        chunks = [(0, probe)] + [(i, min(i + rows, len(bits))) for i in range(probe, len(bits), rows)]
-        if all(np.array_equal(bits[i:j], np.broadcast_to(block if lead == 0 else block[i:j], (j - i,) + bits.shape[1:]))
-               for i, j in chunks):
-            return np.ascontiguousarray(arr[(slice(None),) * lead + (slice(0, 1),) * (arr.ndim - lead)])
+    bits = arr.view(np.dtype(f"u{arr.dtype.itemsize}")).reshape(-1)  # (-0.0 is not 0.0, a NaN is its own payload)
+    step = 1 << 24  # compared in chunks of 16M elements
+    chunks = [(0, _PROBE)] + [(i, i + step) for i in range(_PROBE, bits.size, step)]
+    if all(np.all(bits[i:j] == bits[0]) for i, j in chunks):
+        return np.ascontiguousarray(arr.reshape(-1)[:1].reshape((1,) * arr.ndim))
     return None
 
 
