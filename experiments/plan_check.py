@@ -18,7 +18,15 @@ current code, keeping its runs (which the plan does not change), and names the c
 
 Cases: ``tiny-2dgs``, ``tiny-patexgs`` (the embedded scene, tiny preset, 300 + 100 steps);
 ``beer8-2dgs``, ``beer8-patexgs``, ``beer4-2dgs``, ``beer4-patexgs`` (the beer capture at
-``--factor`` 8 and 4, cpu preset, 150 + 100 steps).
+``--factor`` 8 and 4, cpu preset, 150 + 100 steps); for a GPU, ``beer1-patexgs``: beer at full size
+(720 x 1280), the ``small`` preset's 7,000 steps of 2DGS and 7,000 texture steps, at most 200,000
+Gaussians (about 8 minutes on one H200).
+
+On a GPU the peaks are the device's (``peak_bytes_in_use``), which cannot be reset: each stage's
+figure is the peak up to its end (the texture stage's is its own wherever it exceeds stage 1's).
+``--timeout S`` stops a run after S seconds; its row then holds what the run measured until then
+(``incomplete``: the stages' step times so far, the peaks of the stages it finished), written
+every 250 steps by the run's process.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ import argparse
 import json
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import tempfile
@@ -48,12 +57,26 @@ CASES = {
     "beer4-2dgs": (True, ["--factor", "4", "--method", "2dgs", "--preset", "cpu", "--iters-2dgs", "150"]),
     "beer4-patexgs": (True, ["--factor", "4", "--method", "patexgs", "--preset", "cpu", "--iters-2dgs", "150",
                              "--iters-tex", "100"]),
+    "beer1-patexgs": (True, ["--factor", "1", "--method", "patexgs", "--preset", "small", "--iters-2dgs", "7000",
+                             "--iters-tex", "7000", "--max-gaussians", "200000"]),
 }
 
 
-def run_case(argv: list[str]) -> dict:
+def _peak_bytes(reset: bool = False) -> int:
+    """The peak memory so far: the device's on a GPU (never reset), else this process's resident
+    high-water mark (``reset`` lowers it to the current resident memory)."""
+    import jax
+
+    stats = jax.local_devices()[0].memory_stats() if jax.default_backend() != "cpu" else None
+    if stats and "peak_bytes_in_use" in stats:
+        return int(stats["peak_bytes_in_use"])
+    return _high_water_bytes(reset=reset)
+
+
+def run_case(argv: list[str], partial: str | None = None) -> dict:
     """In its own process: trains ``python -m patexgs_jax.train argv`` and returns each stage's
-    peak resident memory (bytes), step durations (median seconds per stage) and the time it took."""
+    peak memory (bytes: :func:`_peak_bytes`), step durations (median seconds per stage) and the
+    time it took; with ``partial``, also writes the figures so far to that file every 250 steps."""
     import statistics
 
     import jax
@@ -72,69 +95,101 @@ def run_case(argv: list[str]) -> dict:
             t["start"] = time.perf_counter()
             stamps.append((0, step, t["start"]))
         if step == self.cfg.iters_2dgs and "stage1" not in peaks:
-            peaks["stage1"] = _high_water_bytes(reset=True)
+            peaks["stage1"] = _peak_bytes(reset=True)
         before(self, step)
 
     def after_step(self, step):
         after(self, step)
         jax.block_until_ready(self.scene.means)
         stamps.append((1 if step <= self.cfg.iters_2dgs else 2, step, time.perf_counter()))
+        if partial is not None and len(stamps) % 250 == 0:
+            write_json(partial, dict(figures(time.perf_counter()), incomplete=True, peak_bytes_so_far=_peak_bytes()))
 
     def evaluate_(*a, **k):
         if t["eval"] is None:
             t["eval"] = time.perf_counter()
-            peaks["stage1" if "stage1" not in peaks else "texture"] = _high_water_bytes(reset=True)
+            peaks["stage1" if "stage1" not in peaks else "texture"] = _peak_bytes(reset=True)
         return evaluate(*a, **k)
+
+    def figures(t_end):
+        spans: dict[int, list[float]] = {1: [], 2: []}
+        for (_, _, t0), (stage, _, t1) in zip(stamps, stamps[1:]):
+            spans[stage].append(t1 - t0)
+        return dict(peak_bytes=dict(stage1=peaks.get("stage1"), texture=peaks.get("texture"), eval=peaks.get("eval")),
+                    step_seconds={("stage1" if k == 1 else "texture"): (statistics.median(v) if v else None)
+                                  for k, v in spans.items()},
+                    steps={("stage1" if k == 1 else "texture"): len(v) for k, v in spans.items()},
+                    stage_seconds={("stage1" if k == 1 else "texture"): sum(v) for k, v in spans.items()},
+                    train_seconds=sum(spans[1]) + sum(spans[2]), total_seconds=t_end - (t["start"] or t_end))
 
     Trainer.before_step, Trainer.after_step, run_mod.evaluate = before_step, after_step, evaluate_
     code = main(argv)
     t_end = time.perf_counter()
-    peaks["eval"] = _high_water_bytes()
-    spans: dict[int, list[float]] = {1: [], 2: []}
-    for (_, _, t0), (stage, _, t1) in zip(stamps, stamps[1:]):
-        spans[stage].append(t1 - t0)
-    return dict(code=code, peak_bytes=dict(stage1=peaks.get("stage1"), texture=peaks.get("texture"),
-                                           eval=peaks.get("eval")),
-                step_seconds={("stage1" if k == 1 else "texture"): (statistics.median(v) if v else None)
-                              for k, v in spans.items()},
-                steps={("stage1" if k == 1 else "texture"): len(v) for k, v in spans.items()},
-                train_seconds=sum(spans[1]) + sum(spans[2]),
-                total_seconds=t_end - (t["start"] or t_end))
+    peaks["eval"] = _peak_bytes()
+    return dict(figures(t_end), code=code)
 
 
-def _child(args: list[str]) -> tuple[int, str, str]:
+def _child(args: list[str], timeout: float | None = None, log: str | None = None) -> tuple[int | None, str, str]:
+    """Runs ``python args`` through ``sh``; returns (exit status, None once ``timeout`` seconds
+    passed; stdout; stderr). With ``log``, the child's output also goes to ``log``.{out,err} as it
+    runs."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
     # `; exit $?` keeps sh from exec-ing the command in its own process (which keeps the high-water mark).
-    proc = subprocess.run(["sh", "-c", shlex.join([sys.executable, *args]) + "; exit $?"], capture_output=True,
-                          text=True, env=env)
-    return proc.returncode, proc.stdout, proc.stderr
+    cmd = ["sh", "-c", shlex.join([sys.executable, *args]) + "; exit $?"]
+    with tempfile.TemporaryDirectory() as tmp:
+        out_path, err_path = (f"{log}.out", f"{log}.err") if log else (f"{tmp}/out", f"{tmp}/err")
+        with open(out_path, "w") as out, open(err_path, "w") as err:
+            proc = subprocess.Popen(cmd, stdout=out, stderr=err, text=True, env=env, start_new_session=True)
+            try:
+                code = proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                code = None
+        with open(out_path) as out, open(err_path) as err:
+            return code, out.read(), err.read()
 
 
-def check_case(name: str, beer: str) -> dict:
-    """One case: its plan, then its run, each in a fresh process; the row of figures."""
+def check_case(name: str, beer: str, timeout: float | None = None, logs: str | None = None) -> dict:
+    """One case: its plan, then its run (stopped after ``timeout`` seconds), each in a fresh
+    process; the row of figures. With ``logs``, the children's output goes to files there."""
     uses_beer, argv = CASES[name]
     argv = (["--data", beer] if uses_beer else []) + argv
+    log = (lambda part: os.path.join(logs, f"{name}.{part}")) if logs else (lambda part: None)
     with tempfile.TemporaryDirectory() as tmp:
         plan_json = os.path.join(tmp, "plan.json")
         t = time.perf_counter()
-        code, out, err = _child(["-m", "patexgs_jax.train", *argv, "--plan", "--json", plan_json])
+        code, out, err = _child(["-m", "patexgs_jax.train", *argv, "--plan", "--json", plan_json], log=log("plan"))
         plan_seconds = time.perf_counter() - t
         if code != 0:
             return dict(case=name, argv=argv, error=f"plan: exit {code}: {err.strip().splitlines()[-3:]}")
         with open(plan_json) as f:
             plan = json.load(f)
+        partial = os.path.join(tmp, "partial.json")
+        left = None if timeout is None else max(1.0, timeout - plan_seconds)
+        t = time.perf_counter()
         code, out, err = _child(["-m", "experiments.plan_check", "--run-case",
-                                 json.dumps([*argv, "--out", os.path.join(tmp, "run")])])
-        if code != 0:
+                                 json.dumps([*argv, "--out", os.path.join(tmp, "run")]), "--partial", partial],
+                                timeout=left, log=log("run"))
+        if code is None and os.path.exists(partial):
+            with open(partial) as f:
+                run = dict(json.load(f), stopped_after_seconds=time.perf_counter() - t)
+        elif code != 0:
             return dict(case=name, argv=argv, plan=plan, error=f"run: exit {code}: {err.strip().splitlines()[-3:]}")
-        run = json.loads(out.strip().splitlines()[-1])
-    row = dict(case=name, argv=argv, plan_seconds=plan_seconds, gaussians=plan["gaussians"],
+        else:
+            run = json.loads(out.strip().splitlines()[-1])
+    row: dict = dict(case=name, argv=argv, plan_seconds=plan_seconds, gaussians=plan["gaussians"],
                texels_eq7=plan["texels_eq7"], measured_steps=plan["measured"]["steps"],
                predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
-                              total_seconds=plan["total_seconds"]),
+                              total_seconds=plan["total_seconds"],
+                              time_terms_seconds=plan.get("time_terms_seconds")),
                measured=dict(peak_bytes=run["peak_bytes"], step_seconds=run["step_seconds"],
-                             total_seconds=run["total_seconds"], steps=run["steps"]))
+                             total_seconds=run["total_seconds"], steps=run["steps"],
+                             stage_seconds=run.get("stage_seconds")))
+    if run.get("incomplete"):
+        row.update(incomplete=True, stopped_after_seconds=run["stopped_after_seconds"],
+                   peak_bytes_so_far=run.get("peak_bytes_so_far"))
     row["relative_error"] = _errors(row)
     return row
 
@@ -146,7 +201,8 @@ def _errors(row) -> dict:
             m = row["measured"][group].get(k)
             if p and m:
                 err[f"{group}.{k}"] = p / m - 1
-    err["total_seconds"] = row["predicted"]["total_seconds"] / row["measured"]["total_seconds"] - 1
+    if not row.get("incomplete"):
+        err["total_seconds"] = row["predicted"]["total_seconds"] / row["measured"]["total_seconds"] - 1
     return err
 
 
@@ -190,8 +246,10 @@ def table(rows) -> str:
                 e = r["relative_error"].get(f"{group}.{k}")
                 lines.append(f"| {r['case']} | {group}.{k} | {_fmt(p, unit)} | {_fmt(m, unit)} | "
                              f"{'-' if e is None else f'{e:+.0%}'} |")
+        e = r["relative_error"].get("total_seconds")
+        measured = _fmt(r["measured"]["total_seconds"], "T") + (" (stopped)" if r.get("incomplete") else "")
         lines.append(f"| {r['case']} | total_seconds | {_fmt(r['predicted']['total_seconds'], 'T')} | "
-                     f"{_fmt(r['measured']['total_seconds'], 'T')} | {r['relative_error']['total_seconds']:+.0%} |")
+                     f"{measured} | {'-' if e is None else f'{e:+.0%}'} |")
     return "\n".join(lines)
 
 
@@ -201,7 +259,12 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)}")
     ap.add_argument("--beer", default=BEER, help=f"the beer capture (default {BEER})")
     ap.add_argument("--json", default=None, help="write the rows there (experiments.provenance's header)")
+    ap.add_argument("--timeout", type=float, default=None, metavar="S",
+                    help="stop a case's plan + run after S seconds and keep what the run measured until then")
+    ap.add_argument("--logs", default=None, metavar="DIR",
+                    help="keep each plan's and run's output in DIR/<case>.{plan,run}.{out,err}")
     ap.add_argument("--run-case", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--partial", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--replan", default=None, metavar="FILE",
                     help="make FILE's plans again with the current code (each in a fresh process), keep its runs, "
                     "and write the rows to --json (default: FILE)")
@@ -218,8 +281,10 @@ def main(argv=None) -> int:
         print(table(rows))
         return 0
     if args.run_case is not None:
-        print(json.dumps(run_case(json.loads(args.run_case))))
+        print(json.dumps(run_case(json.loads(args.run_case), partial=args.partial)))
         return 0
+    if args.logs:
+        os.makedirs(args.logs, exist_ok=True)
     names = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = [c for c in names if c not in CASES]
     if unknown:
@@ -228,7 +293,7 @@ def main(argv=None) -> int:
         ap.error(f"--beer {args.beer}: no such folder (the beer capture, COLMAP layout)")
     rows = []
     for name in names:
-        row = check_case(name, args.beer)
+        row = check_case(name, args.beer, timeout=args.timeout, logs=args.logs)
         rows.append(row)
         print(table([row]).split("\n", 2)[-1], flush=True)
         if args.json:  # after every case: a stopped check keeps what it measured
