@@ -468,6 +468,10 @@ class Plan:
                      f"the stage's mean), "
                      f"texture {_s(self.step_seconds['texture'])} (at {m['gaussians']:,})"
                      f"{'; ' + m['note'] if m.get('note') else ''}")
+        if m.get("padded_size"):
+            h, w = m["padded_size"]
+            lines.append(f"    stepped on the views padded to {w}x{h}; the run compiles its steps once for each of "
+                         f"the {m['padded_sizes']} padded sizes")
         tt = self.time_terms
         lines.append(f"  whole run: {_hms(self.total_seconds or 0.0)} ({_hms(tt['stage1'])} 2DGS + "
                      f"{_hms(tt['texture'])} textures + {_hms(tt['compile'])} compiling + "
@@ -561,8 +565,11 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     n_eval = len(dataset.test_views) + min(len(dataset.train_views), 32)  # as train() evaluates
     dens = config.densify
     doublings = max(0, math.ceil(math.log2(max(n, 1) / max(len(dataset.points), 1)))) if dens.stop > dens.start else 0
+    # Each padded size of the training views compiles its own steps (a measurement made before the
+    # sizes were counted has no ``padded_sizes``: one).
+    sizes = measured.get("padded_sizes", 1)
     terms = dict(stage1=steps1 * (t1 or 0.0), texture=steps2 * (t2 or 0.0),
-                 compile=measured["compile_stage1"] * (1 + doublings) + measured["compile_texture"] * 2,
+                 compile=sizes * (measured["compile_stage1"] * (1 + doublings) + measured["compile_texture"] * 2),
                  eval=n_eval * measured["eval_view"] * sc + 2 * measured.get("eval_compile", 0.0))
     return Plan(method=config.method, views=views, steps=dict(stage1=steps1, texture=steps2), gaussians=n,
                 gaussians_from=n_from, texels_eq7=texels, texels_max=texels_max, sigma=sigma, sigma_from=sigma_from,

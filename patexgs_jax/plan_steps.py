@@ -22,14 +22,19 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     small jitter when it has fewer), densification is off, and the run's own loop trains ``steps``
     steps of each stage after the ones that compile (the texture stage of adaptive methods runs the
     real Eq. 7 allocation on that scene after one warm-up step), with nothing compiled in the
-    background (``PATEXGS_COMPILE_AHEAD=0`` meanwhile). Nothing is written.
+    background (``PATEXGS_COMPILE_AHEAD=0`` meanwhile). Nothing is written. The steps train on the
+    views of one padded size (the most common one; ties: the largest): a run compiles its step once
+    per padded size (:mod:`patexgs_jax.padding`), so on views of several sizes the timed steps would
+    be compiles (an undistorted capture has several: beer at full size six).
 
     Returns:
       ``stage1``, ``texture``: median seconds of the last ``steps`` steps of each stage, which
       compile nothing (texture None without textures); ``compile_stage1``, ``compile_texture``:
       seconds the stage's other steps took beyond as many steady ones (compiling);
       ``eval_view``, ``eval_compile``: seconds of one evaluation render and of compiling one
-      evaluation; ``steps``; ``seconds``: the time this took (all in seconds).
+      evaluation; ``steps``; ``seconds``: the time this took (all in seconds); ``padded_size``:
+      the (height, width) stepped; ``padded_sizes``: how many padded sizes the training views have
+      (each compiles its own steps in a run).
     """
     import jax
 
@@ -48,7 +53,8 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
                               growth_interval=10**9, densify=off, max_gaussians=int(gaussians),
                               checkpoint_every=10**9, log_every=10**9, sh_interval=1, normal_from=0)
     pts, cols = _points_for(dataset.points, dataset.colors, int(gaussians), config.seed)
-    ds = dataclasses.replace(dataset, points=pts, colors=cols)
+    size, n_sizes, views = _one_size(dataset.train_views, config)
+    ds = dataclasses.replace(dataset, points=pts, colors=cols, train_views=views)
     stamps: list[tuple[int, float]] = []
 
     m = int(gaussians) if stage1_gaussians is None else max(1, min(int(stage1_gaussians), int(gaussians)))
@@ -101,8 +107,22 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     eval_compile = max(one - eval_view, 0.0)
     return dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
                 compile_texture=comp[2] if textured else 0.0, eval_view=eval_view, eval_compile=eval_compile,
-                steps=steps,
+                steps=steps, padded_size=list(size), padded_sizes=n_sizes,
                 seconds=time.perf_counter() - t_all)
+
+
+def _one_size(views, config):
+    """((height, width), number of distinct sizes, the views of that size): the training views'
+    most common padded size (as the trainer pads them: the exact tile grid; ties: the largest)."""
+    from collections import Counter
+
+    from .padding import padded_shape
+
+    tile = config.render_config(1).tile_size
+    sizes = [padded_shape(v.camera.height, v.camera.width, tile) for v in views]
+    counts = Counter(sizes)
+    size = max(counts, key=lambda s: (counts[s], s[0] * s[1]))
+    return size, len(counts), [v for v, s in zip(views, sizes) if s == size]
 
 
 def _points_for(points, colors, n: int, seed: int):

@@ -193,3 +193,26 @@ def test_stage1_is_timed_at_the_mean_of_its_densification_ramp():
     # A study's 2DGS run continues its stage at the final count.
     cont = preset_config("tiny", method="2dgs", continue_2dgs=200)
     assert plan.mean_stage1_gaussians(cont, 3000, 4000) == round((3000 * 100 + 3500 * 350 + 4000 * 350) / 800)
+
+
+def test_steps_are_timed_on_views_of_one_padded_size(ds):
+    """A run compiles its step once per padded size: the plan's timed steps use the views of one
+    size (the most common; ties: the largest), else they would time compiles, and the whole run's
+    compile term counts every size."""
+    from types import SimpleNamespace
+
+    from patexgs_jax import plan_steps
+
+    def view(w, h):
+        return SimpleNamespace(camera=SimpleNamespace(width=w, height=h))
+
+    views = [view(64, 48), view(70, 48), view(70, 50), view(64, 33)]
+    cfg = preset_config("tiny", method="patexgs", max_gaussians=500)
+    size, n, chosen = plan_steps._one_size(views, cfg)
+    # 64x48 and 64x33 pad to 64x48; 70x48 and 70x50 to 80x48 and 80x64.
+    assert (size, n) == ((48, 64), 3) and [v.camera.width for v in chosen] == [64, 64]
+    size, n, chosen = plan_steps._one_size(views[1:3], cfg)  # one view each: the largest
+    assert (size, n, len(chosen)) == ((64, 80), 2, 1)
+    one = plan.make_plan(ds, cfg, measured=dict(MEASURED, padded_sizes=1)).time_terms["compile"]
+    three = plan.make_plan(ds, cfg, measured=dict(MEASURED, padded_sizes=3)).time_terms["compile"]
+    assert three == pytest.approx(3 * one) and one > 0
