@@ -138,17 +138,20 @@ class CompileAhead:
         self.prepare_for: tuple[TrainConfig, ...] = ()
         self.took = False
         self.outcomes: list[dict] = []
-        self._prepared_own = False
+        self._prepared_own: Capacity | None = None  # the capacity this run's own step was prepared for
         dc = run.densification.config
         self._last_densify = max((t for t in range(1, run.cfg.iters_2dgs) if dc.densify_at(t)), default=0)
 
     def after_step(self, step: int) -> None:
         """Once densification has stopped, the texture stage's first layout is known: its step is
-        compiled ahead (again after a tile-capacity refit, which may change the prediction)."""
+        compiled ahead (again after a tile-capacity refit that changed the capacity: the step's
+        program depends on the shapes and the capacity only, so a refit that keeps the capacity
+        would compile the same programs again, every 100 steps, beside the run's own steps)."""
         run = self.run
         if (self._last_densify <= step < run.cfg.iters_2dgs and run.scene.rgb is None
-                and run.capacity is not None and (not self._prepared_own or run.refits_at(step))):
-            self._prepared_own = True
+                and run.capacity is not None
+                and (self._prepared_own is None or (run.refits_at(step) and run.capacity != self._prepared_own))):
+            self._prepared_own = run.capacity
             # (its allocation is predicted at the stage's start, from the warm-up's actual state)
             self.prepare(run.cfg, predict_allocation=False)
 

@@ -299,9 +299,12 @@ PRESETS = {
     # CPU in at most about 30 minutes a method, sized from measured step times (docs/tradeoffs.md):
     # 6,000 Gaussians, 1,000 + 400 steps, 11 growth events.
     "cpu": CPU_PRESET,
+    # small: no opacity reset either. A reset at 3,000 leaves densification (until 3,500) five events
+    # to regrow what the next prune removes: beer at full size went from 54k to 11.6k Gaussians and
+    # did not recover by step 7,000 (the log's PSNR 26.4 -> 24.7).
     "small": dict(iters_2dgs=7_000, iters_tex=5_000, warmup_tex=500, growth_interval=100, normal_from=3_500,
                   sh_interval=1_000, densify=dens.DensifyConfig(start=500, stop=3_500, interval=100,
-                                                                opacity_reset_interval=3_000)),
+                                                                opacity_reset_interval=10_000)),
     "paper": {},
 }
 
