@@ -126,6 +126,10 @@ class Trainer:
         self.lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
         self.optimizer = make_optimizer(self.radius, self.lr)
         self.capacity = None
+        # The tile capacity before the scene last grew: a refit after densification never goes below
+        # it (more Gaussians do not need fewer pairs; a smaller capacity would overflow and compile
+        # the step again for every padded size).
+        self.capacity_floor = None
         self.step = 0
         self.bad_streak = 0
         self.skipped = 0
@@ -177,6 +181,7 @@ class Trainer:
                         [tex.last_growth_step, tex.num_growth_events, tex.num_grown]),
                     # None (refit before the next step) after a densification that grew the scene: 0.
                     capacity=np.array([0 if self.capacity is None else self.capacity.pairs]),
+                    capacity_floor=np.array([0 if self.capacity_floor is None else self.capacity_floor.pairs]),
                     counters=np.array([self.step, self.skipped, self.recompiles]),
                     t_train=np.array(self.t_train), allocation=self.textures.allocation,
                     growth_events=list(self.textures.growth_events))
@@ -190,6 +195,8 @@ class Trainer:
             tex = TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
         self.textures.load(tex, tree.get("allocation"), tree.get("growth_events"))
         self.capacity = Capacity(int(tree["capacity"][0])) if int(tree["capacity"][0]) > 0 else None
+        floor = int(tree["capacity_floor"][0]) if tree.get("capacity_floor") is not None else 0
+        self.capacity_floor = Capacity(floor) if floor > 0 else None
         self.step, self.skipped, self.recompiles = (int(v) for v in tree["counters"])
         self.t_train = float(tree["t_train"])
 
@@ -361,7 +368,7 @@ class Trainer:
         # Counted at the step's padded size (the same tile grid: the same count), one program a size.
         camera = camera if self.cfg.batch_size > 1 else padding.padded_camera(camera, self.render_cfg.tile_size)
         needed, _ = count_pairs(self.scene, camera, self.render_cfg)
-        cap = Capacity.fit(float(needed) * 1.25, minimum=self.capacity)
+        cap = Capacity.fit(float(needed) * 1.25, minimum=self.capacity or self.capacity_floor)
         if cap != self.capacity:
             self.capacity = cap
 
@@ -444,7 +451,7 @@ class Trainer:
         for strategy in self.strategies:
             self.state = strategy.after_step(self.state, step)
         if self.scene.capacity != capacity:  # the scene's shapes changed: refit before the next step
-            self.capacity = None
+            self.capacity_floor, self.capacity = self.capacity or self.capacity_floor, None
         if self.refits_at(step):
             self.fit_capacity(self.view(step).camera)
         self.ahead.after_step(step)

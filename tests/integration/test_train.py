@@ -245,6 +245,9 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     assert ckpt_step(out) == 3
     tree, _ = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
     assert tree["scene"].capacity == 1024 and int(tree["capacity"][0]) == 0
+    # ... but the tile capacity of the steps before is kept as the refit's floor (a scene that grew
+    # needs no fewer pairs: a smaller capacity would overflow and compile again).
+    assert int(tree["capacity_floor"][0]) >= 1024
     # Killed in stage 2 before the Eq. 7 allocation (resumes from step 33, allocation redone) ...
     train_killed(dataset, cfg, out, kill_after=35, resume=True)
     assert ckpt_step(out) == 33
@@ -256,7 +259,7 @@ def test_resume_equals_uninterrupted(run_p, dataset, tmp_path):
     # The same executables on the same inputs (see tests/backends.py): expect bitwise equality.
     chex.assert_trees_all_equal(result.scene, run_p["result"].scene, custom_message="scene")  # bitwise
     final, _ = ckpt.load_checkpoint(ckpt.latest_checkpoint(out / "checkpoints"))
-    for key in ("opt_state", "stats", "tex_sizes", "tex_counters", "capacity"):
+    for key in ("opt_state", "stats", "tex_sizes", "tex_counters", "capacity", "capacity_floor"):
         assert_trees_equal(final[key], run_p["final"][key], key)
     assert np.asarray(final["counters"])[0] == 54
     for key in ("allocation", "growth_events", "sides_final"):
