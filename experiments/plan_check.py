@@ -1,8 +1,8 @@
 """The run plan (``--plan``) against real runs: predicted and measured peak memory and step times.
 
     python -m experiments.plan_check [--cases tiny-2dgs,tiny-patexgs,beer8-2dgs,...] [--beer DIR]
-                                     [--json benchmarks/plan_check_cpu.json]
-    python -m experiments.plan_check --replan benchmarks/plan_check_cpu.json
+                                     [--json benchmarks/plan_check_cpu_<commit>.json]
+    python -m experiments.plan_check --replan benchmarks/plan_check_cpu_1bbcb6d.json
 
 Each case is a short real training run (``python -m patexgs_jax.train`` with fewer steps than its
 preset, same caps and schedules otherwise) in a fresh process, and the plan of that same command
@@ -241,7 +241,7 @@ def table(rows) -> str:
         for group, unit in (("peak_bytes", "B"), ("step_seconds", "s")):
             for k, p in r["predicted"][group].items():
                 m = r["measured"][group].get(k)
-                if not p and not m:
+                if not p:  # (an untextured method has no texture stage: it continues stage 1)
                     continue
                 e = r["relative_error"].get(f"{group}.{k}")
                 lines.append(f"| {r['case']} | {group}.{k} | {_fmt(p, unit)} | {_fmt(m, unit)} | "
