@@ -229,15 +229,11 @@ GPU_BASE_BYTES = 256 * 2**20
 GPU_BYTES_PER_PIXEL = memory.BYTES_PER_PIXEL - 24.0
 #: An evaluation render keeps no cotangents: its per-pixel arrays are about half a training step's.
 EVAL_PIXEL_SHARE = 0.5
-#: CPU resident memory of a run besides its per-pixel, per-Gaussian, texture and image terms, per
-#: stage (calibrated on ``python -m experiments.plan_check``'s runs, fresh processes, docs/memory.md):
-#: the Python and JAX runtime and compiling the step (``stage1``); a textured run's first stage also
-#: compiles the texture stage's first programs in the background near its end (``stage1_textured``);
-#: the texture stage compiles its start, Eq. 7's counting render and the allocated layout's step.
-#: Evaluation's peak is the training peak (the allocator keeps what training freed).
-#: The texture stage's CPU peak is mostly compiled code (its start, Eq. 7's counters and renderers,
-#: each growth layout's step, kept for the run): 1.85 GB on beer at 1/8, 2.87 GB on the embedded
-#: scene (tiny preset, about eight growth events in its 100 steps); the base lies between them.
+#: CPU resident memory of a run besides its per-pixel, per-Gaussian, texture and image terms, per stage
+#: (calibrated on ``experiments.plan_check``'s runs, docs/memory.md): the runtime and the step's compile
+#: (``stage1``; a textured run's also compiles the texture stage's first programs); the texture stage's
+#: is mostly the compiled code it keeps (1.85 GB on beer at 1/8, 2.87 GB on the embedded scene, whose
+#: short stage grows often: the base lies between them). Evaluation's peak is the training peak.
 CPU_BASE_BYTES = dict(stage1=560 * 2**20, stage1_textured=1240 * 2**20, texture=2200 * 2**20)
 
 
@@ -466,15 +462,12 @@ class Plan:
 
     def _time_lines(self) -> list[str]:
         m, lines = self.measured, []
-        lines.append(f"  step time (this device, {m['steps']} timed steps a stage, {m['seconds']:.0f} s): 2DGS "
+        at = f" at {m['padded_size'][1]}x{m['padded_size'][0]} px, 1 of {m['padded_sizes']} sizes" if m.get(
+            "padded_size") else ""
+        lines.append(f"  step time (this device, {m['steps']} timed steps a stage{at}, {m['seconds']:.0f} s): 2DGS "
                      f"{_s(self.step_seconds['stage1'])} (at {m.get('stage1_gaussians', m['gaussians']):,} Gaussians, "
-                     f"the stage's mean), "
-                     f"texture {_s(self.step_seconds['texture'])} (at {m['gaussians']:,})"
+                     f"the stage's mean), texture {_s(self.step_seconds['texture'])} (at {m['gaussians']:,})"
                      f"{'; ' + m['note'] if m.get('note') else ''}")
-        if m.get("padded_size"):
-            h, w = m["padded_size"]
-            lines.append(f"    stepped on the views padded to {w}x{h}; the run compiles its steps once for each of "
-                         f"the {m['padded_sizes']} padded sizes")
         tt = self.time_terms
         lines.append(f"  whole run: {_hms(self.total_seconds or 0.0)} ({_hms(tt['stage1'])} 2DGS + "
                      f"{_hms(tt['texture'])} textures + {_hms(tt['compile'])} compiling + "
@@ -568,9 +561,7 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     n_eval = len(dataset.test_views) + min(len(dataset.train_views), 32)  # as train() evaluates
     dens = config.densify
     doublings = max(0, math.ceil(math.log2(max(n, 1) / max(len(dataset.points), 1)))) if dens.stop > dens.start else 0
-    # Each padded size of the training views compiles its own steps (a measurement made before the
-    # sizes were counted has no ``padded_sizes``: one).
-    sizes = measured.get("padded_sizes", 1)
+    sizes = measured.get("padded_sizes", 1)  # (each padded size of the training views compiles its steps)
     terms = dict(stage1=steps1 * (t1 or 0.0), texture=steps2 * (t2 or 0.0),
                  compile=sizes * (measured["compile_stage1"] * (1 + doublings) + measured["compile_texture"] * 2),
                  eval=n_eval * measured["eval_view"] * sc + 2 * measured.get("eval_compile", 0.0))
