@@ -17,7 +17,7 @@ The memory model (pure functions; docs/memory.md has its terms and its measured 
   (:data:`CPU_BASE_BYTES`) is calibrated on the short real runs of ``python -m
   experiments.plan_check`` (fresh processes), the per-pixel term on :mod:`patexgs_jax.memory`'s
   measurements at 1-12 MP; the per-Gaussian and texture terms are counted. (The memory check of
-  :mod:`patexgs_jax.memory` keeps its own, larger base: an upper bound, never under.)
+  :mod:`patexgs_jax.memory` keeps its own base, above every training-step peak it was calibrated on.)
 * GPU (the device's peak bytes in use): the per-Gaussian and per-texel terms measured on one H100
   (:data:`GPU_BYTES_PER_GAUSSIAN`, :data:`GPU_BYTES_PER_TEXEL`: ``experiments.bench_scale``'s
   training steps at 1M and 3M Gaussians); the rest counted. Per pixel: the CPU's per-pixel
@@ -36,12 +36,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import re
 
 import numpy as np
 
 from . import adaptive, memory
 from .metrics import mb_to_texels
+from .plan_devices import DEVICES, GB, Device, parse_device, this_device
 from .plan_steps import measure_steps
 from .rendering import tiling
 
@@ -64,68 +64,6 @@ __all__ = [
     "texture_bytes",
     "this_device",
 ]
-
-GB = 1e9
-#: The share of a GPU's memory JAX's allocator takes by default (``XLA_PYTHON_CLIENT_MEM_FRACTION``).
-GPU_MEMORY_SHARE = 0.75
-
-
-@dataclasses.dataclass(frozen=True)
-class Device:
-    """A device a run may train on.
-
-    Attributes:
-      name: what the plan calls it.
-      kind: ``"cpu"`` (the model of the process's resident memory) or ``"gpu"`` (device memory).
-      memory_bytes: the memory the run may use (bytes): on a GPU what JAX's allocator gets, on a CPU
-        the memory available to the process (its resident memory included).
-    """
-
-    name: str
-    kind: str
-    memory_bytes: int
-
-
-#: The devices ``--plan-device`` names: two GPUs (JAX's default 75% of their memory) and a CPU.
-DEVICES = {
-    "h100-80gb": Device("h100-80gb (NVIDIA H100, 80 GB; JAX's default 75%)", "gpu", int(GPU_MEMORY_SHARE * 80 * GB)),
-    "rtx4090-24gb": Device("rtx4090-24gb (NVIDIA RTX 4090, 24 GB; JAX's default 75%)", "gpu",
-                           int(GPU_MEMORY_SHARE * 24 * GB)),
-    "cpu-24gb": Device("cpu-24gb (a CPU with 24 GB available)", "cpu", int(24 * GB)),
-}
-
-_UNITS = {"": 1, "b": 1, "kb": 1e3, "mb": 1e6, "gb": 1e9, "tb": 1e12, "kib": 2**10, "mib": 2**20, "gib": 2**30,
-          "tib": 2**40}
-
-
-def parse_device(text: str) -> Device:
-    """A :data:`DEVICES` name, or a byte figure (``24e9``, ``24GB``, ``80GiB``, ``25769803776``; a GPU's
-    memory as JAX's allocator gets it). Raises ValueError naming the accepted forms."""
-    key = text.strip().lower()
-    if key in DEVICES:
-        return DEVICES[key]
-    m = re.fullmatch(r"(gpu:|cpu:)?\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([kmgt]i?b|b)?", key)
-    if not m or float(m.group(2)) <= 0:
-        raise ValueError(f"--plan-device {text!r}: give one of {', '.join(DEVICES)} or a memory size in bytes "
-                         f"(e.g. 24e9, 24GB, 80GiB; prefix cpu: for a CPU's memory, default a GPU's).")
-    size = int(float(m.group(2)) * _UNITS[m.group(3) or ""])
-    kind = "cpu" if m.group(1) == "cpu:" else "gpu"
-    return Device(f"{kind} with {size / GB:.3g} GB", kind, size)
-
-
-def this_device() -> Device:
-    """This process's device: the default backend's first device and the memory it may use
-    (a GPU's allocator limit; on a CPU the memory available plus this process's resident memory)."""
-    import jax
-
-    if jax.default_backend() == "cpu":
-        avail = memory.available_bytes()
-        total = (avail if avail is not None else 1 << 62) + memory._resident_bytes()
-        return Device(f"this CPU ({total / GB:.1f} GB available)", "cpu", int(total))
-    dev = jax.devices()[0]
-    limit = tiling.device_memory(dev) or tiling.DEFAULT_DEVICE_MEMORY
-    return Device(f"this {dev.device_kind} ({limit / GB:.1f} GB for JAX)", "gpu", int(limit))
-
 
 # -- counts --------------------------------------------------------------------------------------
 
