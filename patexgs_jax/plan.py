@@ -41,6 +41,7 @@ import numpy as np
 
 from . import adaptive, memory
 from .metrics import mb_to_texels
+from .padding import padded_shape
 from .plan_devices import DEVICES, GB, Device, parse_device, this_device
 from .plan_steps import measure_steps
 from .rendering import tiling
@@ -328,7 +329,8 @@ def fixes(device: Device, peaks: dict[str, int], *, sizes, factor: float, gaussi
 
 def padded_pixels(width: int, height: int, tile_size: int = 16) -> int:
     """Pixels of a ``width`` x ``height`` view padded to whole tiles (as the training step renders it)."""
-    return (-(-int(width) // tile_size) * tile_size) * (-(-int(height) // tile_size) * tile_size)
+    h, w = padded_shape(height, width, tile_size)
+    return h * w
 
 
 # -- the plan ------------------------------------------------------------------------------------
@@ -472,8 +474,8 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     for split, vs in (("train", dataset.train_views), ("test", dataset.test_views)):
         for v in vs:
             w, h = v.camera.width, v.camera.height
-            views.append(dict(name=v.name, split=split, width=w, height=h, padded_width=-(-w // 16) * 16,
-                              padded_height=-(-h // 16) * 16))
+            ph, pw = padded_shape(h, w)
+            views.append(dict(name=v.name, split=split, width=w, height=h, padded_width=pw, padded_height=ph))
     here = this_device()
     plans = [memory_plan(dataset, config, n, texels_max, d) for d in (here, *devices)]
     steps1 = config.iters_2dgs + (config.continue_2dgs if spec.textures is None else 0)

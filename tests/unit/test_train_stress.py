@@ -186,3 +186,26 @@ def test_too_little_space_for_checkpoints_fails_before_training(tmp_path, monkey
     with pytest.raises(ckpt.CheckpointError, match=r"MiB free.*MiB are needed"):
         train(TinyData(), TrainConfig(method="2dgs", iters_2dgs=5), tmp_path / "out", verbose=False)
     assert calls == []
+
+
+def test_compile_ahead_prepares_again_only_when_a_refit_changed_the_capacity():
+    """After densification stops, the texture stage's first step is compiled ahead once; a 100-step
+    refit that keeps the tile capacity leaves that program valid (it depends on shapes and capacity
+    only), so only a refit that changed the capacity prepares it again."""
+    from types import SimpleNamespace
+
+    from patexgs_jax.render import Capacity
+    from patexgs_jax.training.compile_ahead import CompileAhead
+
+    cfg = SimpleNamespace(iters_2dgs=1000)
+    run = SimpleNamespace(cfg=cfg, scene=SimpleNamespace(rgb=None), capacity=Capacity(1 << 16),
+                          refits_at=lambda step: step % 100 == 0)
+    ahead = object.__new__(CompileAhead)
+    ahead.run, ahead._last_densify, ahead._prepared_own = run, 500, None
+    prepared = []
+    ahead.prepare = lambda config, predict_allocation=True: prepared.append(run.capacity)
+    for step in range(1, 1000):
+        if step == 800:
+            run.capacity = Capacity(1 << 17)  # the refit after step 800 grew it
+        ahead.after_step(step)
+    assert prepared == [Capacity(1 << 16), Capacity(1 << 17)]
