@@ -97,6 +97,40 @@ def viewer_run_dir(viewer_scene, tmp_path_factory):
     return study_of_two_runs(tmp_path_factory.mktemp("viewer"), viewer_scene)
 
 
+class _CompileProfile:
+    """Where ``PATEXGS_TEST_PROFILE`` names a file, each test process appends one JSON line per
+    test: its wall time (fixtures included) and the seconds JAX spent, while it ran, tracing
+    (``trace``), lowering (``lower``), compiling (``compile``) and loading programs from the
+    persistent cache (``load``), with their counts (``traces``, ...). Compiles in background threads
+    (compiling ahead) count to the running test; subprocesses' are not seen (their time is in
+    ``wall`` only). ``python tests/profile_summary.py FILE`` sums it per file (docs/performance.md)."""
+
+    _EVENTS = {"jaxpr_trace_duration": "trace", "jaxpr_to_mlir_module_duration": "lower",
+               "backend_compile_duration": "compile", "cache_retrieval_time_sec": "load"}
+
+    def __init__(self, path: str):
+        self.path = path
+        self.acc: dict[str, float] = {}
+        jax.monitoring.register_event_duration_secs_listener(self._event)
+
+    def _event(self, name, secs, **kw):
+        key = self._EVENTS.get(name.rsplit("/", 1)[-1])
+        if key is not None:
+            self.acc[key] = self.acc.get(key, 0.0) + secs
+            self.acc[key + "s"] = self.acc.get(key + "s", 0) + 1
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(self, item, nextitem):
+        import json
+
+        self.acc, t = {}, time.monotonic()
+        yield
+        rec = dict(test=item.nodeid, wall=round(time.monotonic() - t, 2), pid=os.getpid(),
+                   **{k: round(v, 2) if isinstance(v, float) else v for k, v in self.acc.items()})
+        with open(self.path, "a") as f:
+            f.write(json.dumps(rec) + "\n")
+
+
 class _Heartbeat:
     """Prints a line when a minute passes without one (``-q`` prints a dot per test, nothing while
     one runs), naming the tests that are running and for how long: a long test is then told from a
@@ -174,3 +208,6 @@ def pytest_configure(config):
             and config.pluginmanager.get_plugin("terminalreporter") is not None):
         period = float(os.environ.get("PATEXGS_TEST_HEARTBEAT_S", "60"))
         config.pluginmanager.register(_Heartbeat(config, period), "patexgs-heartbeat")
+    if os.environ.get("PATEXGS_TEST_PROFILE") and not (getattr(config.option, "numprocesses", None)
+                                                        and not hasattr(config, "workerinput")):
+        config.pluginmanager.register(_CompileProfile(os.environ["PATEXGS_TEST_PROFILE"]), "patexgs-profile")
