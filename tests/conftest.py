@@ -2,6 +2,7 @@
 (each new shape costs a JAX compile on CPU) and has no deadline (compiles are slow)."""
 
 import atexit
+import json
 import os
 import shutil
 import subprocess
@@ -121,8 +122,6 @@ class _CompileProfile:
 
     @pytest.hookimpl(hookwrapper=True)
     def pytest_runtest_protocol(self, item, nextitem):
-        import json
-
         self.acc, t = {}, time.monotonic()
         yield
         rec = dict(test=item.nodeid, wall=round(time.monotonic() - t, 2), pid=os.getpid(),
@@ -203,11 +202,11 @@ def pytest_configure(config):
     flags = os.environ.get("XLA_FLAGS", "")
     if OLDER_EMITTERS_FLAG.split("=")[0] not in flags and _xla_accepts(OLDER_EMITTERS_FLAG):
         os.environ["XLA_FLAGS"] = (flags + " " + OLDER_EMITTERS_FLAG).strip()
-    # (xdist's controller only: it runs no test, so nothing captures what it prints)
-    if (getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput")
-            and config.pluginmanager.get_plugin("terminalreporter") is not None):
+    # (pytest-xdist's controller runs no test: the heartbeat runs there, where nothing captures what
+    # it prints, and the profile in the processes that run tests)
+    controller = bool(getattr(config.option, "numprocesses", None)) and not hasattr(config, "workerinput")
+    if controller and config.pluginmanager.get_plugin("terminalreporter") is not None:
         period = float(os.environ.get("PATEXGS_TEST_HEARTBEAT_S", "60"))
         config.pluginmanager.register(_Heartbeat(config, period), "patexgs-heartbeat")
-    if os.environ.get("PATEXGS_TEST_PROFILE") and not (getattr(config.option, "numprocesses", None)
-                                                        and not hasattr(config, "workerinput")):
+    if os.environ.get("PATEXGS_TEST_PROFILE") and not controller:
         config.pluginmanager.register(_CompileProfile(os.environ["PATEXGS_TEST_PROFILE"]), "patexgs-profile")
