@@ -151,7 +151,8 @@ def test_own_stage2_compiled_ahead_is_bit_identical(dataset, tmp_path, monkeypat
     """One run through both stages: its own texture stage is prepared once densification stops;
     the result equals the run's without compiling ahead (the step at the stage change traces at
     most where the predicted tile capacity missed)."""
-    cfg = tiny_config(iters_tex=6, warmup_tex=3, growth_interval=2)
+    # (stage 1 ends 3 steps after densification stops at 12, when the texture stage is prepared)
+    cfg = tiny_config(iters_2dgs=15, iters_tex=6, warmup_tex=3, growth_interval=2)
     trees, summaries, traces = {}, {}, {}
     for mode in ("1", "0"):
         release_steps()
@@ -184,9 +185,9 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
     monkeypatch.setattr(ahead, "submit", record)
     methods = ("patexgs", "patexgs-fixed-4", "patexgs-no-mip", "patexgs-no-alpha-mip", "patexgs-no-rgb-mip",
                "patexgs-fixed-8")
-    cfgs = [tiny_config(method=m) for m in methods]
+    cfgs = [tiny_config(method=m, iters_2dgs=15) for m in methods]  # (prepared after densification, at 12)
     try:
-        train(dataset, tiny_config(method="2dgs"), tmp_path / "2dgs", verbose=False, prepare=cfgs)
+        train(dataset, tiny_config(method="2dgs", iters_2dgs=15), tmp_path / "2dgs", verbose=False, prepare=cfgs)
         entries = list(compile_ahead.PREPARED)
         assert 0 < len(entries) <= compile_ahead.MAX_PREPARED
         first = [p for p in entries if p.render_cfg == cfgs[0].render_config(stage=2) and p.layout is not None]
