@@ -162,10 +162,12 @@ def test_changed_protocol_is_refused(study, synthetic_scene_dir):
 
 @pytest.mark.slow
 def test_budgets_share_the_unbudgeted_run_and_respect_their_caps(study, synthetic_scene_dir, tmp_path):
-    """``--budgets 100%,10%`` added to a finished study: the unbudgeted entries are kept, the budget
+    """``--budgets 100%,95%`` added to a finished study: the unbudgeted entries are kept, the budget
     caps every method at its share of the unbudgeted 2DGS run's count, the textured run starts from
     its own budget's stage 1, and tables.md has the budget rows of Table 1, method x budget. (One
-    budget: each adds two runs; 1% takes the same path.)"""
+    budget: each adds two runs; 10% and 1% take the same path. 95% keeps the unbudgeted runs'
+    Gaussian capacity, 512, so the budget's runs reuse most of their compiled programs: with 10%, a
+    capacity of 32, they compiled 46 programs, 66 s of this test's time.)"""
     import shutil
 
     out, _ = study
@@ -174,14 +176,14 @@ def test_budgets_share_the_unbudgeted_run_and_respect_their_caps(study, syntheti
     # The study as it is now (the tests above may have retrained an entry of the module's study).
     before = json.loads((copy / "results.json").read_text())
     got = mn.run(str(synthetic_scene_dir), methods=METHODS, out=str(copy), renders=0, use_lpips=False, verbose=False,
-                 **dict(STUDY, budget="100%,10%"))
+                 **dict(STUDY, budget="100%,95%"))
     (scene,) = got["results"]
     entries = got["results"][scene]
-    assert list(entries) == METHODS + ["2dgs(10%)", "patexgs(10%)"]
+    assert list(entries) == METHODS + ["2dgs(95%)", "patexgs(95%)"]
     assert {k: entries[k] for k in METHODS} == before["results"][scene]  # kept, not retrained
-    assert got["config"]["budget"] == "100%,10%"
+    assert got["config"]["budget"] == "100%,95%"
     ref = entries["2dgs"]["num_gaussians"]
-    b, f = "10%", 0.1
+    b, f = "95%", 0.95
     for m in METHODS:
         e = entries[f"{m}({b})"]
         assert e["max_gaussians"] == max(1, round(f * ref)), (m, b, e["max_gaussians"], ref)
@@ -191,10 +193,9 @@ def test_budgets_share_the_unbudgeted_run_and_respect_their_caps(study, syntheti
     md = (copy / "tables.md").read_text().split("## Table 1 budget rows")[1].split("##")[0]
     rows = [line.split(" | ")[:4] for line in md.splitlines() if line.startswith("| 2dgs |") or
             line.startswith("| patexgs |")]
-    assert [r[:2] for r in rows] == [["| 2dgs", "100%"], ["| patexgs", "100%"], ["| 2dgs", "10%"],
-                                     ["| patexgs", "10%"]]
-    gain = entries["patexgs(10%)"]["1"]["psnr"] - entries["2dgs(10%)"]["1"]["psnr"]
-    assert rows[3][2] == f"{entries['patexgs(10%)']['1']['psnr']:.2f}" and rows[3][3] == f"{gain:+.2f}"
+    assert [r[:2] for r in rows] == [["| 2dgs", "100%"], ["| patexgs", "100%"], ["| 2dgs", b], ["| patexgs", b]]
+    gain = entries[f"patexgs({b})"]["1"]["psnr"] - entries[f"2dgs({b})"]["1"]["psnr"]
+    assert rows[3][2] == f"{entries[f'patexgs({b})']['1']['psnr']:.2f}" and rows[3][3] == f"{gain:+.2f}"
 
 
 def test_stage1_from_a_mismatched_checkpoint_is_refused(tmp_path):
