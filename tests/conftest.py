@@ -73,12 +73,17 @@ def _release_compiled_code():
     """After each module, free JAX's compiled code once the process holds a quarter of its
     memory-map cap (see patexgs_jax.compiled): a whole suite in one process compiles far more than
     the cap allows, and reaching it ended in a crash (or, with pycolmap's signal handler, a hang).
-    The training steps that runs of one process share are released after every module, so that a
-    module's counts of traces do not depend on which modules ran before it in its worker."""
+    The training steps that runs of one process share are released after every module, and so are
+    the programs compiled ahead for runs that never came (a study's), so that what a module counts
+    does not depend on which modules ran before it in its worker."""
     yield
+    from patexgs_jax.training import compile_ahead
     from patexgs_jax.training.step_cache import release_steps
 
     release_steps()
+    for prepared in list(compile_ahead.PREPARED):
+        prepared.cancel()
+    compile_ahead.PREPARED.clear()
     compiled.release_compiled_code(threshold=0.25)
 
 
