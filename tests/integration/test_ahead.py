@@ -152,7 +152,7 @@ def test_own_stage2_compiled_ahead_is_bit_identical(dataset, tmp_path, monkeypat
     the result equals the run's without compiling ahead (the step at the stage change traces at
     most where the predicted tile capacity missed)."""
     # (the hand-over test's configuration: this run's stage 1 and warm-up then load the programs
-    # that test compiled; with a 15-step stage 1 it compiled 31 programs instead of 9, 62 -> 95 s)
+    # that test compiled instead of compiling their own)
     cfg = tiny_config(iters_tex=6, warmup_tex=3, growth_interval=2)
     trees, summaries, traces = {}, {}, {}
     for mode in ("1", "0"):
@@ -184,9 +184,8 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
         return ahead.Job(what, fn, say)
 
     monkeypatch.setattr(ahead, "submit", record)
-    # (entries prepared for runs that never came would count here, or leave no room: tests/conftest.py
-    # clears those of earlier modules. Before it did, one suite run counted two entries for patexgs's
-    # stage-2 render configuration here, in a worker that had run both studies' modules first.)
+    # (entries prepared for runs that never came, by this module's earlier tests, would count here or
+    # leave no room; tests/conftest.py clears those of earlier modules)
     for p in list(compile_ahead.PREPARED):
         p.cancel()
     compile_ahead.PREPARED.clear()

@@ -166,8 +166,8 @@ def test_budgets_share_the_unbudgeted_run_and_respect_their_caps(study, syntheti
     caps every method at its share of the unbudgeted 2DGS run's count, the textured run starts from
     its own budget's stage 1, and tables.md has the budget rows of Table 1, method x budget. (One
     budget: each adds two runs; 10% and 1% take the same path. 95% keeps the unbudgeted runs'
-    Gaussian capacity, 512, so the budget's runs reuse most of their compiled programs: with 10%, a
-    capacity of 32, they compiled 46 programs, 66 s of this test's time.)"""
+    Gaussian capacity, 512 (10% would give 32), so the budget's runs load most of their programs
+    instead of compiling them.)"""
     import shutil
 
     out, _ = study

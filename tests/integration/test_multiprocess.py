@@ -118,8 +118,8 @@ def runs(tmp_path_factory):
     from patexgs_jax.data.synthetic import generate
 
     root = tmp_path_factory.mktemp("multiprocess")
-    # (the embedded scene, 128 x 96 and 24 views, took 71 s here for the same checks: its 21 training
-    # views were evaluated at each run's end)
+    # (a scene this small shows everything checked here; each run also evaluates its training views
+    # at its end, 21 of them on the embedded scene)
     scene = generate(root / "scene", seed=0, num_views=10, width=64, height=48, num_points=400)
     args = [*TRAIN_ARGS, "--data", scene]
     cache = root / "xla_cache"
