@@ -81,9 +81,7 @@ def _release_compiled_code():
     from patexgs_jax.training.step_cache import release_steps
 
     release_steps()
-    for prepared in list(compile_ahead.PREPARED):
-        prepared.cancel()
-    compile_ahead.PREPARED.clear()
+    compile_ahead.discard_prepared()
     compiled.release_compiled_code(threshold=0.25)
 
 

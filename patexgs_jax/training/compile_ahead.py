@@ -44,7 +44,8 @@ from .step_cache import shared_step
 if TYPE_CHECKING:
     from .trainer import Trainer
 
-__all__ = ["MAX_PREPARED", "PREPARED", "CompileAhead", "Prepared", "layout_of", "single_step_jit", "step_identity"]
+__all__ = ["MAX_PREPARED", "PREPARED", "CompileAhead", "Prepared", "discard_prepared", "layout_of", "single_step_jit",
+           "step_identity"]
 
 
 def layout_of(scene: Scene) -> tuple:
@@ -121,6 +122,14 @@ PREPARED: list[Prepared] = []
 
 #: Prepared entries kept at most (the oldest are dropped first).
 MAX_PREPARED = 4
+
+
+def discard_prepared() -> None:
+    """Cancels every entry of :data:`PREPARED` and empties it: no run of this process will claim
+    them (e.g. those a study made for runs it did not reach, before an unrelated run)."""
+    for p in list(PREPARED):
+        p.cancel()
+    PREPARED.clear()
 
 
 class CompileAhead:

@@ -186,9 +186,7 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
     monkeypatch.setattr(ahead, "submit", record)
     # (entries prepared for runs that never came, by this module's earlier tests, would count here or
     # leave no room; tests/conftest.py clears those of earlier modules)
-    for p in list(compile_ahead.PREPARED):
-        p.cancel()
-    compile_ahead.PREPARED.clear()
+    compile_ahead.discard_prepared()
     methods = ("patexgs", "patexgs-fixed-4", "patexgs-no-mip", "patexgs-no-alpha-mip", "patexgs-no-rgb-mip",
                "patexgs-fixed-8")
     cfgs = [tiny_config(method=m, iters_2dgs=15) for m in methods]  # (prepared after densification, at 12)
@@ -205,9 +203,7 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
         assert sum("predicted layout" in w for w in submitted) == 2, submitted
         assert len(entries) == compile_ahead.MAX_PREPARED
     finally:
-        for p in list(compile_ahead.PREPARED):
-            p.cancel()
-        compile_ahead.PREPARED.clear()
+        compile_ahead.discard_prepared()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
