@@ -66,40 +66,66 @@ def _group(path) -> str:
             "opacity_logits": "opacity", "sh": "sh"}.get(names[0], "frozen")
 
 
-def scale_by_group_lr(lr: LearningRates, scene_radius: float, step_offset: int = 0
-                      ) -> optax.GradientTransformation:
-    """Multiplies each leaf's (Adam-normalised) update by minus its group's learning rate."""
-    radius = float(scene_radius)
+#: The names of :func:`step_rates`' entries.
+RATE_NAMES = ("means_radius", "means_log_init", "means_log_final", "means_steps", "step_offset", "scales",
+              "rotation", "opacity", "sh_dc", "sh_rest", "texture_rgb", "texture_alpha")
 
-    def means_lr(count):
+
+def _rate_values(lr: LearningRates, scene_radius: float, step_offset: int = 0) -> dict[str, float]:
+    """:func:`step_rates` as Python numbers (what an update without ``rates`` uses)."""
+    return dict(means_radius=float(scene_radius), means_log_init=float(np.log(lr.means_init)),
+                means_log_final=float(np.log(lr.means_final)), means_steps=float(max(lr.means_steps, 1)),
+                step_offset=float(step_offset), scales=lr.scales, rotation=lr.rotation, opacity=lr.opacity,
+                sh_dc=lr.sh_dc, sh_rest=lr.sh_dc / lr.sh_rest_divisor, texture_rgb=lr.texture_rgb,
+                texture_alpha=lr.texture_alpha)
+
+
+def step_rates(lr: LearningRates, scene_radius: float, step_offset: int = 0) -> dict[str, np.float32]:
+    """The learning rates of :func:`make_optimizer` ``(scene_radius, lr, step_offset)`` as () float32
+    arrays, to pass to its update as ``rates=`` from inside a jitted step: as arguments rather than
+    constants of the program, one compiled step serves every scene radius, schedule length and
+    learning rate (runs on other scenes, of other lengths, or a study's methods share programs, in
+    one process and through the persistent compilation cache). The update computes the same
+    float32 values either way."""
+    return {k: np.float32(v) for k, v in _rate_values(lr, scene_radius, step_offset).items()}
+
+
+def scale_by_group_lr(lr: LearningRates, scene_radius: float, step_offset: int = 0
+                      ) -> optax.GradientTransformationExtraArgs:
+    """Multiplies each leaf's (Adam-normalised) update by minus its group's learning rate: those of
+    ``lr`` and ``scene_radius``, or the update's ``rates=`` (:func:`step_rates`, traced)."""
+    defaults = _rate_values(lr, scene_radius, step_offset)
+
+    def means_lr(count, r):
         # (in float: count + step_offset in int32 wraps to negative near 2^31, restarting the decay)
-        t = jnp.clip((count.astype(jnp.float32) + step_offset) / max(lr.means_steps, 1), 0.0, 1.0)
-        return radius * jnp.exp((1 - t) * np.log(lr.means_init) + t * np.log(lr.means_final))
+        t = jnp.clip((count.astype(jnp.float32) + r["step_offset"]) / r["means_steps"], 0.0, 1.0)
+        return r["means_radius"] * jnp.exp((1 - t) * r["means_log_init"] + t * r["means_log_final"])
 
     def init_fn(params):
         del params
         return GroupLRState(count=jnp.zeros([], jnp.int32))
 
-    def update_fn(updates, state, params=None):
-        del params
+    def update_fn(updates, state, params=None, rates=None, **extra_args):
+        del params, extra_args
+        r = defaults if rates is None else rates
 
         def scale(path, u):
             g = _group(path)
             if g == "frozen":
                 return jnp.zeros_like(u)
             if g == "means":
-                return -means_lr(state.count).astype(u.dtype) * u
+                return -means_lr(state.count, r).astype(u.dtype) * u
             if g == "sh":
                 k = jnp.arange(u.shape[1])
-                f = jnp.where(k == 0, lr.sh_dc, lr.sh_dc / lr.sh_rest_divisor).astype(u.dtype)
+                f = jnp.where(k == 0, r["sh_dc"], r["sh_rest"]).astype(u.dtype)
                 return -f[None, :, None] * u
-            return -getattr(lr, g) * u
+            return -r[g] * u
 
         return (jax.tree_util.tree_map_with_path(scale, updates),
                 GroupLRState(count=jnp.asarray(optax.safe_int32_increment(state.count))))
 
     # optax's stub types states as ArrayTree, which a NamedTuple of arrays is at run time.
-    return optax.GradientTransformation(init_fn, update_fn)  # pyright: ignore[reportArgumentType]
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)  # pyright: ignore[reportArgumentType]
 
 
 class AdamState(NamedTuple):
@@ -161,11 +187,14 @@ def scale_by_adam_with_texel_age(b1: float = 0.9, b2: float = 0.999, eps: float 
 
 
 def make_optimizer(scene_radius: float, lr: LearningRates = LearningRates(),
-                   step_offset: int = 0) -> optax.GradientTransformation:
+                   step_offset: int = 0) -> optax.GradientTransformationExtraArgs:
     """Adam (eps 1e-15, as 3DGS; texels with their own bias correction) followed by per-group
     learning rates.
 
-    ``step_offset`` shifts the means' learning-rate decay (for a stage that continues a run).
+    ``step_offset`` shifts the means' learning-rate decay (for a stage that continues a run). Its
+    ``update`` takes ``rates=`` (:func:`step_rates`, the same arguments) to use traced learning
+    rates instead of constants: every optimiser :func:`make_optimizer` makes then runs the same
+    program.
     """
     return optax.chain(scale_by_adam_with_texel_age(eps=1e-15), scale_by_group_lr(lr, scene_radius, step_offset))
 

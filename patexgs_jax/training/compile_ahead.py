@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import ahead, interrupt, padding
 from ..adaptive import ContributionCounts
-from ..optim import make_optimizer
+from ..optim import RATE_NAMES, step_rates
 from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from ..schedule import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, TextureSchedule
@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from .trainer import Trainer
 
 __all__ = ["MAX_PREPARED", "PREPARED", "CompileAhead", "Prepared", "discard_prepared", "layout_of", "single_step_jit",
-           "step_identity"]
+           "step_args", "step_identity"]
 
 
 def layout_of(scene: Scene) -> tuple:
@@ -53,27 +53,41 @@ def layout_of(scene: Scene) -> tuple:
     return tuple(np.shape(x) for x in jax.tree_util.tree_leaves(scene))
 
 
-def single_step_jit(optimizer, render_cfg: RenderConfig, capacity: Capacity | None, lambda_dssim: float,
-                     lambda_dist: float):
-    """The jitted single-view training step (see ``Trainer.step_fn``); it closes over nothing of
-    a Trainer, so that a step compiled ahead by one run serves another."""
-    return jax.jit(lambda sc, st, stats, cam, img, hw, sh, wn: single_view_step(
+def single_step_jit(optimizer, render_cfg: RenderConfig, capacity: Capacity | None, distortion: bool):
+    """The jitted single-view training step (see ``Trainer.step_fn``) as ``fn(scene, opt_state,
+    stats, camera, image, valid_hw, active_sh, w_normal, hp)``, ``hp`` the run's :func:`step_args`.
+    It closes over nothing of a Trainer (``optimizer`` only for its structure: the learning rates
+    are in ``hp``), so that a step compiled by one run serves another of the same
+    :func:`step_identity`; ``distortion``: the distortion loss is on (its weight in ``hp``)."""
+    return jax.jit(lambda sc, st, stats, cam, img, hw, sh, wn, hp: single_view_step(
         sc, st, stats, cam, img, hw, sh, wn, optimizer=optimizer, render_config=render_cfg, capacity=capacity,
-        lambda_dssim=lambda_dssim, lambda_dist=lambda_dist), donate_argnums=(0, 1, 2))
+        lambda_dssim=hp["lambda_dssim"], lambda_dist=hp["lambda_dist"] if distortion else 0.0,
+        rates=hp["rates"]), donate_argnums=(0, 1, 2))
 
 
-def step_identity(radius: float, config: TrainConfig) -> tuple:
-    """What defines a run's training step besides its render config, tile capacity and layout (the
-    key a step compiled ahead is matched by): scene radius, learning rates, loss weights."""
-    return (radius, dataclasses.replace(config.lr, means_steps=config.iters_2dgs), config.lambda_dssim,
-            config.lambda_dist)
+def step_identity(config: TrainConfig) -> tuple:
+    """What defines a run's training step program besides its render config, tile capacity and
+    layout (the key a step compiled ahead, or shared between runs, is matched by): whether the
+    distortion loss is on. The scene radius, learning rates and loss weights are the step's
+    arguments (:func:`step_args`), so runs on other scenes or of other lengths share programs."""
+    return ("distortion" if config.lambda_dist > 0 else "no distortion",)
+
+
+def step_args(radius: float, config: TrainConfig) -> dict:
+    """The traced settings of a run's step, its ``hp``: the learning rates
+    (:func:`patexgs_jax.optim.step_rates`; the means' decay over the 2DGS stage, for every method)
+    and the loss weights, () float32 each."""
+    return dict(rates=step_rates(dataclasses.replace(config.lr, means_steps=config.iters_2dgs), radius),
+                lambda_dssim=np.float32(config.lambda_dssim), lambda_dist=np.float32(config.lambda_dist))
 
 
 def step_image_args(cam) -> tuple:
-    """Abstract image, image size, SH degree and normal weight of a single-view step at ``cam``'s
-    (padded) size, for ``lower``."""
+    """Abstract image, image size, SH degree, normal weight and ``hp`` (:func:`step_args`) of a
+    single-view step at ``cam``'s (padded) size, for ``lower``."""
+    scalar = jax.ShapeDtypeStruct((), jnp.float32)
+    hp = dict(rates={k: scalar for k in RATE_NAMES}, lambda_dssim=scalar, lambda_dist=scalar)
     return (jax.ShapeDtypeStruct((cam.height, cam.width, 3), np.float32), jax.ShapeDtypeStruct((2,), np.int32),
-            jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), jnp.float32))
+            jax.ShapeDtypeStruct((), jnp.int32), scalar, hp)
 
 
 def owned_copy(tree):
@@ -88,8 +102,8 @@ class Prepared:
     not reached yet: the textured step for the warm-up's layout at the first view's padded size and,
     for Eq. 7 methods, the allocation's pair counter and renderer (:meth:`CompileAhead.prepare`).
 
-    ``identity``: what defines the step besides its render config and tile capacity (scene radius,
-    learning rates, loss weights); ``capacity``, ``fn`` (the jitted step) and ``eq7`` (programs for
+    ``identity``: what defines the step besides its render config and tile capacity
+    (:func:`step_identity`); ``capacity``, ``fn`` (the jitted step) and ``eq7`` (programs for
     :class:`patexgs_jax.padding.ViewRenderer`) are set by the background job. ``layout`` is None
     while a predicted allocation's sides are being counted (``counted`` is set once it is known);
     ``then``: the entry of the allocation predicted from this warm-up state."""
@@ -191,8 +205,8 @@ class CompileAhead:
         from ..render import render_jit
 
         own = config is self.run.cfg
-        identity = step_identity(self.run.radius, config)
-        optimizer = self.run.optimizer if own else make_optimizer(self.run.radius, identity[1])  # (its learning rates)
+        identity = step_identity(config)
+        optimizer = self.run.optimizer  # (its structure only: another run's learning rates are its step's arguments)
         render_cfg = config.render_config(stage=2)
         stage = TextureSchedule(config, optimizer, self.run.train_views, render_cfg)
         state = stage.start(self.run.state)
@@ -224,8 +238,7 @@ class CompileAhead:
                     needed, _ = count_pairs.lower(scene, cam, config=render_cfg).compile()(scene, cam)
                     prep.capacity = Capacity.fit(float(needed) * 1.25, minimum=minimum)
                 done = shared_step(identity, (render_cfg, prep.capacity), layout, prep.padded)
-                prep.fn = done or single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dssim,
-                                                  config.lambda_dist)
+                prep.fn = done or single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dist > 0)
             finally:
                 prep.counted.set()
             if done is None:  # (else an earlier run of this process compiled it: the run takes it from there)
@@ -298,7 +311,7 @@ class CompileAhead:
                                                         min_spare=TEXTURE_MIN_SPARE)
                 alloc.capacity, alloc.layout = cap, layout_of(new_scene)
                 done = shared_step(identity, (render_cfg, cap), alloc.layout, alloc.padded)
-                alloc.fn = done or single_step_jit(optimizer, render_cfg, cap, config.lambda_dssim, config.lambda_dist)
+                alloc.fn = done or single_step_jit(optimizer, render_cfg, cap, config.lambda_dist > 0)
             finally:
                 alloc.counted.set()
             if done is None:
@@ -324,7 +337,7 @@ class CompileAhead:
             return
         cap = self.run.capacity
         run = self.run
-        prep.then = self._predict_allocation(cfg, run.textures, run.optimizer, step_identity(run.radius, cfg),
+        prep.then = self._predict_allocation(cfg, run.textures, run.optimizer, step_identity(cfg),
                                              owned_copy(tuple(run.state)), prep.eq7_job, lambda: cap, id(self))
 
     def prepare_others(self) -> None:
@@ -339,7 +352,7 @@ class CompileAhead:
         self.prepare_for = ()
 
     def _find(self, render_cfg: RenderConfig, layout: tuple) -> Prepared | None:
-        identity = step_identity(self.run.radius, self.run.cfg)
+        identity = step_identity(self.run.cfg)
         return next((p for p in PREPARED if p.identity == identity and p.render_cfg == render_cfg
                      and p.layout == layout), None)
 
@@ -358,7 +371,7 @@ class CompileAhead:
 
     def _predicted(self, render_cfg: RenderConfig) -> bool:
         """Whether a step of this run's settings and ``render_cfg`` was compiled ahead for any layout."""
-        identity = step_identity(self.run.radius, self.run.cfg)
+        identity = step_identity(self.run.cfg)
         return any(p.identity == identity and p.render_cfg == render_cfg for p in PREPARED)
 
     def claim_step(self, render_cfg: RenderConfig, capacity, layout: tuple) -> Prepared | None:
@@ -399,7 +412,7 @@ class CompileAhead:
     def _settle_predictions(self, render_cfg: RenderConfig) -> None:
         """Waits for the predicted allocations being counted in the background for this run's settings
         (their layout is known within seconds); drops those not started or failed."""
-        identity = step_identity(self.run.radius, self.run.cfg)
+        identity = step_identity(self.run.cfg)
         for p in [p for p in PREPARED if p.layout is None and p.identity == identity and p.render_cfg == render_cfg]:
             job = p.step_job
             if job is not None and not job.cancel() and not job.cancelled and not p.counted.is_set():

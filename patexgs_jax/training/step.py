@@ -34,10 +34,17 @@ def _count_trace(key) -> None:
 _GROUPS = ("means", "log_scales", "quats", "opacity_logits", "sh", "rgb", "alpha")
 
 
+def _term_on(weight) -> bool:
+    """Whether a loss term is computed: a weight given as a Python number switches it off at 0 (the
+    term is compiled out); a traced weight (an argument of the step) keeps it."""
+    return not isinstance(weight, (int, float)) or weight > 0
+
+
 def view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_config, capacity, lambda_dssim,
                         lambda_dist, valid_hw=None):
     """One view's loss and gradients: ``((loss, (out, l1, mse)), (g_scene, g_offset))``, g_offset
     (C, 2) the gradient w.r.t. the renderer's ``screen_offset`` (densification statistics).
+    ``lambda_dssim`` and ``lambda_dist`` are numbers or traced () floats (see :func:`_term_on`).
 
     ``camera`` and ``image`` (Hb, Wb, 3) may be padded to a padded size (:mod:`patexgs_jax.padding`);
     ``valid_hw`` ((2,) int, traced) is then the view's own (H, W): the loss is that of the top-left
@@ -55,7 +62,7 @@ def view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_con
         photo, l1 = losses.photometric(out.rgb, image, lambda_dssim, valid=valid)
         loss = photo
         loss = loss + w_normal * losses.normal_consistency(out.normal, out.depth, out.alpha, camera.K, valid=valid)
-        if lambda_dist > 0:
+        if _term_on(lambda_dist):
             loss = loss + lambda_dist * losses.distortion(out.distortion, valid=valid)
         mse = losses.masked_mean(jnp.square(jnp.clip(out.rgb, 0, 1) - image), valid)
         return loss, (out, l1, mse)
@@ -72,14 +79,16 @@ def _finite_groups(g_scene) -> dict:
     return finite
 
 
-def _guarded_update(scene, opt_state, g_scene, loss, overflow, optimizer):
-    """The optimiser's update from ``g_scene``, applied only if the loss and every gradient are
-    finite and the render did not overflow: ``(scene, opt_state, ok, finite)``, the inputs unchanged
-    when ``ok`` is False (so a bad step never poisons the state)."""
+def _guarded_update(scene, opt_state, g_scene, loss, overflow, optimizer, rates=None):
+    """The optimiser's update from ``g_scene`` (with the traced learning rates ``rates`` where given,
+    :func:`patexgs_jax.optim.step_rates`), applied only if the loss and every gradient are finite
+    and the render did not overflow: ``(scene, opt_state, ok, finite)``, the inputs unchanged when
+    ``ok`` is False (so a bad step never poisons the state)."""
     finite = _finite_groups(g_scene)
     all_finite = jnp.isfinite(loss) & jnp.all(jnp.stack(list(finite.values())))
     ok = all_finite & ~overflow
-    updates, new_opt = optimizer.update(g_scene, opt_state, scene)
+    extra = {} if rates is None else dict(rates=rates)
+    updates, new_opt = optimizer.update(g_scene, opt_state, scene, **extra)
     new_scene = optax.apply_updates(scene, updates)
 
     def keep(new, old):  # the update where every gradient is finite and nothing overflowed, else the old state
@@ -89,7 +98,7 @@ def _guarded_update(scene, opt_state, g_scene, loss, overflow, optimizer):
 
 
 def single_view_step(scene, opt_state, stats, camera, image, valid_hw, active_sh, w_normal, *, optimizer,
-                     render_config, capacity, lambda_dssim, lambda_dist):
+                     render_config, capacity, lambda_dssim, lambda_dist, rates=None):
     """One single-view update.
 
     Args:
@@ -98,6 +107,9 @@ def single_view_step(scene, opt_state, stats, camera, image, valid_hw, active_sh
       image: (Hb, Wb, 3) float32, the view's image zero-padded to its padded size.
       valid_hw: (2,) int32, the view's own (H, W).
       active_sh, w_normal: traced SH degree and normal-consistency weight.
+      lambda_dssim, lambda_dist: loss weights, numbers or traced (see :func:`view_loss_and_grads`).
+      rates: None (the optimiser's own learning rates) or the traced ones it takes as ``rates=``
+        (:func:`patexgs_jax.optim.step_rates`).
     Returns:
       (scene, opt_state, stats, metrics); the update is skipped (state unchanged) on overflow or a
       non-finite loss or gradient.
@@ -106,7 +118,7 @@ def single_view_step(scene, opt_state, stats, camera, image, valid_hw, active_sh
     (loss, (out, l1, mse)), (g_scene, g_off) = view_loss_and_grads(
         scene, camera, image, active_sh, w_normal, render_config=render_config, capacity=capacity,
         lambda_dssim=lambda_dssim, lambda_dist=lambda_dist, valid_hw=valid_hw)
-    new_scene, new_opt, ok, finite = _guarded_update(scene, opt_state, g_scene, loss, out.overflow, optimizer)
+    new_scene, new_opt, ok, finite = _guarded_update(scene, opt_state, g_scene, loss, out.overflow, optimizer, rates)
     new_stats = dens.accumulate(stats, jnp.where(ok, g_off, 0.0), out.visible & ok, out.radius_px,
                                 valid_hw[1], valid_hw[0])
     metrics = dict(loss=loss, l1=l1, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-10)), ok=ok,
@@ -116,7 +128,7 @@ def single_view_step(scene, opt_state, stats, camera, image, valid_hw, active_sh
 
 
 def batch_step(scene, opt_state, stats, cameras, images, active_sh, w_normal, *, mesh, optimizer,
-               render_config, capacity, lambda_dssim, lambda_dist):
+               render_config, capacity, lambda_dssim, lambda_dist, rates=None):
     """One update from a batch of B views (data-parallel over ``mesh``, see :mod:`patexgs_jax.parallel`).
 
     Args:
@@ -136,21 +148,24 @@ def batch_step(scene, opt_state, stats, cameras, images, active_sh, w_normal, *,
     B = images.shape[0]
     _count_trace((render_config, capacity, B))
 
+    dist_on = _term_on(lambda_dist)
+
     def one_view(shared, view):
-        sc, sh, wn = shared
+        sc, sh, wn, (w_dssim, w_dist) = shared  # (the weights as inputs: they may be traced)
         cam, img = view
         (loss, (out, l1, mse)), (g_scene, g_off) = view_loss_and_grads(
-            sc, cam, img, sh, wn, render_config=render_config, capacity=capacity, lambda_dssim=lambda_dssim,
-            lambda_dist=lambda_dist)
+            sc, cam, img, sh, wn, render_config=render_config, capacity=capacity, lambda_dssim=w_dssim,
+            lambda_dist=w_dist if dist_on else 0.0)
         per = dict(loss=loss, l1=l1, mse=mse, g_off=g_off, visible=out.visible, radius_px=out.radius_px,
                    overflow=out.overflow, pairs_needed=out.pairs_needed, max_tile_count=out.max_tile_count)
         return g_scene, per
 
-    g_sum, per = parallel.sum_over_views(one_view, mesh)((scene, active_sh, w_normal), (cameras, images))
+    g_sum, per = parallel.sum_over_views(one_view, mesh)(
+        (scene, active_sh, w_normal, (jnp.float32(lambda_dssim), jnp.float32(lambda_dist))), (cameras, images))
     g_scene = jax.tree_util.tree_map(lambda g: g / B, g_sum)
     loss = jnp.mean(per["loss"])
     overflow = jnp.any(per["overflow"])
-    new_scene, new_opt, ok, finite = _guarded_update(scene, opt_state, g_scene, loss, overflow, optimizer)
+    new_scene, new_opt, ok, finite = _guarded_update(scene, opt_state, g_scene, loss, overflow, optimizer, rates)
     new_stats = stats
     for b in range(B):
         new_stats = dens.accumulate(new_stats, jnp.where(ok, per["g_off"][b], 0.0), per["visible"][b] & ok,

@@ -3,9 +3,10 @@
 A run's step is one jitted function per (render config, tile capacity, ...) and scene layout, with
 one program per padded view size. The single-view steps are also kept for the other runs of the
 process (:data:`_SHARED_STEPS`), keyed by what else defines them (the step identity of
-:func:`~patexgs_jax.training.compile_ahead.step_identity`: scene radius, learning rates, loss
-weights): a resumed run, a study's runs of one configuration or a notebook's second run then call
-the executables an earlier run compiled instead of tracing, lowering and compiling them again.
+:func:`~patexgs_jax.training.compile_ahead.step_identity`; the scene radius, learning rates and
+loss weights are the step's arguments): a resumed run, a study's runs, a run on another scene of
+the same shapes or a notebook's second run then call the executables an earlier run compiled
+instead of tracing, lowering and compiling them again.
 
 Programs hold memory mappings (see :mod:`patexgs_jax.compiled`): when a run leaves a layout in a
 process holding more than :data:`patexgs_jax.compiled.KEEP_SHARE` of its cap, the steps of the

@@ -53,7 +53,7 @@ from ..optim import ages_per_slot, make_optimizer, upgrade_state
 from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from ..schedule import TextureSchedule, TrainState
-from .compile_ahead import CompileAhead, layout_of, single_step_jit, step_identity
+from .compile_ahead import CompileAhead, layout_of, single_step_jit, step_args, step_identity
 from .config import TrainConfig, config_dict, effective_config
 from .progress import Estimate
 from .step import STEP_TRACES, batch_step
@@ -125,6 +125,8 @@ class Trainer:
         # same run whatever the method (and can be shared: ``train(..., stage1=)``, see .run).
         self.lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
         self.optimizer = make_optimizer(self.radius, self.lr)
+        # The step's learning rates and loss weights, passed to it (not compiled into it).
+        self.hp = jax.device_put(step_args(self.radius, config))
         self.capacity = None
         # The tile capacity before the scene last grew: a refit after densification never goes below
         # it (more Gaussians do not need fewer pairs; a smaller capacity would overflow and compile
@@ -147,7 +149,7 @@ class Trainer:
                            self.textures)
         # The jitted steps of the current scene layout, per (render config, capacity), each with one
         # program per padded size; the single-view ones shared with the process's other runs.
-        self.steps = StepCache(step_identity(self.radius, config))
+        self.steps = StepCache(step_identity(config))
         self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
         self.t_start = time.perf_counter()
         self.estimate = Estimate(self)  # how long the run takes, from the steps that compiled nothing
@@ -288,7 +290,7 @@ class Trainer:
         cfg, render_cfg, capacity = self.cfg, self.render_cfg, self.capacity
         fn, buckets_seen, ahead_jobs = self._compiled_step(
             (render_cfg, capacity),
-            lambda: single_step_jit(self.optimizer, render_cfg, capacity, cfg.lambda_dssim, cfg.lambda_dist),
+            lambda: single_step_jit(self.optimizer, render_cfg, capacity, cfg.lambda_dist > 0),
             claim=lambda layout: self.ahead.claim_step(render_cfg, capacity, layout), shared=True)
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
@@ -301,7 +303,7 @@ class Trainer:
                     self.announce_compile(what)
             img = padding.pad_image(image, cam.height, cam.width)
             hw = np.array([camera.height, camera.width], np.int32)
-            return fn(scene, opt_state, stats, cam, img, hw, active_sh, w_normal)
+            return fn(scene, opt_state, stats, cam, img, hw, active_sh, w_normal, self.hp)
 
         return step
 
@@ -317,11 +319,12 @@ class Trainer:
         from .. import parallel
 
         mesh, render_cfg, capacity, cfg = self.data_mesh(), self.render_cfg, self.capacity, self.cfg
+        distortion = cfg.lambda_dist > 0
         jitted, seen, _ = self._compiled_step((render_cfg, capacity, cfg.batch_size), lambda: jax.jit(
-            lambda sc, st, stats, cams, imgs, sh, wn: batch_step(
+            lambda sc, st, stats, cams, imgs, sh, wn, hp: batch_step(
                 sc, st, stats, cams, imgs, sh, wn, mesh=mesh, optimizer=self.optimizer,
-                render_config=render_cfg, capacity=capacity, lambda_dssim=cfg.lambda_dssim,
-                lambda_dist=cfg.lambda_dist),
+                render_config=render_cfg, capacity=capacity, lambda_dssim=hp["lambda_dssim"],
+                lambda_dist=hp["lambda_dist"] if distortion else 0.0, rates=hp["rates"]),
             out_shardings=parallel.replicated(mesh), donate_argnums=(0, 1, 2)))
 
         def fn(*args):
@@ -331,13 +334,14 @@ class Trainer:
             return jitted(*args)
 
         if jax.process_count() == 1:
-            return fn
+            return lambda *args: fn(*args, self.hp)
 
         def step(scene, opt_state, stats, cams, imgs, active_sh, w_normal):
             # Each process passes (and gets back) its own copy of the replicated state: see parallel.to_global.
-            sc, st, stats, sh, wn = parallel.to_global((scene, opt_state, stats, active_sh, w_normal), mesh)
+            sc, st, stats, sh, wn, hp = parallel.to_global((scene, opt_state, stats, active_sh, w_normal, self.hp),
+                                                           mesh)
             try:
-                out = jax.block_until_ready(fn(sc, st, stats, cams, imgs, sh, wn))
+                out = jax.block_until_ready(fn(sc, st, stats, cams, imgs, sh, wn, hp))
             except Exception as e:  # a failed all-reduce surfaces here as XLA's runtime error
                 raise parallel.lost_process(f"the training step {self.step}", e) from e
             return parallel.to_local(out, mesh)

@@ -317,11 +317,33 @@ def test_recompiles_counted(run_p):
 
 def test_steady_state_has_one_trace(dataset):
     cfg = tiny_config(method="2dgs", iters_2dgs=12, densify=NO_DENSIFY)
+    release_steps()  # (the main run's first steps have these shapes: its program would serve this run)
     traces = sum(STEP_TRACES.values())
     result = train(dataset, cfg, None, verbose=False)
     assert result.summary["recompiles"] == 1
     assert sum(STEP_TRACES.values()) - traces == 1
 
+
+
+def test_runs_of_other_lengths_and_rates_share_the_step_and_train_as_alone(dataset, tmp_path):
+    """The step's learning rates (the means' decay over the stage's length included), scene radius
+    and loss weights are its arguments: a run with another stage length, other rates and another
+    SSIM weight traces no step where an earlier run compiled its shapes, and ends exactly where it
+    ends with a step of its own."""
+    first = tiny_config(method="2dgs", iters_2dgs=12, densify=NO_DENSIFY)
+    other = dataclasses.replace(tiny_config(method="2dgs", iters_2dgs=8, densify=NO_DENSIFY, lambda_dssim=0.3),
+                                lr=dataclasses.replace(first.lr, means_init=4e-4, opacity=2e-2))
+    train(dataset, first, None, verbose=False)
+    traces = sum(STEP_TRACES.values())
+    train(dataset, other, tmp_path / "shared", verbose=False)
+    assert sum(STEP_TRACES.values()) == traces
+    release_steps()
+    train(dataset, other, tmp_path / "alone", verbose=False)
+    assert sum(STEP_TRACES.values()) == traces + 1
+    final = [ckpt.load_checkpoint(ckpt.latest_checkpoint(tmp_path / run / "checkpoints"))[0]
+             for run in ("shared", "alone")]
+    assert_trees_equal(final[0]["scene"], final[1]["scene"], "scene", atol=0)
+    assert_trees_equal(final[0]["opt_state"], final[1]["opt_state"], "optimiser state", atol=0)
 
 def test_progress_bar_when_forced(dataset, capfd, monkeypatch):
     """PATEXGS_PROGRESS=1 draws the step bar (method, count, ETA) on stderr, progress lines intact."""

@@ -18,7 +18,7 @@ import pytest
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax import random_scene
 from patexgs_jax.densify import DensifyConfig, DensifyStats, densify_and_prune, prune_gaussians
-from patexgs_jax.optim import LearningRates, adam_moments, make_optimizer
+from patexgs_jax.optim import LearningRates, adam_moments, make_optimizer, step_rates
 from patexgs_jax.training.config import TrainConfig
 from patexgs_jax.training.run import train
 from patexgs_jax.training.trainer import Trainer
@@ -138,6 +138,37 @@ def test_learning_rate_schedule_finite_at_any_step_count(count):
     assert np.max(np.abs(u)) <= 3.2 * lr_now * (1 + 1e-5)
     assert int(state[1].count) == min(count + 1, 2**31 - 1)  # saturates instead of wrapping
     # (near 2^31 the decay used to restart: count + step_offset wrapped around in int32.)
+
+
+@pytest.mark.parametrize("count", [0, 4, 7, 1000])
+def test_rates_as_arguments_update_as_the_constants_do(count):
+    """The training step passes the learning rates as arguments (``step_rates``: one program for
+    every scene radius, schedule and rate, shared between runs): an update with another run's
+    rates equals that run's own optimiser's bit for bit, before, during and after the means'
+    decay, texels and SH bands included, and the jitted update traced once serves both runs."""
+    scene = random_scene(3, 6, sh_degree=1, capacity=8, rgb_sizes=[0, 2, 4, 2, 0, 3], alpha_sizes=[2, 0, 2, 0, 0, 1])
+    runs = [(RADIUS, LR, 3), (0.37, LearningRates(means_init=3e-4, means_steps=9, scales=1e-2, sh_dc=1e-3,
+                                                  sh_rest_divisor=7.0, texture_rgb=4e-3, texture_alpha=6e-4), 0)]
+    third = make_optimizer(5.0)  # (a third run's optimiser: only its structure is used)
+    traces = []
+
+    def update(g, st, sc, rates):
+        traces.append(1)
+        return third.update(g, st, sc, rates=rates)
+
+    shared = jax.jit(update)
+    grads = random_grads(scene, np.random.default_rng(count))
+    for radius, lr, offset in runs:
+        own = make_optimizer(radius, lr, step_offset=offset)
+        adam, group = own.init(scene)
+        c = jnp.asarray(count, jnp.int32)
+        state = (adam._replace(count=c), group._replace(count=c))
+        want, want_state = jax.jit(own.update)(grads, state, scene)
+        got, got_state = shared(grads, state, scene, step_rates(lr, radius, offset))
+        chex.assert_trees_all_equal(got, want)
+        chex.assert_trees_all_equal(got_state, want_state)
+        assert np.any(np.asarray(got.means) != 0) and any(np.any(np.asarray(b) != 0) for b in got.rgb.buckets)
+    assert len(traces) == 1
 
 
 # ------------------------------------------------------------------------------------------------
