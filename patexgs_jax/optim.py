@@ -66,11 +66,6 @@ def _group(path) -> str:
             "opacity_logits": "opacity", "sh": "sh"}.get(names[0], "frozen")
 
 
-#: The names of :func:`step_rates`' entries.
-RATE_NAMES = ("means_radius", "means_log_init", "means_log_final", "means_steps", "step_offset", "scales",
-              "rotation", "opacity", "sh_dc", "sh_rest", "texture_rgb", "texture_alpha")
-
-
 def _rate_values(lr: LearningRates, scene_radius: float, step_offset: int = 0) -> dict[str, float]:
     """:func:`step_rates` as Python numbers (what an update without ``rates`` uses)."""
     return dict(means_radius=float(scene_radius), means_log_init=float(np.log(lr.means_init)),
@@ -78,6 +73,10 @@ def _rate_values(lr: LearningRates, scene_radius: float, step_offset: int = 0) -
                 step_offset=float(step_offset), scales=lr.scales, rotation=lr.rotation, opacity=lr.opacity,
                 sh_dc=lr.sh_dc, sh_rest=lr.sh_dc / lr.sh_rest_divisor, texture_rgb=lr.texture_rgb,
                 texture_alpha=lr.texture_alpha)
+
+
+#: The names of :func:`step_rates`' entries (for abstract arguments of a step lowered ahead).
+RATE_NAMES = tuple(_rate_values(LearningRates(), 1.0))
 
 
 def step_rates(lr: LearningRates, scene_radius: float, step_offset: int = 0) -> dict[str, np.float32]:
