@@ -8,12 +8,14 @@ import pytest
 
 @pytest.fixture(scope="session")
 def synthetic_scene_dir(tmp_path_factory):
-    """A 10-view, 64 x 48 synthetic capture with 400 points, in COLMAP layout (generated once per
-    test process). With the Mip-NeRF 360 protocol's every-8th hold-out it has 2 test views (0 and 8)."""
+    """A 10-view synthetic capture (train_configs.SCENE_W x SCENE_H) with 400 points, in COLMAP layout
+    (generated once per test process). With the Mip-NeRF 360 protocol's every-8th hold-out it has 2
+    test views (0 and 8)."""
     from patexgs_jax.data.synthetic import generate
+    from train_configs import SCENE_H, SCENE_W
 
-    return generate(tmp_path_factory.mktemp("synthetic") / "scene", seed=0, num_views=10, width=64, height=48,
-                    num_points=400)
+    return generate(tmp_path_factory.mktemp("synthetic") / "scene", seed=0, num_views=10, width=SCENE_W,
+                    height=SCENE_H, num_points=400)
 
 
 @pytest.fixture

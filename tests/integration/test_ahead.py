@@ -4,7 +4,7 @@ then traces and compiles nothing, the results are bit-identical to a run without
 (``PATEXGS_COMPILE_AHEAD=0``), and a stop signal during a background compile ends the process with
 the usual line and status, without a crash.
 
-Runs on the tiny synthetic scene of test_train (64 x 48, 400 points) with test_train's schedule.
+Runs on the tiny synthetic scene of test_train (48 x 32, 400 points) with test_train's schedule.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""``3dgs`` and ``mip-splatting`` end to end on test_train's tiny synthetic scene (64 x 48 images, 400
+"""``3dgs`` and ``mip-splatting`` end to end on test_train's tiny synthetic scene (48 x 32 images, 400
 SfM points): both learn with densification, keep 3D Gaussians and no normal loss, write their own
 stage-1 checkpoint, export a 3DGS PLY (Mip-Splatting's with the 3D filter baked in) that loads back
 and renders as the trained scene, and a resumed ``mip-splatting`` run equals an uninterrupted one."""

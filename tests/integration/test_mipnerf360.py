@@ -22,6 +22,8 @@ from experiments.study import RESULTS_SCHEMA
 from patexgs_jax.training.config import TrainConfig, config_dict, stage1_key
 from patexgs_jax.training.run import load_stage1, stage1_checkpoint
 from patexgs_jax.training.trainer import Trainer
+from train_configs import SCENE_H as H
+from train_configs import SCENE_W as W
 from train_configs import TINY_STUDY
 
 STUDY = TINY_STUDY
@@ -53,10 +55,10 @@ def test_results_schema_and_values(study):
     (scene,) = on_disk["results"]
     entries = on_disk["results"][scene]
     assert list(entries) == METHODS
-    # the scene's protocol: none of the paper's datasets, so the 3DGS width rule (64 px: kept)
+    # the scene's protocol: none of the paper's datasets, so the 3DGS width rule (W px: kept)
     proto = on_disk["scenes"][scene]
     assert proto["dataset"] is None and proto["factor"] is None and "1600" in proto["why"]
-    assert proto["training_size"] == [64, 48] and proto["test_views"] == 2 and proto["test_every"] == 8
+    assert proto["training_size"] == [W, H] and proto["test_views"] == 2 and proto["test_every"] == 8
     for key, e in entries.items():
         for s in ("1", "2", "4", "8"):
             m = e[s]
@@ -109,20 +111,20 @@ def test_tables_plots_and_renders_are_written(study):
         for s in (1, 8):
             im = Image.open(out / "renders" / scene / f"{key}_x{s}.png")
             # a header, then one view, ground truth | gap | render, enlarged s times: (14 + H + gap) x (2 W + gap)
-            assert im.size == (2 * 64 + 4, 14 + 48 + 4)
+            assert im.size == (2 * W + 4, 14 + H + 4)
             if s == 8:  # nearest neighbour: 8 x 8 blocks of the saved 1/8 render
-                px = np.asarray(im.convert("RGB"))[14:14 + 48, 64 + 4:]
+                px = np.asarray(im.convert("RGB"))[14:14 + H, W + 4:]
                 small = np.asarray(Image.open(out / "renders" / scene / "first" / f"{key}_x8.png").convert("RGB"))
                 np.testing.assert_array_equal(px[4::8, 4::8], small)
     # ground truth | 2dgs | patexgs, at full size and at 1/8 enlarged to full size, the sheet enlarged
     # to readable tiles, under a header and beside a band of row labels (figs.sheet_layout)
     im = Image.open(out / "renders" / scene / "compare.png")
-    lay = figs.sheet_layout((48, 64), ["ground-truth", *METHODS], [figs.row_label(s) for s in (1, 8)])
+    lay = figs.sheet_layout((H, W), ["ground-truth", *METHODS], [figs.row_label(s) for s in (1, 8)])
     assert im.size == lay["size"][::-1] and min(lay["tile"]) >= figs.MIN_TILE
     px = np.asarray(im.convert("RGB"))
     first = np.asarray(Image.open(out / "renders" / scene / "first" / "patexgs_x8.png").convert("RGB"))
     (y0, x0), b = lay["origin"](1, 2), 8 * lay["enlarge"]
-    np.testing.assert_array_equal(px[y0 + b // 2:y0 + 48 * lay["enlarge"]:b, x0 + b // 2:x0 + 64 * lay["enlarge"]:b],
+    np.testing.assert_array_equal(px[y0 + b // 2:y0 + H * lay["enlarge"]:b, x0 + b // 2:x0 + W * lay["enlarge"]:b],
                                   first)
 
 

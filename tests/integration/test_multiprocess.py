@@ -1,6 +1,6 @@
 """Training across processes (``jax.distributed``): two processes on 127.0.0.1, one CPU device each.
 
-Every run is the training CLI on a small synthetic scene (64 x 48, 10 views; method 2dgs,
+Every run is the training CLI on a small synthetic scene (the training tests' 48 x 32, 10 views; method 2dgs,
 ``--batch-size 2``, STEPS steps, a checkpoint every 2 steps, a log record every step), started by
 the test with a bounded wait and killed by it on any failure; the runs share one persistent
 compilation cache. Three runs (the fewest that cover the checks; the first two run at the same time):
@@ -36,6 +36,7 @@ import pytest
 
 from locations import REPO
 from patexgs_jax import checkpoint as ckpt
+from train_configs import SCENE_H, SCENE_W
 
 STEPS = 6
 RUN_TIMEOUT = 600.0  # seconds for one run (compiles on a loaded 2-core machine)
@@ -120,7 +121,7 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("multiprocess")
     # (a scene this small shows everything checked here; each run also evaluates its training views
     # at its end, 21 of them on the embedded scene)
-    scene = generate(root / "scene", seed=0, num_views=10, width=64, height=48, num_points=400)
+    scene = generate(root / "scene", seed=0, num_views=10, width=SCENE_W, height=SCENE_H, num_points=400)
     args = [*TRAIN_ARGS, "--data", scene]
     cache = root / "xla_cache"
     res = dict(root=root, times={})

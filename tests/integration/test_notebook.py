@@ -3,7 +3,7 @@
 The code cells are executed in order in one namespace with matplotlib's Agg backend (no Jupyter
 needed) by :func:`execute_notebook`. To keep the suite short the execution test lives in
 ``test_tradeoffs.py``: it runs the notebook on the PATexGS run that module's study trained on the
-embedded scene (``PATEXGS_NOTEBOOK_RUN``; ``PATEXGS_NOTEBOOK_TINY=1`` for the half-resolution data
+embedded scene (``PATEXGS_NOTEBOOK_RUN``; ``PATEXGS_NOTEBOOK_TINY=1`` for the third-resolution data
 and fewer zooms), instead of training another one with the same settings.
 """
 

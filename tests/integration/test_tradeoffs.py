@@ -1,5 +1,5 @@
 """experiments/tradeoffs.py: the plan of a study, Pareto fronts, the Markdown table, a study end to
-end on the embedded scene (few iterations, half resolution) with shared stage 1 and resume, and the
+end on the embedded scene (few iterations, a third of its resolution: 42 x 32) with shared stage 1 and resume, and the
 effect study with its reduced export.
 
 The end-to-end tests share one module-scoped study (compiles dominate); its training settings match
@@ -124,7 +124,7 @@ def dataset():
     from patexgs_jax.data import load
     from patexgs_jax.data.synthetic import ensure_default_scene
 
-    return load(str(ensure_default_scene()), factor=2)
+    return load(str(ensure_default_scene()), factor=3)  # as the notebook's PATEXGS_NOTEBOOK_TINY
 
 
 @pytest.fixture(scope="module")

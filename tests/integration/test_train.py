@@ -1,4 +1,4 @@
-"""The training loop end to end on a tiny synthetic COLMAP scene (64 x 48 images, 400 SfM points):
+"""The training loop end to end on a tiny synthetic COLMAP scene (48 x 32 images, 400 SfM points):
 both stages learn, resume equals an uninterrupted run, optimiser state follows densification,
 recompiles are counted and absent in steady state, non-finite steps are skipped (and repeated ones
 stop the run), the texture budget is met, the CLI, the method names, and a real capture.
