@@ -1,5 +1,6 @@
-"""``python -m patexgs_jax.train --plan`` on the embedded scene, with its real timed steps: the plan
-is printed and written to ``--json`` only, with each stage's measured step time and peak memory."""
+"""``python -m patexgs_jax.train --plan`` on the embedded scene (at a third of its resolution), with
+its real timed steps: the plan is printed and written to ``--json`` only, with each stage's measured
+step time and peak memory."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ from patexgs_jax.training import cli
 def test_plan_on_the_embedded_scene_times_real_steps_and_writes_only_its_json(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "plan.json"
-    code = cli.main(["--method", "textured-fixed-2", "--max-gaussians", "500", "--plan", "--json", str(out),
-                     "--plan-device", "rtx4090-24gb"])
+    # (--factor 3: the plan times the same steps on fewer pixels; 30 s instead of 38 s here)
+    code = cli.main(["--method", "textured-fixed-2", "--max-gaussians", "500", "--factor", "3", "--plan",
+                     "--json", str(out), "--plan-device", "rtx4090-24gb"])
     text = capsys.readouterr().out
     assert code == 0, text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plan.json"]  # no run folder, no checkpoints
