@@ -36,7 +36,7 @@ def study_of_two_runs(folder: Path, scene: Scene) -> Path:
 
 #: The canvas of the in-process tests: one padded size (and its 1/4 preview), shared through
 #: ``frames``, so the renderer compiles for it once.
-W, H = 64, 48
+W, H = 48, 32
 
 
 def orbit_camera(angle: float, width: int = W, height: int = H, radius: float = 3.5) -> Camera:

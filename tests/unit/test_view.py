@@ -4,7 +4,7 @@ runs a path names, and the browser's values only ever picked from lists. The ser
 the command line are in tests/integration/test_viewer_server.py.
 
 The scene is a small random textured scene saved as a run folder (a checkpoint with its training
-configuration, as training writes it, tests/viewer_scenes.py); frames are 64 x 48 pixels: the tests
+configuration, as training writes it, tests/viewer_scenes.py); frames are 48 x 32 pixels: the tests
 measure behaviour, not speed.
 """
 
