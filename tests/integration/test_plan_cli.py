@@ -12,7 +12,7 @@ from patexgs_jax.training import cli
 def test_plan_on_the_embedded_scene_times_real_steps_and_writes_only_its_json(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "plan.json"
-    # (--factor 3: the plan times the same steps on fewer pixels; 30 s instead of 38 s here)
+    # (--factor 3: the same steps timed on fewer pixels)
     code = cli.main(["--method", "textured-fixed-2", "--max-gaussians", "500", "--factor", "3", "--plan",
                      "--json", str(out), "--plan-device", "rtx4090-24gb"])
     text = capsys.readouterr().out
