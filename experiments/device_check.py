@@ -69,7 +69,7 @@ SCHEDULE_BATCHES = (2048, 512)
 #: Pallas compositor's compiled for the GPU there, against the XLA compositor).
 TEST_FILES = ("tests/unit/test_render.py", "tests/unit/test_device_path.py", "tests/unit/test_pallas_composite.py")
 
-#: The GPU targets (issue 38): (name, figure, limit, "max" or "min"); a figure may be a ratio.
+#: The GPU targets: (name, figure, limit, "max" or "min"); a figure may be a ratio.
 TARGETS = [
     ("2dgs fwd, 50k 640x480 (ms)", "render_50k.2dgs.forward_ms", 3.5, "max"),
     ("2dgs fwd+bwd, 50k 640x480 (ms)", "render_50k.2dgs.forward_backward_ms", 10.0, "max"),
@@ -80,7 +80,7 @@ TARGETS = [
     ("viewer 640x480, tiny model (fps)", "viewer.tiny.fps", 30.0, "min"),
     ("bench_train 2dgs, 100k 1280x960 (ms/step)", "train.2dgs.ms_per_step", 60.0, "max"),
     ("bench_train patexgs / 2dgs (ms/step)", "train.patexgs.over_2dgs", 3.0, "max"),
-    # Issue 48, the Pallas compositor (its rows).
+    # The Pallas compositor's rows.
     ("pallas 2dgs fwd+bwd, 1M 1920x1080 (ms)", "render_1m.2dgs@pallas.forward_backward_ms", 40.0, "max"),
     ("pallas patexgs / 2dgs fwd+bwd, 1M 1920x1080", "render_1m.patexgs@pallas.forward_backward_over_2dgs", 3.0,
      "max"),

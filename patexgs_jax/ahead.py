@@ -2,7 +2,7 @@
 critical path in a background thread.
 
 A textured run compiles its step again whenever the scene's shapes change, and each compile of a
-training step takes tens of seconds on a CPU (docs/performance.md, issue 40). Some of those shapes
+training step takes tens of seconds on a CPU (docs/performance.md). Some of those shapes
 are known well before the step that needs them: the texture stage's first layout once stage 1's
 densification has stopped (or once the stage-1 checkpoint another run starts from is written),
 Eq. 7's renderer as soon as that layout exists, and (predicted: a speculative Eq. 7 on the

@@ -296,7 +296,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
                flag=binned[0] >= 0)  # a True XLA cannot prove (see chunks.barrier)
     # jax.custom_vjp's type hides composite_tiles' return type, a tuple of three arrays.
     composite = composite_tiles
-    if resolve_compositor(config) == "pallas":  # one Pallas kernel (issue 48), imported when used
+    if resolve_compositor(config) == "pallas":  # one Pallas kernel, imported when used
         from .rendering import pallas_composite
         composite = pallas_composite.composite_tiles
     acc, t_final, best = composite(  # pyright: ignore[reportGeneralTypeIssues]

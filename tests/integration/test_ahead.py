@@ -1,4 +1,4 @@
-"""Compiling ahead (issue 40, :mod:`patexgs_jax.ahead`): the texture stage's first step and Eq. 7's
+"""Compiling ahead (:mod:`patexgs_jax.ahead`): the texture stage's first step and Eq. 7's
 programs are compiled in a background thread before they are needed; the step at the stage change
 then traces and compiles nothing, the results are bit-identical to a run without it
 (``PATEXGS_COMPILE_AHEAD=0``), and a stop signal during a background compile ends the process with

@@ -1,4 +1,4 @@
-"""Bad input loses nothing (issue 6): loaders fed corrupted files give a clear error naming the file,
+"""Bad input loses nothing: loaders fed corrupted files give a clear error naming the file,
 and never crash the interpreter or hang.
 
 Extends the truncation tests of test_data_loaders.py / test_checkpoint.py / test_export.py with

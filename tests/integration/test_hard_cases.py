@@ -1,4 +1,4 @@
-"""Numerical stability of the renderer on hard scenes (issue 6), property-based.
+"""Numerical stability of the renderer on hard scenes, property-based.
 
 Every scene comes from ``hard_scenes.build(case, seed, knob)`` (edge-on and needle splats, tiny and
 huge scales, splats behind / on / just past the near plane, far splats, coincident splats, opacity 0

@@ -1,4 +1,4 @@
-"""Killing training with SIGKILL (issue 6): at random points and in the middle of a checkpoint
+"""Killing training with SIGKILL: at random points and in the middle of a checkpoint
 write, a resumed run always finds a complete checkpoint and continues to the end. Stopping it with
 SIGINT / SIGTERM in each phase: one line, exit status 130 / 143, and ``--resume`` reaches the result
 of an uninterrupted run.

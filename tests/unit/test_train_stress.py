@@ -1,4 +1,4 @@
-"""Training under stress (issue 6): the optimiser state and the learning-rate schedule stay finite
+"""Training under stress: the optimiser state and the learning-rate schedule stay finite
 when every Gaussian is pruned and when the capacity grows several times; the output directory is
 checked before any training step. (Bad batches - NaN pixels, empty images, corrupt poses - are
 covered by tests/integration/test_train.py::test_bad_views_are_skipped; kills by tests/integration/test_kill.py.)
