@@ -71,12 +71,37 @@ _UNROLL_MAX = 16  # largest slot side filtered with unrolled sums (see _sandwich
 def _rows_filter(D, Xf):
     """``Y[k, i, x] = sum_p D[k, i, p] Xf[k, p, x]``: D (K | 1, I, P), Xf (K, P, X) -> (K, I, X), as a
     sum of P broadcast products, which XLA fuses into one loop."""
-    return sum(D[:, :, p, None] * Xf[:, None, p, :] for p in range(Xf.shape[1]))
+    K, P, X = Xf.shape
+    return _sum_of_products(lax.split(D, (1,) * P, axis=2), (0, 1, 2),
+                            lax.split(Xf, (1,) * P, axis=1), (0, 1, 2), (K, D.shape[1], X))
 
 
 def _cols_filter(D, Y):
     """``Z[k, i, j, c] = sum_q Y[k, i, q, c] D[k, j, q]``: Y (K, I, P, C) -> (K, I, J, C)."""
-    return sum(Y[:, :, None, q, :] * D[:, None, :, q, None] for q in range(Y.shape[2]))
+    K, I, P, C = Y.shape
+    return _sum_of_products(lax.split(Y, (1,) * P, axis=2), (0, 1, 2, 3),
+                            lax.split(D, (1,) * P, axis=2), (0, 2, 3), (K, I, D.shape[1], C))
+
+
+def _sum_of_products(a, a_dims, b, b_dims, shape):
+    """``sum_p a[p] * b[p]``, each pair broadcast to ``shape`` (``lax.broadcast_in_dim`` with the
+    given dimensions), added in order of p. The slices come from one ``lax.split`` per operand and
+    the products are written with lax directly: the same fused loop as indexing and broadcasting with
+    jax.numpy, in half the traced operations (the pyramids are a large share of a textured program's
+    tracing and lowering)."""
+    acc = None
+    for x, y in zip(a, b):
+        t = lax.mul(lax.broadcast_in_dim(x, shape, a_dims), lax.broadcast_in_dim(y, shape, b_dims))
+        acc = t if acc is None else lax.add(acc, t)
+    return acc
+
+
+def _filter_shape(fn, D, X):
+    """The shape of ``fn(D, X)`` for fn :func:`_rows_filter` or :func:`_cols_filter`, without
+    tracing it."""
+    if fn is _rows_filter:
+        return (X.shape[0], D.shape[1], X.shape[2])
+    return (X.shape[0], X.shape[1], D.shape[1], X.shape[3])
 
 
 def _once(fn, D, X):
@@ -85,7 +110,7 @@ def _once(fn, D, X):
     a level was computed again in each (the next level's filter and the atlas concatenation), and a
     filter's first stage again for every element of its second."""
     def zeros(D, X):
-        return jax.tree.map(lambda t: jnp.zeros(t.shape, t.dtype), jax.eval_shape(fn, D, X))
+        return jnp.zeros(_filter_shape(fn, D, X), X.dtype)
 
     return lax.cond(jnp.isfinite(D[0, 0, 0]), fn, zeros, D, X)
 
