@@ -106,29 +106,44 @@ def check_matches_reference(name):
     assert np.median(err) < 2e-5
 
 
+def _fd_loss(s, cam, wts, cfg):
+    """The finite-difference checks' loss: every output of the render, weighted."""
+    out = render_jit(s, cam, config=cfg, capacity=CAP)
+    return jnp.sum(out.rgb * wts) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth) + jnp.sum(out.distortion)
+
+
+_fd_grad = jax.jit(jax.grad(_fd_loss), static_argnames=("cfg",))
+
+
+def _fd_value(s, cam, wts, cfg) -> float:
+    """:func:`_fd_loss`'s value, summed in numpy from ``render_jit``'s outputs: the render is the
+    program the other checks of the configuration run (float64, ``CAP``), not one of its own."""
+    out = jax.tree_util.tree_map(np.asarray, render_jit(s, cam, config=cfg, capacity=CAP))
+    return float(np.sum(out.rgb * wts) + np.sum(out.alpha) + 0.1 * np.sum(out.depth) + np.sum(out.distortion))
+
+
 def directional_fd_check(sc, cam, cfg, seed, h=1e-6, rtol=2e-4):
+    """The gradient of :func:`_fd_loss` (float64) along a random direction against the central
+    difference with step h (the gradient one program, whatever the seed)."""
     with jax.enable_x64(True):
         sc64 = sc.astype(jnp.float64)
         rng = np.random.default_rng(seed)
         wts = jnp.asarray(rng.uniform(0.5, 1.5, (H, W, 3)))
-
-        def loss(s):
-            out = render_jit(s, cam, config=cfg, capacity=CAP)
-            return (jnp.sum(out.rgb * wts) + jnp.sum(out.alpha) + 0.1 * jnp.sum(out.depth)
-                    + jnp.sum(out.distortion))
-
-        g = jax.grad(loss)(sc64)
+        g = _fd_grad(sc64, cam, wts, cfg=cfg)
         leaves, treedef = jax.tree_util.tree_flatten(sc64)
-        gleaves = jax.tree_util.tree_leaves(g)
+        leaves = [np.asarray(x) for x in leaves]
+        gleaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(g)]
         frozen = {id(x) for x in (sc64.active,) + (() if sc64.filter3d is None else (sc64.filter3d,)) + tuple(
             getattr(b, f) for b in (sc64.rgb, sc64.alpha) if b is not None for f in ("bucket", "slot", "size"))}
-        dirs = [jnp.zeros_like(x) if id(x) in frozen else jnp.asarray(rng.normal(size=x.shape))
-                for x in leaves]
-        analytic = sum(float(jnp.sum(a * d)) for a, d in zip(gleaves, dirs))
+        dirs = [np.zeros_like(x) if id(y) in frozen else rng.normal(size=x.shape)
+                for x, y in zip(leaves, jax.tree_util.tree_leaves(sc64))]
+        analytic = sum(float(np.sum(a * d)) for a, d in zip(gleaves, dirs))
+
         def shift(eps):
             return jax.tree_util.tree_unflatten(treedef, [x + eps * d for x, d in zip(leaves, dirs)])
 
-        fd = (float(loss(shift(h))) - float(loss(shift(-h)))) / (2 * h)
+        w64 = np.asarray(wts)
+        fd = (_fd_value(shift(h), cam, w64, cfg) - _fd_value(shift(-h), cam, w64, cfg)) / (2 * h)
         assert np.isfinite(analytic)
         assert abs(analytic - fd) <= rtol * abs(fd) + 1e-6, (analytic, fd)
 
@@ -219,14 +234,20 @@ def cull_check(sc, cam, config, g, px, py, real):
     return keep & real, reach
 
 
+@functools.partial(jax.jit, static_argnames=("config",))
+def _screen_boxes(sc, cam, config):
+    """The splats' tile ranges (tx0, tx1, ty0, ty1, ok), each (C,), as the renderer bins them (one
+    program, not one per operation)."""
+    proj = projection.project(sc, cam, config, None, None, projection.alpha_peak(sc))
+    ts = config.tile_size
+    return binning.tile_ranges(proj.bounds, proj.visible, ts, -(-cam.width // ts), -(-cam.height // ts))
+
+
 def cull_pairs(sc, cam, config, check=None):
     """(kept, reached, boxed): tile_touches' verdicts and the kernel's over every pair of the screen
     boxes of a view (kept, reached (N,) bool; N = boxed); ``check``: the pair test, :func:`cull_check`
     unless given (same arguments)."""
-    proj = projection.project(sc, cam, config, None, None, projection.alpha_peak(sc))
-    ts = config.tile_size
-    tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in binning.tile_ranges(
-        proj.bounds, proj.visible, ts, -(-cam.width // ts), -(-cam.height // ts)))
+    tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in _screen_boxes(sc, cam, config))
     pairs = [(i, x, y) for i in np.flatnonzero(ok) for y in range(ty0[i], ty1[i]) for x in range(tx0[i], tx1[i])]
     n = len(pairs)
     assert 0 < n <= CULL_PAIRS

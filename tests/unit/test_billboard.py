@@ -74,14 +74,20 @@ def test_alpha_is_the_texture_on_the_square_and_zero_outside():
     assert inside.sum() == 30 * 30
 
 
+@jax.jit
+def _project(sc, cam):
+    """The billboards' projection (one program, not one per operation)."""
+    return projection.project(sc, cam, BB, None, None, projection.alpha_peak(sc))
+
+
 def test_bounds_are_the_projected_square_and_clip_at_the_near_plane():
     """The screen box is the box of the square's projected corners; for a square that crosses the
     near plane, the box of its part beyond it, and every pixel the float64 reference covers lies
     inside the box (the renderer draws no pixel outside it)."""
     cam = _camera()
     sc = _facing(np.full((2, 2), 1.0), quat=(np.cos(0.3), 0.3, 0.5, 0.2))
-    proj = projection.project(sc, cam, BB, None, None, projection.alpha_peak(sc))
-    M, _, _ = projection.image_map(sc, cam)
+    proj = _project(sc, cam)
+    M, _, _ = jax.jit(projection.image_map)(sc, cam)
     h = billboard.HALF
     q = np.einsum("ij,kj->ki", np.asarray(M[0], np.float64), [[-h, -h, 1], [h, -h, 1], [h, h, 1], [-h, h, 1]])
     xy = q[:, :2] / q[:, 2:]
@@ -93,7 +99,7 @@ def test_bounds_are_the_projected_square_and_clip_at_the_near_plane():
     # A large billboard tilted through the camera's plane: part of it behind the camera.
     for quat in [(np.cos(0.6), 0.0, np.sin(0.6), 0.0), (np.cos(0.7), np.sin(0.7), 0.0, 0.0)]:
         sc = _facing(np.full((2, 2), 1.0), scale=1.2, quat=quat, mean=(0.1, 0.0, -1.0))
-        proj = projection.project(sc, cam, BB, None, None, projection.alpha_peak(sc))
+        proj = _project(sc, cam)
         assert bool(proj.visible[0])
         xmin, xmax, ymin, ymax = (float(b[0]) for b in proj.bounds)
         ref = ref_render(sc, cam, BB)
@@ -157,11 +163,14 @@ def test_geometry_backward_matches_autodiff():
         pk = jnp.asarray(pk)
         g_G = jnp.asarray(rng.normal(size=(c, B, P)))
         g_z = jnp.asarray(rng.normal(size=(c, B, P)))
-        (G, z), vjp = jax.vjp(lambda p: kernel.chunk_geometry(p, x, y, billboard=True), pk)
-        want = vjp((g_G, g_z))[0]
-        geo = kernel.geometry_terms(pk, x, y, False, True)
-        got = kernel.chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, billboard=True)
-        got, want, G = jax.tree.map(np.asarray, (got, want, G))
+        @jax.jit  # one program, not one per operation
+        def both(pk):
+            (G, z), vjp = jax.vjp(lambda p: kernel.chunk_geometry(p, x, y, billboard=True), pk)
+            want = vjp((g_G, g_z))[0]
+            geo = kernel.geometry_terms(pk, x, y, False, True)
+            return kernel.chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, billboard=True), want, G
+
+        got, want, G = jax.tree.map(np.asarray, both(pk))
     assert 0 < G.mean() < 1 and set(np.unique(G)) <= {0.0, 1.0}
     assert np.all(G[0] == 0), "no coverage where the ray misses the plane"
     assert np.abs(got[..., :COLS.plane]).max() > 0

@@ -110,15 +110,19 @@ def test_chunk_backward_matches_autodiff(rgb, alpha):
         def f(pk_, G_, z_, offs_, a_tex_):
             return composite._chunk_contrib(st_, ctx, pk_, G_, z_, offs_, a_tex_, gid, valid, log_t, done)
 
-        (dacc, log_t_out), vjp, (done_out, w) = jax.vjp(f, pk, G, z, offs, a_tex, has_aux=True)
-        dot_out = dot_in + jnp.sum(ct * dacc, axis=-1)
-        want = vjp((ct, base - dot_out))
-        (lt, dn, dot), (g_pk, g_G, g_z, (g_offs, g_atex)) = composite._chunk_contrib_bwd(
-            st_, ctx, pk, G, z, offs, a_tex, gid, valid, log_t, done, ct, dot_in, base)
-        terms = composite._contrib_terms(st_, ctx, pk, G, z, a_tex, gid, valid, log_t, done)
-        got = jax.tree.map(np.asarray, ((lt, dn, dot), (g_pk, g_G, g_z, g_offs, g_atex)))
-        want = jax.tree.map(np.asarray, ((log_t_out, done_out, dot_out), want))
-        terms, w, done = jax.tree.map(np.asarray, (terms, w, done))
+        @jax.jit  # one program, not one per operation
+        def both(pk, G, z, offs, a_tex):
+            (dacc, log_t_out), vjp, (done_out, w) = jax.vjp(f, pk, G, z, offs, a_tex, has_aux=True)
+            dot_out = dot_in + jnp.sum(ct * dacc, axis=-1)
+            want = vjp((ct, base - dot_out))
+            (lt, dn, dot), (g_pk, g_G, g_z, (g_offs, g_atex)) = composite._chunk_contrib_bwd(
+                st_, ctx, pk, G, z, offs, a_tex, gid, valid, log_t, done, ct, dot_in, base)
+            terms = composite._contrib_terms(st_, ctx, pk, G, z, a_tex, gid, valid, log_t, done)
+            return ((lt, dn, dot), (g_pk, g_G, g_z, g_offs, g_atex)), ((log_t_out, done_out, dot_out), want), terms, w
+
+        got, want, terms, w = jax.tree.map(np.asarray, both(pk, G, z, offs, a_tex))
+        done_out = want[0][1]
+        done = np.asarray(done)
     # The cases the inputs are meant to reach.
     assert done_out[0, 2] and not done[0, 2], "pixel 2 stops inside the chunk"
     assert np.all(w[:, 0, 1] == 0), "pixel 1 had stopped before the chunk"
@@ -167,11 +171,14 @@ def test_geometry_backward_matches_autodiff(prefilter):
         pk = jnp.asarray(pk)
         g_G = jnp.asarray(rng.normal(size=(c, B, P)))
         g_z = jnp.asarray(rng.normal(size=(c, B, P)))
-        (G, z), vjp = jax.vjp(lambda p: kernel.chunk_geometry(p, x, y, prefilter), pk)
-        want = vjp((g_G, g_z))[0]
-        geo = kernel.geometry_terms(pk, x, y, prefilter)
-        got = kernel.chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, prefilter)
-        got, want, ok, use3, G = jax.tree.map(np.asarray, (got, want, geo.ok, geo.use3, geo.G))
+        @jax.jit  # one program, not one per operation
+        def both(pk):
+            _, vjp = jax.vjp(lambda p: kernel.chunk_geometry(p, x, y, prefilter), pk)
+            geo = kernel.geometry_terms(pk, x, y, prefilter)
+            got = kernel.chunk_geometry_bwd(pk, x, y, geo, g_G, g_z, prefilter)
+            return got, vjp((g_G, g_z))[0], geo.ok, geo.use3, geo.G
+
+        got, want, ok, use3, G = jax.tree.map(np.asarray, both(pk))
     assert not ok[0].any() and ok[1:].all()
     if prefilter:
         assert np.all(G[0] == 0) and G[1:].max() > 0.1, "no coverage where the ray misses the plane"

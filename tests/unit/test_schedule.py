@@ -566,13 +566,14 @@ def test_add_textures_then_update_step():
     C = 6
     scene = random_scene(5, C)  # no textures (stage-1 2DGS)
     opt = make_optimizer(2.0)
+    update = jax.jit(opt.update)  # one program per tree layout, not one per operation
     state = opt.init(scene)
     rng = np.random.default_rng(0)
 
     def random_like(tree):
         return jax.tree_util.tree_map(lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype), tree)
 
-    updates, state = opt.update(random_like(scene), state, scene)
+    updates, state = update(random_like(scene), state, scene)
     scene = optax.apply_updates(scene, updates)
     mu_old, nu_old = adam_moments(state)
 
@@ -590,7 +591,7 @@ def test_add_textures_then_update_step():
         assert all(not np.any(np.asarray(x)) for x in jax.tree_util.tree_leaves(bank))
 
     grads = random_like(s2)
-    updates, st3 = opt.update(grads, st2, s2)
+    updates, st3 = update(grads, st2, s2)
     s3 = optax.apply_updates(s2, updates)
     assert int(st3[0].count) == 2
     assert np.array_equal(np.asarray(s3.alpha.size), np.asarray(s2.alpha.size))  # frozen indices
@@ -621,6 +622,7 @@ def test_new_texels_have_their_own_bias_correction():
     C = 4
     scene = random_scene(6, C)
     opt = make_optimizer(1.0)
+    update = jax.jit(opt.update)  # one program per tree layout, not one per operation
     state = opt.init(scene)
     rng = np.random.default_rng(1)
 
@@ -628,12 +630,12 @@ def test_new_texels_have_their_own_bias_correction():
         return jax.tree_util.tree_map(lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype), tree)
 
     for _ in range(20):  # a 2DGS stage: the global count reaches 20
-        updates, state = opt.update(random_like(scene), state, scene)
+        updates, state = update(random_like(scene), state, scene)
         scene = optax.apply_updates(scene, updates)
     s2, st2, _ = add_textures(scene, state, opt, np.array([1, 2, 0, 1]), np.array([5, 5, 0, 5]))
     assert int(st2[0].count) == 20
     grads = random_like(s2)
-    updates, st3 = opt.update(grads, st2, s2)
+    updates, st3 = update(grads, st2, s2)
     lr = LearningRates()
     for i in (0, 1, 3):
         np.testing.assert_allclose(tex_of(updates.rgb, s2.rgb, i),
@@ -650,7 +652,7 @@ def test_new_texels_have_their_own_bias_correction():
     # Two more steps, then a resize: grown and shrunk textures keep their age 3, a new one starts at 0.
     s3 = optax.apply_updates(s2, updates)
     for _ in range(2):
-        updates, st3 = opt.update(random_like(s3), st3, s3)
+        updates, st3 = update(random_like(s3), st3, s3)
         s3 = optax.apply_updates(s3, updates)
     s4, st4, _ = resize_textures(s3, st3, np.array([3, 1, 2, 1]), np.array([2, 5, 3, 5]))
     age4 = st4[0].age
@@ -660,7 +662,7 @@ def test_new_texels_have_their_own_bias_correction():
     assert np.all(tex_of(age4.rgb, s4.rgb, 2) == 0.0) and np.all(tex_of(age4.alpha, s4.alpha, 2) == 0.0)
     # The next step gives every texel of a slot its first texel's age + 1, exactly (a checkpoint
     # stores one age per slot).
-    _, st5 = opt.update(random_like(s4), st4, s4)
+    _, st5 = update(random_like(s4), st4, s4)
     for bank, bank4 in ((st5[0].age.rgb, age4.rgb), (st5[0].age.alpha, age4.alpha)):
         for a, a4 in zip(bank.buckets, bank4.buckets):
             a, a4 = np.asarray(a), np.asarray(a4)
