@@ -294,11 +294,11 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
                rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
                alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,
                flag=binned[0] >= 0)  # a True XLA cannot prove (see chunks.barrier)
-    # jax.custom_vjp's type hides composite_tiles' return type, a tuple of three arrays.
     composite = composite_tiles
     if resolve_compositor(config) == "pallas":  # one Pallas kernel, imported when used
         from .rendering import pallas_composite
         composite = pallas_composite.composite_tiles
+    # (the Pallas compositor's custom_vjp hides its return type, a tuple of three arrays)
     acc, t_final, best = composite(  # pyright: ignore[reportGeneralTypeIssues]
         st, proj.packed, None if rgb_atlas is None else rgb_atlas.texels,
         None if alpha_atlas is None else alpha_atlas.texels, ctx)

@@ -210,7 +210,6 @@ def _composite_fwd_impl(st: Static, packed, rgb_texels, alpha_texels, ctx):
     return unsort(acc), unsort(t_final), unsort(best)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx):
     """All tiles, front to back in chunks of ``config.chunk`` splats, stopping each tile once every
     pixel's transmittance fell below 1e-4 or its list is exhausted; ``config.tile_batch`` tiles
@@ -235,13 +234,35 @@ def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx):
     behind it is through its output transmittance, whose cotangent is
     ``ct_acc . (acc_final - acc_through_chunk) + ct_T * T_final`` (later contributions are linear in
     it), so nothing per pair is stored: the residuals are the inputs and the per-pixel outputs.
+
+    The forward is computed on the inputs without their gradients, and :func:`_with_backward`
+    attaches the backward to its outputs: inside a traced program (a jitted renderer called by a
+    training step, a loop's body) a ``jax.custom_vjp`` function is traced twice under
+    differentiation, once as itself and once as its forward rule; this way the compositor's forward
+    is traced once, and the custom rule's primal and forward only pass their outputs through.
     """
-    return _composite_fwd_impl(st, packed, rgb_texels, alpha_texels, ctx)
+    sg = lax.stop_gradient
+    acc, t_final, best = _composite_fwd_impl(st, sg(packed), sg(rgb_texels), sg(alpha_texels), ctx)
+    # (jax.custom_vjp's type hides _with_backward's return type, a pair of arrays)
+    acc, t_final = _with_backward(  # pyright: ignore[reportGeneralTypeIssues]
+        st, packed, rgb_texels, alpha_texels, ctx, acc, t_final)
+    return acc, t_final, best
 
 
-def _composite_fwd(st, packed, rgb_texels, alpha_texels, ctx):
-    out = _composite_fwd_impl(st, packed, rgb_texels, alpha_texels, ctx)
-    return out, (packed, rgb_texels, alpha_texels, ctx, out[0], out[1])
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _with_backward(st: Static, packed, rgb_texels, alpha_texels, ctx, acc, t_final):
+    """``(acc, t_final)`` unchanged (the forward's outputs for these inputs), with the compositor's
+    backward as their derivative in packed, rgb_texels and alpha_texels."""
+    return acc, t_final
+
+
+def _with_backward_fwd(st, packed, rgb_texels, alpha_texels, ctx, acc, t_final):
+    return (acc, t_final), (packed, rgb_texels, alpha_texels, ctx, acc, t_final)
+
+
+def _with_backward_bwd(st, res, cts):
+    # acc and t_final come from inputs without gradients: their cotangents are zero (None).
+    return _composite_bwd(st, res, cts) + (None, None)
 
 
 def _chunk_bwd(st: Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, ct_acc, base_term, g_rt, g_at):
@@ -268,7 +289,7 @@ def _chunk_bwd(st: Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, c
 
 def _composite_bwd(st, res, cts):
     packed, rgb_texels, alpha_texels, ctx, acc_all, tfin_all = res
-    ct_acc_all, ct_t_all, _ = cts
+    ct_acc_all, ct_t_all = cts
     npx = st.config.tile_size ** 2
     dt = packed.dtype
     B = st.batch
@@ -309,4 +330,4 @@ def _composite_bwd(st, res, cts):
     return g_pk, unpaired(g_rt), unpaired(g_at), jax.tree_util.tree_map(lambda _: None, ctx)
 
 
-composite_tiles.defvjp(_composite_fwd, _composite_bwd)
+_with_backward.defvjp(_with_backward_fwd, _with_backward_bwd)

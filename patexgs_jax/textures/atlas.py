@@ -130,17 +130,26 @@ def _sandwich(D, X, once: bool = False):
     return stage(_cols_filter, D, Y)
 
 
-@jax.custom_vjp
 def _filter(D, X):
     """:func:`_sandwich`, linear in X, whose transpose is the same sums with D^T (no gradient for D:
     the filters depend on texture sizes only). The forward's stages are computed once; the transpose
     has no conditionals, which would slow it (the cotangents' sums fuse well as they are;
-    docs/benchmarks.md)."""
-    return _sandwich(D, X, once=True)
+    docs/benchmarks.md). The forward is computed without gradients and :func:`_with_transpose`
+    gives its output the transpose as derivative: a ``jax.custom_vjp`` function inside a traced
+    program is traced twice under differentiation (as itself and as its forward rule), this way the
+    filter once."""
+    sg = lax.stop_gradient
+    return _with_transpose(D, X, _sandwich(sg(D), sg(X), once=True))
 
 
-_filter.defvjp(lambda D, X: (_sandwich(D, X, once=True), D),
-               lambda D, g: (jnp.zeros_like(D), _sandwich(jnp.swapaxes(D, 1, 2), g)))
+@jax.custom_vjp
+def _with_transpose(D, X, Y):
+    """Y (= ``D X D^T``) unchanged, with the derivative of ``D X D^T`` in X."""
+    return Y
+
+
+_with_transpose.defvjp(lambda D, X, Y: (Y, D),
+                       lambda D, g: (jnp.zeros_like(D), _sandwich(jnp.swapaxes(D, 1, 2), g), None))
 
 
 def _downsample(D, X):
