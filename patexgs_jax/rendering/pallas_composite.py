@@ -446,27 +446,42 @@ def _outputs(out, idx):
     return jnp.swapaxes(out[:, :_F_ACC], 1, 2), out[:, _F_ACC], idx[:, 0]
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
 def _composite(st: Static, interpret: bool, packed, rgb_texels, alpha_texels, lists):
-    return _outputs(*_forward(st, interpret, packed, rgb_texels, alpha_texels, lists))
-
-
-def _composite_fwd(st, interpret, packed, rgb_texels, alpha_texels, lists):
-    out, idx = _forward(st, interpret, packed, rgb_texels, alpha_texels, lists)
+    """The kernel's forward on the inputs without their gradients, its outputs given the backward
+    kernel as derivative by :func:`_with_backward` (a ``jax.custom_vjp`` function inside a traced
+    program is traced twice under differentiation, as itself and as its forward rule: this way the
+    forward kernel once; see :func:`.composite.composite_tiles`)."""
+    sg = lax.stop_gradient
+    out, idx = _forward(st, interpret, sg(packed), sg(rgb_texels), sg(alpha_texels), lists)
     acc, t_final, best = _outputs(out, idx)
-    return (acc, t_final, best), (packed, rgb_texels, alpha_texels, lists, t_final, idx)
+    # (jax.custom_vjp's type hides _with_backward's return type, a pair of arrays)
+    acc, t_final = _with_backward(  # pyright: ignore[reportGeneralTypeIssues]
+        st, interpret, packed, rgb_texels, alpha_texels, lists, acc, t_final, idx)
+    return acc, t_final, best
 
 
-def _composite_bwd(st, interpret, res, cts):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
+def _with_backward(st: Static, interpret: bool, packed, rgb_texels, alpha_texels, lists, acc, t_final, idx):
+    """``(acc, t_final)`` unchanged (the forward kernel's outputs for these inputs, ``idx`` its
+    largest-weight rows), with the backward kernel as their derivative."""
+    return acc, t_final
+
+
+def _with_backward_fwd(st, interpret, packed, rgb_texels, alpha_texels, lists, acc, t_final, idx):
+    return (acc, t_final), (packed, rgb_texels, alpha_texels, lists, t_final, idx)
+
+
+def _with_backward_bwd(st, interpret, res, cts):
     packed, rgb_texels, alpha_texels, lists, t_final, idx = res
-    ct_acc, ct_t, _ = cts
+    ct_acc, ct_t = cts
     fin = jnp.stack([t_final, ct_t], axis=1)
     g_pk, g_rgb, g_alpha = _backward(st, interpret, packed, rgb_texels, alpha_texels, lists,
                                      jnp.swapaxes(ct_acc, 1, 2), fin, idx)
-    return g_pk, g_rgb, g_alpha, jax.tree_util.tree_map(lambda _: None, lists)
+    # acc, t_final and idx come from inputs without gradients: zero cotangents (None).
+    return g_pk, g_rgb, g_alpha, jax.tree_util.tree_map(lambda _: None, lists), None, None, None
 
 
-_composite.defvjp(_composite_fwd, _composite_bwd)
+_with_backward.defvjp(_with_backward_fwd, _with_backward_bwd)
 
 
 def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx, interpret: bool | None = None):
