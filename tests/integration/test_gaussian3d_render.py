@@ -122,6 +122,15 @@ def cull_check3d(sc, cam, config, g, px, py):
     return keep, jnp.any((alpha >= ALPHA_MIN) & (z > config.near), axis=(0, 2))
 
 
+@functools.partial(jax.jit, static_argnames=("config",))
+def _screen_boxes3d(sc, cam, config):
+    """The Gaussians' tile ranges (tx0, tx1, ty0, ty1, ok), each (C,), as the renderer bins them (one
+    program, not one per operation)."""
+    proj = project3d(sc, cam, config, None, None)
+    ts = config.tile_size
+    return binning.tile_ranges(proj.bounds, proj.visible, ts, -(-cam.width // ts), -(-cam.height // ts))
+
+
 @pytest.mark.parametrize("case", ["random", "edge_on_flat", "huge", "near_plane", "degenerate"])
 def test_tile_cull_keeps_every_pair(case):
     """No (Gaussian, tile) pair of a screen box that the tile cull leaves out reaches alpha 1/255 at a
@@ -132,10 +141,7 @@ def test_tile_cull_keeps_every_pair(case):
         sc, cam = hard_scene3d(case), camera(eye=(0.0, 0.0, -3.0), target=(0.0, 0.0, 1.0))
     for cov in ("lowpass", "prefilter"):
         cfg = RenderConfig(mip="none", coverage=cov)
-        proj = project3d(sc, cam, cfg, None, None)
-        ts = cfg.tile_size
-        tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in binning.tile_ranges(
-            proj.bounds, proj.visible, ts, -(-cam.width // ts), -(-cam.height // ts)))
+        tx0, tx1, ty0, ty1, ok = (np.asarray(a) for a in _screen_boxes3d(sc, cam, cfg))
         pairs = [(i, x, y) for i in np.flatnonzero(ok) for y in range(ty0[i], ty1[i]) for x in range(tx0[i], tx1[i])]
         assert 0 < len(pairs) <= 1024
         g, px, py = (np.pad(np.asarray(v, np.int32), (0, 1024 - len(pairs))) for v in zip(*pairs))
