@@ -449,8 +449,8 @@ def _outputs(out, idx):
 def _composite(st: Static, interpret: bool, packed, rgb_texels, alpha_texels, lists):
     """The kernel's forward on the inputs without their gradients, its outputs given the backward
     kernel as derivative by :func:`_with_backward` (a ``jax.custom_vjp`` function inside a traced
-    program is traced twice under differentiation, as itself and as its forward rule: this way the
-    forward kernel once; see :func:`.composite.composite_tiles`)."""
+    program is traced twice under differentiation, as itself and as its forward rule; this way the
+    forward kernel is traced once: see :func:`.composite.composite_tiles`)."""
     sg = lax.stop_gradient
     out, idx = _forward(st, interpret, sg(packed), sg(rgb_texels), sg(alpha_texels), lists)
     acc, t_final, best = _outputs(out, idx)

@@ -136,8 +136,8 @@ def _filter(D, X):
     has no conditionals, which would slow it (the cotangents' sums fuse well as they are;
     docs/benchmarks.md). The forward is computed without gradients and :func:`_with_transpose`
     gives its output the transpose as derivative: a ``jax.custom_vjp`` function inside a traced
-    program is traced twice under differentiation (as itself and as its forward rule), this way the
-    filter once."""
+    program is traced twice under differentiation (as itself and as its forward rule); this way the
+    filter is traced once."""
     sg = lax.stop_gradient
     return _with_transpose(D, X, _sandwich(sg(D), sg(X), once=True))
 
