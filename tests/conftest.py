@@ -37,30 +37,36 @@ sys.path.insert(0, os.path.dirname(__file__))
 # before anything compiles (JAX decides once whether the cache is used). It was once switched off
 # after "a hang in the compile-and-write-cache path"; that hang was the memory-map cap (see
 # patexgs_jax.compiled), which _release_compiled_code below now keeps the session away from.
-# The first process to load this file (pytest-xdist's controller, or pytest alone) makes the cache
-# and removes it at exit; xdist's workers inherit its path, so a program one worker compiled loads in
-# the other. Where PATEXGS_CACHE names a folder (CI sets a throw-away one), the cache is its
-# test-xla/ and is kept, so that the README's two test commands (the unit tier, then the
-# integration tier) share it. Every program is stored, however quick its compile (JAX's default
-# stores those over 1 s): the suite's runs and workers compile many small programs again
-# (tests/integration/test_mipnerf360.py alone: 249 -> 234 s).
+# The first process to load this file (pytest-xdist's controller, or pytest alone) picks the folder;
+# xdist's workers inherit its path, so a program one worker compiled loads in the other. It is
+# test-xla/ in the project's cache, $PATEXGS_CACHE (default $XDG_CACHE_HOME/patexgs_jax, i.e.
+# ~/.cache/patexgs_jax), and is kept: the README's two test commands (the unit tier, then the
+# integration tier) share it, and a developer's next run of a tier loads what the last one compiled
+# (the unit tier 5 min 41 s cold, 3 min 18 s warm: docs/performance.md). JAX's keys hold the
+# program, the compile options and the versions, so a changed tree only adds programs. CI sets a
+# throw-away PATEXGS_CACHE, so it always runs cold. It is apart from the command lines' xla/ there:
+# the tests' level-0 programs never serve a user's run. Every program is stored, however quick its
+# compile (JAX's default stores those over 1 s): the suite's runs and workers compile many small
+# programs again (tests/integration/test_mipnerf360.py alone: 249 -> 234 s).
 _XLA_CACHE = os.environ.get("PATEXGS_TEST_XLA_CACHE")
 if not _XLA_CACHE or not os.path.isdir(_XLA_CACHE):
-    if os.environ.get("PATEXGS_CACHE"):
-        _XLA_CACHE = os.path.join(os.path.expanduser(os.environ["PATEXGS_CACHE"]), "test-xla")
+    _root = os.environ.get("PATEXGS_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "patexgs_jax")
+    _XLA_CACHE = os.path.join(os.path.expanduser(_root), "test-xla")
+    try:
         # (JAX's own size cap needs the filelock package: a kept folder past 4 GiB starts afresh)
         if os.path.isdir(_XLA_CACHE) and sum(e.stat().st_size for e in os.scandir(_XLA_CACHE)
                                              if e.is_file()) > 4 << 30:
             shutil.rmtree(_XLA_CACHE, ignore_errors=True)
         os.makedirs(_XLA_CACHE, exist_ok=True)
-    else:
+    except OSError:  # (no writable cache folder: a throw-away one, removed at exit)
         _XLA_CACHE = tempfile.mkdtemp(prefix="patexgs_xla_cache_")
         atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
     os.environ["PATEXGS_TEST_XLA_CACHE"] = _XLA_CACHE
 jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 # The command lines turn on a per-user cache (patexgs_jax.compiled.enable_compile_cache); the ones
-# the tests start, in this process or in subprocesses, use the session's instead, never ~/.cache.
+# the tests start, in this process or in subprocesses, use the session's instead, never that one.
 os.environ["PATEXGS_COMPILE_CACHE"] = _XLA_CACHE
 
 settings.register_profile("default", deadline=None, max_examples=10, derandomize=False)

@@ -36,3 +36,19 @@ def test_profile_lines_and_summary(tmp_path, capsys):
     assert out[0].split()[:2] == ["wall", "s"] and out[1].endswith("tests/unit/test_export.py")
     total = sum(r["wall"] for r in recs)
     assert out[-1].endswith("all") and abs(float(out[-1].split()[0]) - total) < 0.1 * len(recs)
+
+
+def test_compiled_programs_are_kept_in_the_project_cache(tmp_path):
+    """Without PATEXGS_CACHE the session's compile cache is test-xla/ in the user's project cache
+    ($XDG_CACHE_HOME/patexgs_jax), kept after the run (a developer's next run loads from it), never
+    the command lines' xla/ there."""
+    node = "tests/unit/test_densify.py::test_capacity_doubling"  # (one small program)
+    env = {k: v for k, v in os.environ.items() if k not in ("PATEXGS_CACHE", "PATEXGS_TEST_XLA_CACHE",
+                                                          "PATEXGS_COMPILE_CACHE")}
+    env.update(JAX_PLATFORMS="cpu", XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", node],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    root = tmp_path / "xdg" / "patexgs_jax"
+    assert any((root / "test-xla").iterdir())
+    assert not (root / "xla").exists()
