@@ -1,6 +1,6 @@
 """The suite's own profile (``PATEXGS_TEST_PROFILE``, tests/conftest.py) and its per-file summary
 (tests/profile_summary.py): a real pytest run in a subprocess writes one line per test with JAX's
-compile times, and the summary adds them up."""
+compile times, and the summary adds them up; and where a run keeps the programs it compiled."""
 
 from __future__ import annotations
 
