@@ -72,7 +72,8 @@ def enable_compile_cache(path=None) -> Path | None:
     user's own cache and the test suite's win. JAX decides at the first compile whether a cache is
     used, so call this before anything compiles. JAX stores only programs that took at least
     ``jax_persistent_cache_min_compile_time_secs`` (1 s by default) to compile. A folder that
-    cannot be created leaves the cache off (compiling still works).
+    cannot be created leaves the cache off (compiling still works). Empty entries found there are
+    removed (:func:`drop_empty_entries`).
     """
     current = getattr(jax.config, "jax_compilation_cache_dir", None)
     if current:
@@ -84,8 +85,31 @@ def enable_compile_cache(path=None) -> Path | None:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None
+    drop_empty_entries(folder)
     jax.config.update("jax_compilation_cache_dir", str(folder))
     return folder
+
+
+def drop_empty_entries(folder) -> int:
+    """Removes the empty files of the persistent compilation cache in ``folder``; returns how many.
+
+    JAX never replaces an entry it finds, so one left empty by a process killed between creating
+    and writing it (a run stopped while it compiled) would be read, fail with a warning and compile
+    again in every later run. A written entry is never empty (a compressed executable).
+    """
+    removed = 0
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return 0
+    for entry in entries:
+        try:
+            if entry.is_file(follow_symlinks=False) and entry.stat().st_size == 0:
+                os.remove(entry.path)
+                removed += 1
+        except OSError:  # (gone already, or not ours to remove: JAX will warn about it)
+            continue
+    return removed
 
 
 class MapLimitReached(OSError):

@@ -54,11 +54,12 @@ if not _XLA_CACHE or not os.path.isdir(_XLA_CACHE):
         os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "patexgs_jax")
     _XLA_CACHE = os.path.join(os.path.expanduser(_root), "test-xla")
     try:
-        # (JAX's own size cap needs the filelock package: a kept folder past 4 GiB starts afresh)
-        if os.path.isdir(_XLA_CACHE) and sum(e.stat().st_size for e in os.scandir(_XLA_CACHE)
-                                             if e.is_file()) > 4 << 30:
-            shutil.rmtree(_XLA_CACHE, ignore_errors=True)
         os.makedirs(_XLA_CACHE, exist_ok=True)
+        # (JAX's own size cap needs the filelock package: a kept folder past 4 GiB starts afresh)
+        if sum(e.stat().st_size for e in os.scandir(_XLA_CACHE) if e.is_file()) > 4 << 30:
+            shutil.rmtree(_XLA_CACHE, ignore_errors=True)
+            os.makedirs(_XLA_CACHE, exist_ok=True)
+        compiled.drop_empty_entries(_XLA_CACHE)  # (what a killed run left would compile every time)
     except OSError:  # (no writable cache folder: a throw-away one, removed at exit)
         _XLA_CACHE = tempfile.mkdtemp(prefix="patexgs_xla_cache_")
         atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)

@@ -100,11 +100,15 @@ _CACHED_COMPILE = textwrap.dedent("""
 
 @pytest.mark.parametrize("setting", ["folder", "off"])
 def test_command_lines_keep_compiled_programs(tmp_path, setting):
-    """What the command lines call first: compiled programs are written to the per-user folder, or
-    nowhere with PATEXGS_COMPILE_CACHE=off; a folder JAX was already given wins."""
+    """What the command lines call first: compiled programs are written to the per-user folder
+    (empty entries found there removed), or nowhere with PATEXGS_COMPILE_CACHE=off; a folder JAX
+    was already given wins."""
     import os
 
     folder = tmp_path / "cache"
+    if setting == "folder":  # an entry a killed run left empty (JAX would never replace it) goes
+        folder.mkdir()
+        (folder / "jit_f-0123-cache").write_bytes(b"")
     env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
     env.update(PATEXGS_COMPILE_CACHE=str(folder) if setting == "folder" else "off",
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
@@ -115,6 +119,7 @@ def test_command_lines_keep_compiled_programs(tmp_path, setting):
         return
     assert r.stdout.strip() == str(folder)
     assert any(folder.iterdir()), "nothing was written to the cache folder"
+    assert not (folder / "jit_f-0123-cache").exists()
     env.update(JAX_COMPILATION_CACHE_DIR=str(tmp_path / "theirs"))
     r = subprocess.run([sys.executable, "-c", _CACHED_COMPILE], capture_output=True, text=True, timeout=120, env=env)
     assert r.returncode == 0 and r.stdout.strip() == str(tmp_path / "theirs"), (r.stdout, r.stderr[-2000:])

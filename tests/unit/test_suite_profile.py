@@ -41,14 +41,19 @@ def test_profile_lines_and_summary(tmp_path, capsys):
 def test_compiled_programs_are_kept_in_the_project_cache(tmp_path):
     """Without PATEXGS_CACHE the session's compile cache is test-xla/ in the user's project cache
     ($XDG_CACHE_HOME/patexgs_jax), kept after the run (a developer's next run loads from it), never
-    the command lines' xla/ there."""
+    the command lines' xla/ there; empty entries found there at the start are removed."""
     node = "tests/unit/test_densify.py::test_capacity_doubling"  # (one small program)
     env = {k: v for k, v in os.environ.items() if k not in ("PATEXGS_CACHE", "PATEXGS_TEST_XLA_CACHE",
                                                           "PATEXGS_COMPILE_CACHE")}
     env.update(JAX_PLATFORMS="cpu", XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    root = tmp_path / "xdg" / "patexgs_jax"
+    (root / "test-xla").mkdir(parents=True)
+    # an entry a killed process left empty (JAX would never replace it) goes; a written one stays
+    (root / "test-xla" / "jit_f-0123-cache").write_bytes(b"")
+    (root / "test-xla" / "jit_g-4567-cache").write_bytes(b"kept")
     done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", node],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    root = tmp_path / "xdg" / "patexgs_jax"
-    assert any((root / "test-xla").iterdir())
+    names = {p.name for p in (root / "test-xla").iterdir()}
+    assert "jit_f-0123-cache" not in names and "jit_g-4567-cache" in names and len(names) > 1
     assert not (root / "xla").exists()
