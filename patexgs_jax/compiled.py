@@ -57,11 +57,18 @@ def compile_cache_dir() -> Path | None:
     value = os.environ.get(COMPILE_CACHE_ENV)
     if value is not None:
         return None if value.strip().lower() in _OFF else Path(value).expanduser()
+    return project_cache_root() / "xla"
+
+
+def project_cache_root() -> Path:
+    """The project's cache folder: ``$PATEXGS_CACHE``, else ``$XDG_CACHE_HOME/patexgs_jax``
+    (``~/.cache/patexgs_jax``). The command lines' compiled programs live in its ``xla/``, the
+    test suite's in its ``test-xla/``."""
     root = os.environ.get("PATEXGS_CACHE")
     if root:
-        return Path(root).expanduser() / "xla"
+        return Path(root).expanduser()
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "patexgs_jax" / "xla"
+    return Path(base) / "patexgs_jax"
 
 
 def enable_compile_cache(path=None) -> Path | None:

@@ -50,9 +50,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 # programs again (tests/integration/test_mipnerf360.py alone: 249 -> 234 s).
 _XLA_CACHE = os.environ.get("PATEXGS_TEST_XLA_CACHE")
 if not _XLA_CACHE or not os.path.isdir(_XLA_CACHE):
-    _root = os.environ.get("PATEXGS_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "patexgs_jax")
-    _XLA_CACHE = os.path.join(os.path.expanduser(_root), "test-xla")
+    _XLA_CACHE = str(compiled.project_cache_root() / "test-xla")
     try:
         os.makedirs(_XLA_CACHE, exist_ok=True)
         # (JAX's own size cap needs the filelock package: a kept folder past 4 GiB starts afresh)
