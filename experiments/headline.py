@@ -7,8 +7,9 @@
 
 SOURCE is a main-job output folder (``python -m experiments.mipnerf360 --out DIR``: its
 ``results.json``) or a benchmark file written by ``--save``. The command prints the README's
-headline sentence (time, test PSNR of 2DGS and PATexGS at full size and at 1/8, PATexGS's
-Gaussians, texels and storage) and a small table of the same figures. ``--save`` keeps the study's
+headline sentence (test PSNR of 2DGS and PATexGS at full size and at 1/8, PATexGS's Gaussians,
+texels and storage), a small table of the same figures, and docs/results.md's provenance row (commit,
+date, CPU, conditions, wall time). ``--save`` keeps the study's
 results with their provenance (commit, date, machine: :mod:`experiments.provenance`) and
 ``--conditions``, a few words on how the machine was loaded and whether the compile cache was warm,
 as a file under ``benchmarks/``: the README quotes that file, and ``tests/unit/test_repo.py`` fails
@@ -81,14 +82,44 @@ def duration(seconds: float | None) -> str:
 
 
 def sentence(data: dict) -> str:
-    """The README's headline sentence (one line; the README may wrap it anywhere)."""
+    """The README's headline sentence (one line; the README may wrap it anywhere): the figures only.
+    Where and when they were measured is :func:`provenance_row`'s, in docs/results.md."""
     f = figures(data)
-    conditions = data.get("conditions")
-    where = f"At commit `{f['git']}`" + (f", {conditions}" if conditions else "")
-    return (f"{where}: {duration(f['seconds'])}; test PSNR {f['psnr'][BASELINE]:.2f} dB (2DGS) and "
-            f"{f['psnr'][METHOD]:.2f} dB (PATexGS, {f['gaussians']:,} Gaussians, {f['texels']:,} texels, "
-            f"{f['storage_mb']:.2f} MB) at full size, {f['psnr_8'][BASELINE]:.2f} / {f['psnr_8'][METHOD]:.2f} dB "
-            "at 1/8.")
+    return (f"test PSNR {f['psnr'][BASELINE]:.2f} dB (2DGS) and {f['psnr'][METHOD]:.2f} dB (PATexGS, "
+            f"{f['gaussians']:,} Gaussians, {f['texels']:,} texels, {f['storage_mb']:.2f} MB) at full size, "
+            f"{f['psnr_8'][BASELINE]:.2f} / {f['psnr_8'][METHOD]:.2f} dB at 1/8.")
+
+
+#: The header of docs/results.md's provenance table (:func:`provenance_row`).
+PROVENANCE_HEADER = "| figures | file | commit | date | CPU | conditions | wall time |"
+
+
+def provenance_row(data: dict, label: str, file: str) -> str:
+    """docs/results.md's provenance row of a benchmark file (``| label | file | commit | date | CPU |
+    conditions | wall time |``): where the README's figures were measured."""
+    git = (data.get("version") or {}).get("git") or data.get("git") or "?"
+    date = str(data.get("date") or "?")[:10]
+    cpu = data.get("cpu") or data.get("machine") or "?"
+    return (f"| {label} | `{file}` | `{git}` | {date} | {cpu} | {data.get('conditions') or '-'} | "
+            f"{duration(data.get('elapsed_seconds'))} |")
+
+
+#: The header of the README's results-at-a-glance table (:func:`glance_rows`).
+GLANCE_HEADER = "| scene | method | PSNR full | 1/2 | 1/4 | 1/8 | MB |"
+
+
+def glance_rows(data: dict, scene_label: str) -> list[str]:
+    """The README's results-at-a-glance rows (``| scene_label | method | PSNR full | 1/2 | 1/4 | 1/8 |
+    MB |``) of a study's record, one per method evaluated at every zoom-out scale, in the study's
+    order; the record's first scene."""
+    per = next(iter(data["results"].values()))
+    rows = []
+    for method, entry in per.items():
+        if not all(isinstance(entry.get(str(s)), dict) for s in (1, 2, 4, 8)):
+            continue
+        psnr = [f"{entry[str(s)]['psnr']:.2f}" for s in (1, 2, 4, 8)]
+        rows.append(f"| {scene_label} | `{method}` | " + " | ".join(psnr) + f" | {entry['storage_mb']:.2f} |")
+    return rows
 
 
 def table(data: dict) -> str:
@@ -262,7 +293,7 @@ def main(argv=None) -> int:
     ap.add_argument("source", help="a study's output folder (results.json) or a benchmark file written by --save")
     ap.add_argument("--save", default=None, help="write the results with their provenance to this JSON file")
     ap.add_argument("--conditions", default="", help="with --save: how the machine was (load, compile cache), "
-                    "quoted in the sentence")
+                    "recorded in the file for docs/results.md's provenance table")
     kind = ap.add_mutually_exclusive_group()
     kind.add_argument("--budgets", default=None, metavar="LABEL",
                     help="SOURCE is a --budgets study (any scene): print the README's budget-table rows, "
@@ -312,6 +343,9 @@ def main(argv=None) -> int:
     print(sentence(data))
     print()
     print(table(data))
+    print()
+    print(PROVENANCE_HEADER)
+    print(provenance_row(data, "main job (README)", args.save or str(args.source)))
     return 0
 
 

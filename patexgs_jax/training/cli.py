@@ -106,9 +106,14 @@ def main(argv=None) -> int:
                     "the final position learning rate). Every method trains --iters-2dgs + --iters-tex steps in "
                     "all, as experiments.study and experiments.mipnerf360 train them; --iters-tex 0 stops an "
                     "untextured method after its first stage")
-    ap.add_argument("--max-gaussians", type=int, default=None)
-    ap.add_argument("--texture-budget-mb", type=float, default=None)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-gaussians", type=int, default=None, metavar="N",
+                    help="cap on the number of Gaussians densification may reach (default: the preset's: 4,000 "
+                    "for tiny, 6,000 for cpu, none for small and paper)")
+    ap.add_argument("--texture-budget-mb", type=float, default=None, metavar="MB",
+                    help="texel budget of the texture stage in MiB of RGBA texels: Eq. 7's sigma is solved so that "
+                    "the allocation and growth stay within it (default: no budget)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the data order and every random choice "
+                    "(default 0); the same seed and data give the same run, resumed or not")
     ap.add_argument("--checkpoint-every", type=int, default=None, help="steps between checkpoints (default: the "
                     "preset's; one is always written at the end)")
     ap.add_argument("--log-every", type=int, default=None, help="steps between progress lines and log.jsonl "
