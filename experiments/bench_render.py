@@ -228,13 +228,13 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--gaussians", type=int, nargs="+", default=[50_000])
+    ap.add_argument("--gaussians", type=int, nargs="+", default=[50_000], help="scene sizes to time (default 50000)")
     ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(640, 480)], help="WxH, e.g. 160x120 1920x1080")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="timed renders per row, after the compiling one (default 3)")
     ap.add_argument("--configs", default=",".join(DEFAULT_CONFIGS),
                     help=f"comma-separated, from {', '.join(CONFIGS)}")
     ap.add_argument("--no-peak", action="store_true", help="skip measuring the matmul peak")
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", default=None, help="also write the figures here (with the commit and machine)")
     ap.add_argument("--compositor", default="xla",
                     help="comma-separated compositors to time side by side: xla, pallas (RenderConfig.compositor)")
     args = ap.parse_args(argv)

@@ -148,10 +148,11 @@ def bench(name, scene, config, pose, sizes, repeats: int, preview: int) -> list[
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", default=None, help="the tiny model's run folder or checkpoint (default: train it)")
-    ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(320, 240), (640, 480), (1280, 720)])
+    ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(320, 240), (640, 480), (1280, 720)],
+                    help="canvas sizes WxH (default 320x240 640x480 1280x720)")
     ap.add_argument("--gaussians", type=int, default=50_000, help="the synthetic model's size (0: skip it)")
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--preview", type=int, default=4)
+    ap.add_argument("--repeats", type=int, default=5, help="timed frames per row (default 5)")
+    ap.add_argument("--preview", type=int, default=4, help="the preview frames' downscale a side, as the viewer's (default 4)")
     ap.add_argument("--models", default="tiny,synthetic", help="comma-separated: tiny, synthetic")
     ap.add_argument("--json", default=None, help="write the results here (e.g. benchmarks/viewer.json)")
     args = ap.parse_args(argv)

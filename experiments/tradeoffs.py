@@ -465,29 +465,35 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.tradeoffs", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=None, help="scene folder; default: the embedded synthetic scene")
-    ap.add_argument("--factor", type=int, default=None)
+    ap.add_argument("--factor", type=int, default=None, help="image downsampling (default: as train's)")
     ap.add_argument("--out", default=None, help="output folder (default runs/tradeoffs; with --effects RUN/effects)")
-    ap.add_argument("--scales", type=_ints, default=SCALES)
+    ap.add_argument("--scales", type=_ints, default=SCALES, help="zoom-out factors evaluated, comma-separated "
+                    "(default 1,2,4,8)")
     ap.add_argument("--render-views", type=int, default=8, help="test views timed per scale")
-    ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines")
     ap.add_argument("--no-compile-cache", action="store_true", help="compile every program (default: compiled "
                     "programs are kept between runs, see PATEXGS_COMPILE_CACHE); training times then include "
                     "every compile")
     g = ap.add_argument_group("study")
     g.add_argument("--preset", default=None, help="tiny (default without --data), small or paper (default with --data)")
-    g.add_argument("--knobs", default=",".join(KNOBS))
-    g.add_argument("--iters-2dgs", type=int, default=None)
-    g.add_argument("--iters-tex", type=int, default=None)
-    g.add_argument("--max-gaussians", type=int, default=None)
-    g.add_argument("--seed", type=int, default=0)
-    g.add_argument("--fixed-sizes", type=_ints, default=FIXED_SIZES)
-    g.add_argument("--budget-fractions", type=_floats, default=BUDGET_FRACTIONS)
-    g.add_argument("--iter-fractions", type=_floats, default=ITER_FRACTIONS)
-    g.add_argument("--sh-degrees", type=_ints, default=SH_DEGREES)
+    g.add_argument("--knobs", default=",".join(KNOBS), help=f"the knobs turned one at a time, comma-separated, from "
+                   f"{', '.join(KNOBS)} (default all)")
+    g.add_argument("--iters-2dgs", type=int, default=None, help="steps of the 2DGS stage (default: the preset's)")
+    g.add_argument("--iters-tex", type=int, default=None, help="steps of the texture stage (default: the preset's)")
+    g.add_argument("--max-gaussians", type=int, default=None, help="Gaussian cap (default: the preset's)")
+    g.add_argument("--seed", type=int, default=0, help="seed of every run (default 0)")
+    g.add_argument("--fixed-sizes", type=_ints, default=FIXED_SIZES, help="texture sides of the fixed-texture settings "
+                   "(the texture knob), comma-separated")
+    g.add_argument("--budget-fractions", type=_floats, default=BUDGET_FRACTIONS, help="Gaussian budgets as fractions of "
+                   "the base run's count (the budget knob; default 1,0.1,0.01)")
+    g.add_argument("--iter-fractions", type=_floats, default=ITER_FRACTIONS, help="run lengths as fractions of the "
+                   "preset's (the iters knob; default 0.25,0.5,1)")
+    g.add_argument("--sh-degrees", type=_ints, default=SH_DEGREES, help="SH degrees (the sh knob; default 0,1,2,3)")
     e = ap.add_argument_group("effects")
     e.add_argument("--effects", action="store_true", help="the effect study of one trained run (--run)")
     e.add_argument("--run", default=None, help="a training run directory (checkpoints/ or scene.ply)")
-    e.add_argument("--drop-effects-below", type=float, default=None, metavar="DB")
+    e.add_argument("--drop-effects-below", type=float, default=None, metavar="DB", help="export the run without the "
+                   "effects worth less than DB of PSNR (to --export)")
     e.add_argument("--export", default=None, help="reduced PLY path (default OUT/scene_reduced.ply)")
     ap.add_argument("--from-study", default=None, metavar="RESULTS",
                     help="plot a python -m experiments.mipnerf360 study's entries (its results.json or folder) "

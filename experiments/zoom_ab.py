@@ -89,7 +89,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--study", required=True, help="an experiments.mipnerf360 output folder")
     ap.add_argument("--data", default=None, help="the study's --data (default: the embedded scene)")
-    ap.add_argument("--variants", default="lowpass,prefilter")
+    ap.add_argument("--variants", default="lowpass,prefilter", help="comma-separated renderer settings to compare, "
+                    f"from {', '.join(VARIANTS)} (default lowpass,prefilter)")
     ap.add_argument("--views", type=int, default=None, help="at most this many test views")
     ap.add_argument("--methods", default=None, help="only these runs (comma-separated labels; default all)")
     ap.add_argument("--json", default=None, help="also write the figures here")

@@ -238,16 +238,17 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m patexgs_jax.prepare",
                                  description="Structure-from-motion (pycolmap) on a folder of photos, "
                                              "written in the Mip-NeRF 360 layout.")
-    ap.add_argument("images_dir", type=Path)
-    ap.add_argument("out_dir", type=Path)
+    ap.add_argument("images_dir", type=Path, help="folder of the photos (JPEG or PNG)")
+    ap.add_argument("out_dir", type=Path, help="scene folder to write (images/, sparse/0/: the Mip-NeRF 360 layout)")
     ap.add_argument("--matcher", choices=("auto", "exhaustive", "sequential"), default="auto",
                     help="auto: exhaustive for <= 50 images, sequential otherwise")
-    ap.add_argument("--camera-model", default="SIMPLE_RADIAL")
+    ap.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model to estimate (default SIMPLE_RADIAL; "
+                    "undistorted when the scene is loaded)")
     ap.add_argument("--multiple-cameras", action="store_true",
                     help="estimate one camera per image size/EXIF instead of one shared camera")
     ap.add_argument("--keep-work", action="store_true", help="keep OUT_DIR/.work (database, distorted model)")
     ap.add_argument("--colmap-log", action="store_true", help="show COLMAP's own detailed log")
-    ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--quiet", action="store_true", help="print only errors")
     a = ap.parse_args(argv)
     try:
         prepare(a.images_dir, a.out_dir, matcher=a.matcher, camera_model=a.camera_model,

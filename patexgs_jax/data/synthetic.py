@@ -346,13 +346,13 @@ def ensure_default_scene(seed: int = 0, verbose: bool = True) -> Path:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m patexgs_jax.data.synthetic",
                                  description="Generate the synthetic COLMAP scene (Mip-NeRF 360 layout).")
-    ap.add_argument("out_dir", type=Path)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--num-views", type=int, default=24)
-    ap.add_argument("--width", type=int, default=128)
-    ap.add_argument("--height", type=int, default=96)
-    ap.add_argument("--supersample", type=int, default=4)
-    ap.add_argument("--num-points", type=int, default=3000)
+    ap.add_argument("out_dir", type=Path, help="folder to write the COLMAP scene into (images/, sparse/0/)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the scene's content and cameras (default 0)")
+    ap.add_argument("--num-views", type=int, default=24, help="cameras around the scene (default 24)")
+    ap.add_argument("--width", type=int, default=128, help="image width in pixels (default 128)")
+    ap.add_argument("--height", type=int, default=96, help="image height in pixels (default 96)")
+    ap.add_argument("--supersample", type=int, default=4, help="samples per pixel side of the anti-aliased renders (default 4)")
+    ap.add_argument("--num-points", type=int, default=3000, help="points of the sparse model (the SfM stand-in; default 3000)")
     ap.add_argument("--overwrite", action="store_true", help="replace an existing synthetic scene")
     a = ap.parse_args(argv)
     try:

@@ -431,7 +431,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m patexgs_jax.viewer", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("path", help="a run folder, a study's output folder or a .ckpt file")
-    ap.add_argument("--port", type=int, default=8080)
+    ap.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
     ap.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1: this machine only)")
     ap.add_argument("--data", default=None, help="the scene the run was trained on, to show its training cameras")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling factor of --data (as training)")

@@ -21,7 +21,7 @@ def test_design_names_render_and_schedule():
     assert px.render is render and px.render_jit is render_jit and px.RenderConfig is RenderConfig
     assert callable(px.render) and px.Scene and px.Camera
     assert TextureSchedule.__module__ == "patexgs_jax.schedule"
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / "docs" / "development.md").read_text()
     layout = readme[readme.index("## Layout"):]
     first_map = layout[:layout.index("| module |")]
     assert "render.py" in first_map and "schedule.py" in first_map

@@ -29,6 +29,35 @@ def test_readme_headline_matches_its_benchmark_file():
     assert headline.sentence(data) in readme, headline.sentence(data)
 
 
+def test_readme_glance_table_matches_its_benchmark_files():
+    """The README's results-at-a-glance table is `experiments.headline.glance_rows` of the zoom-out
+    studies (patexgs-literal beside patexgs), and docs/results.md names where each figure ran."""
+    from experiments import headline
+
+    readme = (ROOT / "README.md").read_text()
+    results = (ROOT / "docs" / "results.md").read_text()
+    assert headline.GLANCE_HEADER in readme
+    for name, label in (("zoom_tiny.json", "embedded"), ("zoom_beer.json", "beer")):
+        data = headline.read(ROOT / "benchmarks" / name)
+        rows = headline.glance_rows(data, label)
+        assert [r.split(" | ")[1] for r in rows] == ["`2dgs`", "`patexgs-literal`", "`patexgs`"], rows
+        for row in rows:
+            assert row in readme, row
+        assert headline.provenance_row(data, f"results at a glance, {label}", f"benchmarks/{name}") in results
+    main_job = headline.load(ROOT / "benchmarks" / "main_job_tiny.json")
+    assert headline.provenance_row(main_job, "quick start (README)", "benchmarks/main_job_tiny.json") in results
+
+
+def test_readme_has_no_provenance_in_its_prose():
+    """Commit hashes, machine names and load figures live in docs/ tables, not in the README."""
+    import re
+
+    readme = (ROOT / "README.md").read_text()
+    assert not re.findall(r"`[0-9a-f]{7}(?:-dirty)?`", readme)
+    for word in ("EPYC", "Xeon", "idle", "warm compile cache", "load average"):
+        assert word not in readme, word
+
+
 def test_readme_budget_rows_match_their_benchmark_files():
     """docs/results.md's Gaussian-budget table is `python -m experiments.headline FILE --budgets LABEL`'s
     rows of the studies it was taken from."""
