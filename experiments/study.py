@@ -184,7 +184,8 @@ class Study:
 
         interrupt.set_phase(f"loading scene {name}")
         ds = load(path, factor=protocol.factor, test_every=protocol.test_every)
-        scenes[name] = protocol.record(ds)
+        # (the scene's folder: python -m patexgs_jax.evaluate and render find a run's test views by it)
+        scenes[name] = dict(protocol.record(ds), path=str(Path(path).resolve()))
         interrupt.set_phase(f"checking the {len(ds.views)} images of scene {name}")
         ds = check_images(ds, skip_hint="remove their views from the scene", on_view=lambda n: (
             interrupt.set_step(n, len(ds.views), "image"), interrupt.check()))

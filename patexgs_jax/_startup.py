@@ -91,3 +91,11 @@ def uninstall() -> None:
 
 
 quiet_interrupt_while_starting()
+
+if sys.argv[:1] == ["-m"]:
+    # ``python -m patexgs_jax.render`` runs the renderer's module as ``__main__`` after the package has
+    # imported it (it is the package's API); its ``__main__`` block only hands over to
+    # patexgs_jax.render_cli, so runpy's warning about the second copy has nothing to act on.
+    import warnings
+
+    warnings.filterwarnings("ignore", message=r"'patexgs_jax\.render' found in sys\.modules", category=RuntimeWarning)

@@ -387,3 +387,11 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = _DEFAULT_CONFIG,
         cap = new
     raise RuntimeError("render: capacity did not converge; this is a bug, please report it.")
 
+
+
+if __name__ == "__main__":  # python -m patexgs_jax.render: the command line (frames and videos of a trained model)
+    import sys
+
+    from .render_cli import main as _main
+
+    sys.exit(_main())

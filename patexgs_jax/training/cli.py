@@ -227,6 +227,10 @@ def _train(args) -> None:
     ds = _load(args)
     interrupt.set_phase("setting up the run")
     train(ds, cfg, args.out, resume=args.resume, end_distributed=True, preset=args.preset)
+    if jax.process_index() == 0:  # the dataset, for python -m patexgs_jax.evaluate and render (patexgs_jax.sources)
+        from ..sources import write_data_record
+
+        write_data_record(args.out, args.data, args.factor)
 
 
 def _config(args):

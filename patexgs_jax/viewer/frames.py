@@ -30,7 +30,6 @@ View modes (per pixel)
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from pathlib import Path
@@ -47,6 +46,8 @@ from ..render import RenderConfig
 from ..rendering.kernel import UV_LIMIT
 from ..rendering.kernel import uv as ray_plane_uv
 from ..rendering.projection import image_map, ray_planes
+from ..sources import SourceError, is_run, load_source
+from ..sources import render_config_of as render_config_of  # (the viewer's name for it)
 
 #: Render scales (zoom-out factors) the viewer offers.
 SCALES = ZOOM_SCALES
@@ -92,13 +93,6 @@ class RunEntry:
     path: Path
 
 
-def _is_run(folder: Path) -> bool:
-    from ..checkpoint import latest_checkpoint
-
-    ck = folder / "checkpoints"
-    return (ck.is_dir() and latest_checkpoint(ck) is not None) or (folder / "scene.ply").is_file()
-
-
 def find_runs(path) -> list[RunEntry]:
     """The runs under ``path``: a run folder (``checkpoints/`` or ``scene.ply``, what
     ``python -m patexgs_jax.train --out`` writes), a study's output folder (its
@@ -113,12 +107,12 @@ def find_runs(path) -> list[RunEntry]:
         if path.suffix != ".ckpt":
             raise ViewerError(f"{path} is not a checkpoint (.ckpt): pass {what}.")
         return [RunEntry(path.name, path)]
-    if _is_run(path):
+    if is_run(path):
         return [RunEntry(path.resolve().name, path)]
     found = []
     for depth in (1, 2, 3):
         for d in sorted(path.glob("/".join(["*"] * depth))):
-            if d.is_dir() and not d.name.startswith(".") and d.name != "checkpoints" and _is_run(d):
+            if d.is_dir() and not d.name.startswith(".") and d.name != "checkpoints" and is_run(d):
                 if not any(p in d.parents for p in (e.path for e in found)):
                     found.append(RunEntry(str(d.relative_to(path)), d))
     # A study keeps its runs under runs/: list them by <scene>/<label>.
@@ -138,42 +132,15 @@ class LoadedRun:
     method: str
 
 
-def render_config_of(train_config: dict) -> RenderConfig:
-    """The render configuration of a run's method from its saved training configuration (a dict)."""
-    from ..training import Method
-
-    lam = train_config.get("lambda_mip")
-    return Method.from_name(train_config.get("method", "patexgs")).render_config(
-        lambda_mip=None if lam is None else float(lam), background=train_config.get("background", (0.0, 0.0, 0.0)))
-
-
 def load_run(entry: RunEntry) -> LoadedRun:
     """Loads a run: its newest checkpoint's scene (or ``scene.ply`` without checkpoints) with its
-    method's render configuration. Raises :class:`ViewerError` when it cannot be read."""
-    from .. import checkpoint as ckpt
-    from ..export import PlyFormatError, load_ply
-
-    path = entry.path
+    method's render configuration (:func:`patexgs_jax.sources.load_source`). Raises
+    :class:`ViewerError` when it cannot be read."""
     try:
-        if path.is_file():
-            ck, summary = path, None
-        else:
-            sp = path / "summary.json"
-            summary = json.loads(sp.read_text()) if sp.is_file() else None
-            ck = ckpt.latest_checkpoint(path / "checkpoints") if (path / "checkpoints").is_dir() else None
-        if ck is not None:
-            tree, meta = ckpt.load_checkpoint(ck)
-            if not isinstance(tree, dict) or "scene" not in tree:
-                raise ViewerError(f"{ck} holds no scene: pass a training checkpoint.")
-            scene, cfg = tree["scene"], meta.get("config") or {}
-        else:
-            scene, cfg = load_ply(path / "scene.ply"), (summary or {}).get("config") or {}
-        rc = render_config_of(cfg)
-    except (OSError, ValueError, json.JSONDecodeError, ckpt.CheckpointError, PlyFormatError) as e:
-        if isinstance(e, ViewerError):
-            raise
-        raise ViewerError(f"cannot read the run {path}: {e}") from None
-    return LoadedRun(entry.name, scene, rc, cfg.get("method", "patexgs"))
+        src = load_source(entry.path, name=entry.name)
+    except SourceError as e:
+        raise ViewerError(str(e)) from None
+    return LoadedRun(entry.name, src.scene, src.render_config, src.method)
 
 
 def mode_config(base: RenderConfig, mode: str) -> RenderConfig:
@@ -355,12 +322,15 @@ class FrameRenderer:
 
     def __init__(self, scene, base: RenderConfig, *, headroom: float = 2.0):
         self.scene, self.base, self.headroom = scene, base, headroom
-        self._renderers: dict[str, ViewRenderer] = {}
+        self._renderers: dict[str | None, ViewRenderer] = {}
 
-    def renderer(self, mode: str) -> ViewRenderer:
+    def renderer(self, mode: str | None) -> ViewRenderer:
+        """The renderer of coverage mode ``mode`` (a key of :data:`MODES`; None: the run's own
+        configuration, ``base``)."""
         r = self._renderers.get(mode)
         if r is None:
-            config = dataclasses.replace(mode_config(self.base, mode), **frame_schedule())
+            config = dataclasses.replace(self.base if mode is None else mode_config(self.base, mode),
+                                         **frame_schedule())
             scene = self.scene
             if (scene.filter3d is not None and config.coverage != "prefilter"
                     and (scene.rgb is not None or scene.alpha is not None)):
@@ -368,9 +338,10 @@ class FrameRenderer:
             r = self._renderers[mode] = ViewRenderer(scene, config, headroom=self.headroom, reuse_textures=True)
         return r
 
-    def render(self, camera: Camera, *, mode: str = "patexgs", view: str = "rgb", scale: int = 1,
+    def render(self, camera: Camera, *, mode: str | None = "patexgs", view: str = "rgb", scale: int = 1,
                enlarge: bool = True) -> Frame:
-        """The frame of ``camera`` (the canvas) at render scale ``scale`` in view ``view``; with
+        """The frame of ``camera`` (the canvas) in coverage mode ``mode`` (None: the run's own
+        configuration) at render scale ``scale`` in view ``view``; with
         ``enlarge``, enlarged back to the canvas size by nearest neighbour (the last partial
         block of pixels repeats the edge), else at the render's size."""
         if view not in VIEWS:

@@ -360,6 +360,40 @@ def test_zoom_ab_agrees_with_the_study(study, synthetic_scene_dir, tmp_path, cap
 
 
 @pytest.mark.slow
+def test_evaluate_and_render_a_study_run(study, tmp_path, capsys):
+    """``python -m patexgs_jax.evaluate`` on a study's run finds its scene and test views (the
+    study's record) and reproduces its results.json figures; ``python -m patexgs_jax.render --path
+    test`` renders those test views, the two methods side by side."""
+    from PIL import Image
+
+    from patexgs_jax import evaluate, render_cli
+
+    out, _ = study
+    data = json.loads((out / "results.json").read_text())  # (the file as it is now: a test above may re-evaluate)
+    (scene,) = data["results"]
+    run = out / "runs" / scene / "patexgs"
+    path = tmp_path / "figures.json"
+    assert evaluate.main([str(run), "--lpips", "none", "--json", str(path)]) == 0
+    assert "alias PSNR" in capsys.readouterr().out
+    got, own = json.loads(path.read_text()), data["results"][scene]["patexgs"]
+    assert got["test_views"] == 2 and got["method"] == "patexgs"
+    for s in ("1", "2", "4", "8"):
+        for key in ("psnr", "alias_psnr", "supersampled_psnr"):
+            if own[s][key] is None:
+                assert got["scales"][s][key] is None
+            else:
+                assert got["scales"][s][key] == pytest.approx(own[s][key], abs=1e-4), (s, key)
+        assert got["scales"][s]["ssim"] == pytest.approx(own[s]["ssim"], abs=1e-6)
+    for key in ("storage_mb", "num_gaussians", "texels"):
+        assert got[key] == own[key], key
+    frames = tmp_path / "frames"
+    assert render_cli.main([str(run), "--path", "test", "--out", str(frames), "--no-video", "--compare",
+                            str(out / "runs" / scene / "2dgs")]) == 0
+    pngs = sorted(frames.glob("frame_*.png"))
+    assert len(pngs) == 2 and Image.open(pngs[0]).size == (2 * W + render_cli.GAP, render_cli.BAND + H)
+
+
+@pytest.mark.slow
 def test_zoom_in_added_to_a_finished_study(study, synthetic_scene_dir, tmp_path, monkeypatch):
     """``--zoom-in`` added to a finished study: every entry is evaluated again (not retrained) zoomed
     in on the synthetic scene's analytic ground truth (its images are at factor 1), and tables.md

@@ -500,6 +500,10 @@ def test_cli(synthetic_scene_dir, tmp_path, compile_cache):
     assert np.isfinite(summary["train_psnr"]) and summary["train_seconds"] > 0
     assert (out / "scene.ply").is_file() and not (out / "scene.textures.npz").exists()  # (2dgs: no textures)
     assert ckpt_step(out) == 30
+    from patexgs_jax.sources import load_source
+
+    rec = load_source(out).data  # (RUN/data.json: how python -m patexgs_jax.evaluate and render find the test views)
+    assert rec is not None and rec.path == Path(synthetic_scene_dir).resolve() and rec.factor is None
     plain = ("--method", "2dgs", "--iters-2dgs", 30, "--iters-tex", 0)  # (30 steps: no continued stage)
     again = run_cli("--data", synthetic_scene_dir, "--out", out, *plain, cache=cache)
     assert again.returncode == 2 and "already holds checkpoints" in again.stderr and "--resume" in again.stderr
