@@ -48,6 +48,16 @@ def test_readme_glance_table_matches_its_benchmark_files():
     assert headline.provenance_row(main_job, "quick start (README)", "benchmarks/main_job_tiny.json") in results
 
 
+def test_readme_is_a_short_guide():
+    """At most 170 lines, the two set-up commands within the first 30, a citation and the licence."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert len(lines) <= 170, f"README.md has {len(lines)} lines; move reference material to docs/"
+    first = [i for i, l in enumerate(lines) if l.startswith("python3 -m venv .venv")]
+    assert first and first[-1] < 30, first
+    text = "\n".join(lines)
+    assert "@misc{patexgs" in text and "(LICENSE)" in text and (ROOT / "LICENSE").is_file()
+
+
 def test_readme_has_no_provenance_in_its_prose():
     """Commit hashes, machine names and load figures live in docs/ tables, not in the README."""
     import re
