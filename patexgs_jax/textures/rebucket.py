@@ -26,8 +26,12 @@ Re-bucketing (:func:`resize_textures`)
   a bucket up, so with headroom most events fit the layout they find and compile nothing. Buckets
   are never removed. :class:`ResizeInfo` says when the shapes changed.
 
-Everything here is host-side numpy between jitted steps; every function is pure. Which sizes to
-give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
+Where the layout is kept, the buckets stay on the device: only the old slots of the textures that
+are resampled come to the host, and the new blocks and the zeros of the slots left go back
+(:mod:`.rebucket_device`; with ``donate`` they are written in place, and the layout's programs are
+compiled ahead by :func:`prepare_growth`); a new layout is made on the host. The resampling is
+host-side float64 numpy either way. Between jitted steps; every function is pure but for
+``donate``. Which sizes to give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
 """
 
 from __future__ import annotations
@@ -225,9 +229,9 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
           min_spare: int = 0) -> _BankPlan:
     old_size, old_bucket, old_slot = _bank_indices(bank)
     C = old_size.shape[0]
-    # ceil(log2 n) = bit_length(n - 1) = frexp(n - 1) exponent; -1 for no texture.
-    new_bucket = np.where(new_size > 0, np.frexp(np.maximum(new_size - 1, 0).astype(np.float64))[1], -1)
-    new_bucket = new_bucket.astype(np.int64)
+    # ceil(log2 n) = bit_length(n - 1), looked up per side; -1 for no texture.
+    lut = np.array([-1] + [bucket_of(n) for n in range(1, int(new_size.max(initial=0)) + 1)], np.int64)
+    new_bucket = lut[new_size]
     nb = max(bank.num_buckets, int(new_bucket.max(initial=-1)) + 1)
     old_caps = list(bank.capacities) + [0] * (nb - bank.num_buckets)
     counts = np.bincount(new_bucket[new_bucket >= 0], minlength=nb)
@@ -237,8 +241,7 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
         caps = [_capacity(int(c), headroom, min_spare, min_capacity, _next_pow2(C)) for c in counts]
     cap_of = np.asarray(list(caps) + [0], np.int64)[np.maximum(old_bucket, 0)]  # (C,) the old bucket's new capacity
     stay = (new_size > 0) & (new_bucket == old_bucket) & (old_slot < cap_of)
-    new_slot = np.zeros(C, np.int64)
-    new_slot[stay] = old_slot[stay]
+    new_slot = np.where(stay, old_slot, 0)
     # Each arrival (index order) takes the lowest free slot of its bucket: one occupancy mask over
     # every bucket's slots, then a pass over the buckets that receive arrivals.
     arriving = np.flatnonzero(~stay & (new_bucket >= 0))
@@ -382,9 +385,10 @@ def _bank_from_plan(plan: _BankPlan, buckets, with_indices: bool, old: TextureBa
         bucket, slot, size = plan.new_bucket, np.where(plan.new_size > 0, plan.new_slot, 0), plan.new_size
     else:  # moment trees: index leaves are zeros
         bucket = slot = size = np.zeros(C)
-    return TextureBank(buckets=tuple(jnp.asarray(b) for b in buckets),
-                       bucket=jnp.asarray(bucket, jnp.float32), slot=jnp.asarray(slot, jnp.float32),
-                       size=jnp.asarray(size, jnp.float32), channels=plan.channels)
+    # (converted on the host: jnp.asarray of an int64 array converts with an XLA program)
+    bucket, slot, size = jax.device_put([np.asarray(x, np.float32) for x in (bucket, slot, size)])
+    return TextureBank(buckets=tuple(jnp.asarray(b) for b in buckets), bucket=bucket, slot=slot, size=size,
+                       channels=plan.channels)
 
 
 def _empty_bank(C: int, channels: int) -> TextureBank:

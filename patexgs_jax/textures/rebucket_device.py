@@ -141,8 +141,7 @@ def read_slots(buckets: Sequence, slots: dict) -> dict:
         for b, k in zip(live, sizes):
             s = np.asarray(slots.get(b, ()), np.int32)[c * k:(c + 1) * k]
             idx.append(np.concatenate([s, np.zeros(k - s.size, np.int32)]))  # (padding reads slot 0)
-        out = _program("read", False, buckets)(tuple(buckets[b] for b in live),
-                                               tuple(jax.device_put(i) for i in idx))
+        out = _program("read", False, buckets)(tuple(buckets[b] for b in live), tuple(jax.device_put(idx)))
         for b, k, o in zip(live, sizes, out):
             if b in got:
                 n = min(k, len(slots[b]) - c * k)
@@ -176,8 +175,8 @@ def write_slots(buckets: Sequence, writes: dict, donate: bool) -> list:
             if s.size:
                 block[: s.size] = v[c * k: c * k + s.size]
             blocks.append(block)
-        out = _program("write", donate, new)(tuple(new[b] for b in live), tuple(jax.device_put(i) for i in idx),
-                                             tuple(jax.device_put(v) for v in blocks))
+        idx, blocks = jax.device_put((idx, blocks))  # (one batched transfer)
+        out = _program("write", donate, new)(tuple(new[b] for b in live), tuple(idx), tuple(blocks))
         for b, o in zip(live, out):
             new[b] = o
     return new
