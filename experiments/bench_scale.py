@@ -33,7 +33,8 @@ Builds a paper-scale state without training it and times each stage of a run on 
   that compiles) and peak memory, each in a fresh process (so that the peaks are the step's own:
   the state, the step's buffers and compilation; ``process_seconds``: that process's whole time).
 
-Each row: ``event``, ``gaussians``, ``seconds``, ``host`` (true for host-side work), ``peak_rss_bytes``
+Each row: ``event``, ``gaussians``, ``seconds``, ``cpu_seconds`` (the process's CPU time over the row,
+every thread's: what a loaded machine stretches less), ``host`` (true for host-side work), ``peak_rss_bytes``
 (the process's resident-memory high-water mark during that row, Linux's VmHWM reset before it) and,
 on a GPU, ``device_peak_bytes`` (JAX's peak bytes in use so far: a running maximum). Host rows are
 timed once (they are seconds, not milliseconds; the first call of a jitted helper counts its
@@ -96,14 +97,15 @@ class Rows:
     def time(self, event: str, host: bool, **extra):
         gc.collect()
         _high_water_bytes(reset=True)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         note: dict = {}
         yield note
         seconds = time.perf_counter() - t0
-        row = dict(event=event, gaussians=self.gaussians, seconds=seconds, host=host,
+        cpu = time.process_time() - c0
+        row = dict(event=event, gaussians=self.gaussians, seconds=seconds, cpu_seconds=cpu, host=host,
                    peak_rss_bytes=_high_water_bytes(), device_peak_bytes=_device_peak(), **extra, **note)
         self.rows.append(row)
-        self.say(f"{event:<22} {seconds:9.3f} s  peak RSS {row['peak_rss_bytes'] / 2**30:6.2f} GiB"
+        self.say(f"{event:<22} {seconds:9.3f} s (CPU {cpu:7.3f} s)  peak RSS {row['peak_rss_bytes'] / 2**30:6.2f} GiB"
                  + ("" if row["device_peak_bytes"] is None else f"  device {row['device_peak_bytes'] / 2**30:6.2f} GiB")
                  + "".join(f"  {k} {v}" for k, v in note.items()))
         self.on_row(self.rows)
