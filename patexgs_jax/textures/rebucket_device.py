@@ -62,10 +62,10 @@ def _live(buckets: Sequence) -> list:
 def _abstract(buckets: Sequence):
     live = _live(buckets)
     sizes = tuple(chunk_slots(b.shape[0], b.shape[1]) for b in live)
-    args = (tuple(jax.ShapeDtypeStruct(b.shape, b.dtype) for b in live),
+    args = (tuple(jax.ShapeDtypeStruct(b.shape, b.dtype, sharding=b.sharding) for b in live),
             tuple(jax.ShapeDtypeStruct((k,), jnp.int32) for k in sizes))
     blocks = tuple(jax.ShapeDtypeStruct((k,) + tuple(b.shape[1:]), b.dtype) for b, k in zip(live, sizes))
-    key = tuple((tuple(b.shape), str(b.dtype)) for b in live)
+    key = tuple((tuple(b.shape), str(b.dtype), b.sharding) for b in live)
     return key, args, blocks
 
 
@@ -84,9 +84,9 @@ def prepare(buckets: Sequence, donate: bool = True) -> None:
     with _ahead_lock:
         if _pool is None:
             _pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="rebucket-compile")
-        for kind, fn, fargs in (("read", _gather_jit, args),
-                                ("write", _scatter_donated if donate else _scatter_kept, args + (blocks,))):
-            k = (kind, donate, key)
+        write = _scatter_donated if donate else _scatter_kept
+        for kind, don, fn, fargs in (("read", False, _gather_jit, args), ("write", donate, write, args + (blocks,))):
+            k = (kind, don, key)  # (reads never donate)
             if k not in _ahead:
                 _ahead[k] = _pool.submit(lambda fn=fn, fargs=fargs: fn.lower(*fargs).compile())
         while len(_ahead) > 2 * _KEEP:

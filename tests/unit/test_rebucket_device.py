@@ -110,3 +110,22 @@ def test_donated_buckets_are_reused_and_shared_ones_are_not_donated():
     assert not info.shapes_changed
     assert not any(b.is_deleted() for b in s1.rgb.buckets)
     assert rd.can_donate(s2.rgb.buckets)
+
+
+def test_prepared_programs_are_the_ones_used(monkeypatch):
+    """prepare_growth compiles a layout's read and write programs ahead; the next growth event uses
+    them (nothing compiled at the event) and writes what the host path writes."""
+    scene, state, _ = _random_state(7, 32)
+    rb.prepare_growth(scene)
+    used = []
+    program = rd._program
+    monkeypatch.setattr(rd, "_program", lambda kind, donate, buckets: used.append(
+        type(p := program(kind, donate, buckets)).__name__) or p)
+    sides = np.asarray(scene.rgb.size).astype(int)
+    grown = sides.copy()
+    grown[np.flatnonzero(sides == 1)[:2]] = 2
+    plan = rb._plan(scene.rgb, grown, 1, 1.0, 4)
+    want = rb._apply_plan(plan, [np.asarray(b) for b in scene.rgb.buckets], rb.RGB_NEUTRAL)
+    new, _, info = rb.resize_textures(scene, state, grown, None, headroom=1.0, min_spare=4, donate=True)
+    assert not info.shapes_changed and used and set(used) == {"Compiled"}
+    assert all(np.array_equal(np.asarray(g), w) for g, w in zip(new.rgb.buckets, want))
