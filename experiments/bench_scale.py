@@ -19,8 +19,9 @@ Builds a paper-scale state without training it and times each stage of a run on 
   texel budget (the real run's texels a Gaussian).
 * ``textures_start``: stage 2's first textures (:func:`~patexgs_jax.textures.rebucket.add_textures`).
 * ``eq8_10_growth``: one growth event's selection (Eqs. 8-10) from a gradient statistic, and
-  ``rebucket``: re-bucketing the grown textures with their Adam moments; ``rebucket_again``: a
-  second event (the first one compiles the programs that write a kept layout in place).
+  ``rebucket``: re-bucketing the grown textures with their Adam moments, in place, as the schedule
+  does (its programs compiled in the background since the allocation's re-bucketing made the
+  layout); ``rebucket_again``: a second event.
 * ``densify``: one densification step's bookkeeping (clone, split, prune; moments moved), on a
   copy of the state that it donates, as the trainer does (the first call compiles its row writes);
   ``densify_again``: a second event on its result (nothing to compile).
@@ -32,7 +33,8 @@ Builds a paper-scale state without training it and times each stage of a run on 
   that compiles) and peak memory, each in a fresh process (so that the peaks are the step's own:
   the state, the step's buffers and compilation; ``process_seconds``: that process's whole time).
 
-Each row: ``event``, ``gaussians``, ``seconds``, ``host`` (true for host-side work), ``peak_rss_bytes``
+Each row: ``event``, ``gaussians``, ``seconds``, ``cpu_seconds`` (the process's CPU time over the row,
+every thread's: what a loaded machine stretches less), ``host`` (true for host-side work), ``peak_rss_bytes``
 (the process's resident-memory high-water mark during that row, Linux's VmHWM reset before it) and,
 on a GPU, ``device_peak_bytes`` (JAX's peak bytes in use so far: a running maximum). Host rows are
 timed once (they are seconds, not milliseconds; the first call of a jitted helper counts its
@@ -95,14 +97,15 @@ class Rows:
     def time(self, event: str, host: bool, **extra):
         gc.collect()
         _high_water_bytes(reset=True)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         note: dict = {}
         yield note
         seconds = time.perf_counter() - t0
-        row = dict(event=event, gaussians=self.gaussians, seconds=seconds, host=host,
+        cpu = time.process_time() - c0
+        row = dict(event=event, gaussians=self.gaussians, seconds=seconds, cpu_seconds=cpu, host=host,
                    peak_rss_bytes=_high_water_bytes(), device_peak_bytes=_device_peak(), **extra, **note)
         self.rows.append(row)
-        self.say(f"{event:<22} {seconds:9.3f} s  peak RSS {row['peak_rss_bytes'] / 2**30:6.2f} GiB"
+        self.say(f"{event:<22} {seconds:9.3f} s (CPU {cpu:7.3f} s)  peak RSS {row['peak_rss_bytes'] / 2**30:6.2f} GiB"
                  + ("" if row["device_peak_bytes"] is None else f"  device {row['device_peak_bytes'] / 2**30:6.2f} GiB")
                  + "".join(f"  {k} {v}" for k, v in note.items()))
         self.on_row(self.rows)
@@ -158,33 +161,66 @@ def make_views(width: int, height: int, num_views: int, seed: int = 0):
     return views
 
 
-def _as_trained(opt_state, rng):
-    """Adam's state as after training, so that the copies and the checkpoint below move what a run's
-    would: moments that vary from element to element (zero in the frozen index leaves), and each
-    texture's age one whole number of steps for all its texels (zero outside the texels)."""
+def _used_texels(scene) -> dict:
+    """{(bank, bucket): bool mask like the bucket}: the texels of each slot's texture (its top-left
+    n x n block), false in the padding and the free slots."""
+    masks = {}
+    for name in ("rgb", "alpha"):
+        bank = getattr(scene, name)
+        bucket, slot, size = (np.asarray(x).astype(np.int64) for x in (bank.bucket, bank.slot, bank.size))
+        for b, x in enumerate(bank.buckets):
+            m = np.zeros(x.shape, bool)
+            for n in np.unique(size[bucket == b]):
+                m[slot[(bucket == b) & (size == n)], :n, :n] = True
+            masks[name, b] = m
+    return masks
+
+
+def _as_trained(scene, opt_state, rng):
+    """The scene's textures and Adam's state as after training, so that the copies and the
+    checkpoint below move what a run's would: texels that vary within each texture, moments that
+    vary from element to element, each texture's age one whole number of steps for its whole slot;
+    zeros where a run has them (a texture's padding and the free slots, which get no gradient and are
+    zeroed when left; the frozen index leaves' moments). Returns (scene, opt_state)."""
     import jax
 
     adam, group = opt_state
     frozen = {"active", "bucket", "slot", "size"}
+    used = _used_texels(scene)
 
     def name(path):
         return str(getattr(path[-1], "name", ""))
 
+    def texel(path):
+        return any(str(getattr(k, "name", "")) == "buckets" for k in path)
+
+    def where_used(path, v):
+        return v * used[str(path[0].name), int(path[-1].idx)] if texel(path) else v
+
+    def params(path, x):
+        if not texel(path) or np.size(x) == 0:
+            return x
+        v = (rng.normal(0.0, 0.05, np.shape(x)) if str(path[0].name) == "rgb"
+             else rng.uniform(0.2, 1.5, np.shape(x))).astype(np.float32)
+        return jax.device_put(where_used(path, v))
+
     def moment(path, x, scale):
         if name(path) in frozen or np.size(x) == 0:
             return x
-        return jax.device_put((scale * np.abs(rng.standard_normal(np.shape(x), np.float32))).astype(np.float32))
+        return jax.device_put(where_used(path, (scale * np.abs(rng.standard_normal(np.shape(x), np.float32)))
+                                         .astype(np.float32)))
 
     def age(path, x):
-        texel = any(str(getattr(k, "name", "")) == "buckets" for k in path)
-        if not texel or np.size(x) == 0:
+        if not texel(path) or np.size(x) == 0:
             return x
         per_slot = rng.integers(1, 10_000, (np.shape(x)[0], 1, 1, 1)).astype(np.float32)
-        return jax.device_put(np.array(np.broadcast_to(per_slot, np.shape(x))))
+        slots = used[str(path[0].name), int(path[-1].idx)].reshape(np.shape(x)[0], -1).any(axis=1)
+        return jax.device_put(np.array(np.broadcast_to(per_slot * slots[:, None, None, None], np.shape(x))))
 
-    return (adam._replace(mu=jax.tree_util.tree_map_with_path(lambda p, x: moment(p, x, 1e-3), adam.mu),
-                          nu=jax.tree_util.tree_map_with_path(lambda p, x: moment(p, x, 1e-6), adam.nu),
-                          age=jax.tree_util.tree_map_with_path(age, adam.age)), group)
+    scene = jax.tree_util.tree_map_with_path(params, scene)
+    return scene, (adam._replace(mu=jax.tree_util.tree_map_with_path(lambda p, x: moment(p, x, 1e-3), adam.mu),
+                                 nu=jax.tree_util.tree_map_with_path(lambda p, x: moment(p, x, 1e-6), adam.nu),
+                                 age=jax.tree_util.tree_map_with_path(age, adam.age)), group)
 
 
 def _block(tree):
@@ -217,7 +253,7 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
     from patexgs_jax.optim import ages_per_slot, make_optimizer, upgrade_state
     from patexgs_jax.padding import ViewRenderer
     from patexgs_jax.schedule import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE
-    from patexgs_jax.textures.rebucket import add_textures, resize_textures
+    from patexgs_jax.textures.rebucket import add_textures, prepare_growth, resize_textures
 
     rows = Rows(n, say, on_row)
     rng = np.random.default_rng(1)
@@ -301,7 +337,8 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
                                                  min_spare=TEXTURE_MIN_SPARE)
         _block((scene, opt_state))
         note["texels"] = int(total_texels(sides, active))
-    opt_state = _as_trained(opt_state, rng)
+        prepare_growth(scene)  # as the schedule does: the growth events' programs, in the background
+    scene, opt_state = _as_trained(scene, opt_state, rng)
 
     schedule = GrowthSchedule(t0=1000, t_final=20_000)
     state = TextureScheduleState.create(sides)
@@ -311,13 +348,13 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
     with rows.time("eq8_10_growth", host=True) as note:
         state, new_sides, sel = state.step(grad, step, schedule, active=active)
         note["grown"] = int(sel.sum())
-    # Two events: the first compiles the in-place programs of the layout, later ones reuse them.
+    # Two events (the programs of the layout were compiled in the background since the allocation).
     for event in ("rebucket", "rebucket_again"):
         if event == "rebucket_again":
             grad = np.where(active, rng.exponential(schedule.tau_preset, C), 0.0)
             state, new_sides, sel = state.step(grad, step + schedule.interval, schedule, active=active)
         with rows.time(event, host=True) as note:
-            scene, opt_state, info = resize_textures(scene, opt_state, new_sides, new_sides,
+            scene, opt_state, info = resize_textures(scene, opt_state, new_sides, new_sides, donate=True,
                                                      headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
             _block((scene, opt_state))
             note.update(grown=int(sel.sum()), layout_changed=bool(info.shapes_changed))

@@ -1,6 +1,6 @@
 """Atomic, self-describing checkpoints of arbitrary pytrees (scene, optimiser state, RNG, schedule).
 
-File format (version 2; version 1, without repeated values, is read too)
+File format (version 3; versions 1 and 2, without repeated values or zero rows, are read too)
   A ZIP archive (stored, no compression; every member CRC-checked on read) with
   * ``spec.json``: ``{"format": "patexgs-checkpoint", "version": 2, "metadata": {...},
     "tree": <node>}``, where a node is one of
@@ -17,7 +17,9 @@ File format (version 2; version 1, without repeated values, is read too)
     cannot name (bfloat16 etc.) are stored as unsigned integers of the same width and viewed back.
     An array that is bitwise one value is stored as that value (shape (1, ..., 1)) and broadcast
     back to its ``"shape"`` on reading (the zero ages of every parameter but the texels, whose ages
-    :mod:`patexgs_jax.optim` stores one per texture; the frozen leaves' zero moments).
+    :mod:`patexgs_jax.optim` stores one per texture; the frozen leaves' zero moments). An array
+    with many all-zero rows (texture buckets' free slots) is stored without them, ``"rows": j``
+    naming the member that flags the stored ones (:mod:`patexgs_jax.checkpoint_rows`).
 
   So a checkpoint rebuilds itself without a template (Scenes of any capacity, texture banks with
   any bucket shapes, optax states). Classes are re-imported by name only from the modules in
@@ -54,9 +56,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import checkpoint_rows
+
 FORMAT = "patexgs-checkpoint"
-VERSION = 2
-READABLE_VERSIONS = (1, 2)
+VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 SUFFIX = ".ckpt"
 ALLOWED_MODULE_PREFIXES: list[str] = ["patexgs_jax", "optax", "experiments"]
 
@@ -129,6 +133,7 @@ def _repeated_block(arr: np.ndarray) -> np.ndarray | None:
 class _Encoder:
     def __init__(self):
         self.arrays: list[np.ndarray] = []
+        self.kept_rows: dict[int, np.ndarray] = {}  # member -> (R,) mask of the rows it stores
 
     def _add(self, arr: np.ndarray) -> int:
         self.arrays.append(arr)
@@ -151,6 +156,12 @@ class _Encoder:
             except TypeError as e:
                 raise TypeError(f"{path}: {e}") from None
             block = _repeated_block(stored)
+            keep = None if block is not None else checkpoint_rows.zero_rows(stored)
+            if keep is not None:
+                i = self._add(stored)
+                self.kept_rows[i] = keep
+                return {"t": "array", "i": i, "kind": kind, "dtype": dtype, "shape": list(stored.shape),
+                        "rows": self._add(np.packbits(keep))}
             if block is None:
                 return {"t": "array", "i": self._add(stored), "kind": kind, "dtype": dtype}
             return {"t": "array", "i": self._add(block), "kind": kind, "dtype": dtype, "shape": list(stored.shape)}
@@ -206,7 +217,12 @@ class _Decoder:
             return node["v"]
         if t == "array":
             arr = self._array(node["i"])
-            if "shape" in node:  # a repeated block (see the module docstring)
+            if "rows" in node:  # stored without its zero rows
+                try:
+                    arr = checkpoint_rows.fill_rows(arr, self._array(node["rows"]), tuple(node["shape"]))
+                except ValueError as e:
+                    raise CorruptCheckpointError(f"array member {node['i']}: {e}") from None
+            elif "shape" in node:  # a repeated block (see the module docstring)
                 shape = tuple(node["shape"])
                 if arr.ndim != len(shape) or any(b not in (1, s) for b, s in zip(arr.shape, shape)):
                     raise CorruptCheckpointError(f"array member {node['i']} of shape {arr.shape} is not a block "
@@ -354,7 +370,10 @@ def save_checkpoint(path, tree, metadata: dict | None = None, *, keep: int | Non
                 zf.writestr("spec.json", spec_bytes)
                 for i, arr in enumerate(enc.arrays):
                     with zf.open(f"arrays/{i}.npy", "w", force_zip64=arr.nbytes > (1 << 30)) as m:
-                        _write_npy(m, arr)
+                        if i in enc.kept_rows:
+                            checkpoint_rows.write_rows(m, arr, enc.kept_rows[i])
+                        else:
+                            _write_npy(m, arr)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -37,7 +37,7 @@ from .metrics import mb_to_texels
 from .render import RenderConfig
 from .scene import Scene
 from .textures.billboard_alpha import with_gaussian_alpha
-from .textures.rebucket import add_textures, resize_textures
+from .textures.rebucket import add_textures, prepare_growth, resize_textures
 
 if TYPE_CHECKING:  # the training package imports this module: no import at run time
     from .training.config import TrainConfig
@@ -176,6 +176,8 @@ class TextureSchedule:
         self.state = adaptive.TextureScheduleState.create(sides)
         scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                               min_spare=TEXTURE_MIN_SPARE)
+        if self.spec.grows and self.spec.size is None:  # the growth events' programs, compiled meanwhile
+            prepare_growth(scene)
         self.texel_budget = budget
         self.allocation = dict(step=step, sigma=None if sigma is None else float(sigma),
                                texels=_texels(sides, act), budget_texels=None if budget is None else 2 * budget,
@@ -221,9 +223,12 @@ class TextureSchedule:
         self.state, sides, sel = self.state.step(grad, step, self.schedule, active=act,
                                                  texel_budget=self.texel_budget)
         if sel.any():
+            # (the trainer drops the old state: the kept layout is written in place)
             scene, opt_state, info = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
-                                                     min_spare=TEXTURE_MIN_SPARE)
+                                                     min_spare=TEXTURE_MIN_SPARE, donate=True)
             # (layout_changed: a bucket overflowed and every bucket was sized afresh; the step recompiles)
+            if info.shapes_changed and step + self.schedule.interval <= self.schedule.t_final:
+                prepare_growth(scene)
             event = dict(step=step, grown=int(np.sum(sides[act] > before[act])),
                          texels_added=_texels(sides, act) - _texels(before, act), texels=_texels(sides, act),
                          layout_changed=bool(info.shapes_changed))

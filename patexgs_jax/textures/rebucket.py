@@ -26,8 +26,12 @@ Re-bucketing (:func:`resize_textures`)
   a bucket up, so with headroom most events fit the layout they find and compile nothing. Buckets
   are never removed. :class:`ResizeInfo` says when the shapes changed.
 
-Everything here is host-side numpy between jitted steps; every function is pure. Which sizes to
-give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
+Where the layout is kept, the buckets stay on the device: only the old slots of the textures that
+are resampled come to the host, and the new blocks and the zeros of the slots left go back
+(:mod:`.rebucket_device`; with ``donate`` they are written in place, and the layout's programs are
+compiled ahead by :func:`prepare_growth`); a new layout is made on the host. The resampling is
+host-side float64 numpy either way. Between jitted steps; every function is pure but for
+``donate``. Which sizes to give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..scene import Scene
+from . import rebucket_device as rd
 from .bank import TextureBank, bucket_of
 
 __all__ = [
@@ -48,6 +53,7 @@ __all__ = [
     "RGB_NEUTRAL",
     "ResizeInfo",
     "add_textures",
+    "prepare_growth",
     "resample_matrix",
     "resample_texture",
     "resize_textures",
@@ -223,9 +229,9 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
           min_spare: int = 0) -> _BankPlan:
     old_size, old_bucket, old_slot = _bank_indices(bank)
     C = old_size.shape[0]
-    # ceil(log2 n) = bit_length(n - 1) = frexp(n - 1) exponent; -1 for no texture.
-    new_bucket = np.where(new_size > 0, np.frexp(np.maximum(new_size - 1, 0).astype(np.float64))[1], -1)
-    new_bucket = new_bucket.astype(np.int64)
+    # ceil(log2 n) = bit_length(n - 1), looked up per side; -1 for no texture.
+    lut = np.array([-1] + [bucket_of(n) for n in range(1, int(new_size.max(initial=0)) + 1)], np.int64)
+    new_bucket = lut[new_size]
     nb = max(bank.num_buckets, int(new_bucket.max(initial=-1)) + 1)
     old_caps = list(bank.capacities) + [0] * (nb - bank.num_buckets)
     counts = np.bincount(new_bucket[new_bucket >= 0], minlength=nb)
@@ -235,15 +241,20 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
         caps = [_capacity(int(c), headroom, min_spare, min_capacity, _next_pow2(C)) for c in counts]
     cap_of = np.asarray(list(caps) + [0], np.int64)[np.maximum(old_bucket, 0)]  # (C,) the old bucket's new capacity
     stay = (new_size > 0) & (new_bucket == old_bucket) & (old_slot < cap_of)
-    new_slot = np.zeros(C, np.int64)
-    new_slot[stay] = old_slot[stay]
-    for b in range(nb):
-        staying = np.flatnonzero(stay & (new_bucket == b))
-        arriving = np.flatnonzero(~stay & (new_bucket == b))
-        used = np.zeros(caps[b], bool)
-        used[old_slot[staying]] = True
-        free = np.flatnonzero(~used)
-        new_slot[arriving] = free[: arriving.size]
+    new_slot = np.where(stay, old_slot, 0)
+    # Each arrival (index order) takes the lowest free slot of its bucket: one occupancy mask over
+    # every bucket's slots, then a pass over the buckets that receive arrivals.
+    arriving = np.flatnonzero(~stay & (new_bucket >= 0))
+    if arriving.size:
+        offsets = np.concatenate([[0], np.cumsum(caps)]).astype(np.int64)
+        used = np.zeros(int(offsets[-1]), bool)
+        st = np.flatnonzero(stay)
+        used[offsets[new_bucket[st]] + old_slot[st]] = True
+        to = new_bucket[arriving]
+        for b in np.unique(to):
+            rows = arriving[to == b]
+            free = np.flatnonzero(~used[offsets[b]:offsets[b + 1]])
+            new_slot[rows] = free[: rows.size]
     return _BankPlan(old_size, new_size, old_bucket, old_slot, new_bucket, new_slot, tuple(caps),
                      bank.channels)
 
@@ -269,13 +280,14 @@ def _new_texels(n: int, m: int, src, fresh_value) -> np.ndarray:
     return resample_texture(src, m)
 
 
-def _apply_plan(plan: _BankPlan, old_buckets, fresh_value: float | np.ndarray):
-    """New bucket arrays from old ones following ``plan``: the layout made afresh (numpy arrays,
-    every stayer copied to its new slot), or, where it is kept, :func:`_apply_plan_in_place`."""
-    kept = len(old_buckets) == len(plan.capacities) and all(
+def _layout_kept(plan: _BankPlan, old_buckets) -> bool:
+    return len(old_buckets) == len(plan.capacities) and all(
         o.shape[0] == c for o, c in zip(old_buckets, plan.capacities))
-    if kept:
-        return _apply_plan_in_place(plan, old_buckets, fresh_value)
+
+
+def _apply_plan(plan: _BankPlan, old_buckets, fresh_value: float | np.ndarray):
+    """New bucket arrays (numpy) from old ones following ``plan``, on the host: every stayer copied to
+    its new slot (the layout made afresh; also the reference the in-place path is tested against)."""
     old = [np.asarray(b) for b in old_buckets]
     ch = plan.channels
     n_old, n_new = plan.old_size, plan.new_size
@@ -307,78 +319,76 @@ def pad_pow8(x: np.ndarray, fill, floor: int = 64, limit: int | None = None) -> 
     return out
 
 
-@jax.jit
-def _take_slots(bucket, slots):
-    """(k, P, P, ch) slots of a bucket; ``slots`` (k,) int32 (padding reads slot 0)."""
-    return jnp.take(bucket, slots, axis=0, mode="clip")
+@dataclasses.dataclass(frozen=True)
+class _KeptMoves:
+    """What a resize that keeps a bank's layout reads and writes, the same for every tree of the bank
+    (parameters and moments): slots are stable, so only the textures whose side changes matter."""
+
+    reads: dict       # old bucket -> (k,) slots of the textures resampled (side n >= 1 -> m >= 1)
+    resampled: list   # (n, m, old bucket, rows of reads[old bucket], new bucket, positions in writes)
+    fresh: list       # (m, new bucket, positions in writes): textures appearing (0 -> m), fresh values
+    writes: dict      # new bucket -> (k,) unique slots written whole (blocks zero but for the above)
 
 
-@jax.jit
-def _set_slots(bucket, slots, blocks):
-    """The bucket with ``blocks`` (k, P, P, ch) at ``slots`` (k,) int32; a slot >= the capacity (the
-    padding) writes nothing."""
-    return bucket.at[slots].set(blocks, mode="drop", unique_indices=False)
-
-
-def _apply_plan_in_place(plan: _BankPlan, old_buckets, fresh_value):
-    """The layout kept (a growth event within the headroom): the buckets stay on the device and only
-    the slots that change are read and written there (a few percent of them), instead of a copy of
-    every bucket through the host. Written: the textures resized, new or arrived (their whole slot,
-    zero padding included) and the slots left (zeros); every other slot is unchanged, bit for bit."""
-    ch = plan.channels
+def _kept_moves(plan: _BankPlan) -> _KeptMoves:
     n_old, n_new = plan.old_size, plan.new_size
-    unmoved = (n_new > 0) & (n_new == n_old) & (plan.new_bucket == plan.old_bucket) & (plan.new_slot == plan.old_slot)
-    writes: dict[int, tuple[list, list]] = {}  # bucket -> (slot arrays, block arrays)
+    changed = np.flatnonzero(n_old != n_new)
+    left = changed[n_old[changed] > 0]       # their old slots are zeroed (or rewritten below)
+    arrive = changed[n_new[changed] > 0]
+    slots: dict[int, list] = {}
+    for rows, bucket, slot in ((left, plan.old_bucket, plan.old_slot), (arrive, plan.new_bucket, plan.new_slot)):
+        for b in np.unique(bucket[rows]):
+            slots.setdefault(int(b), []).append(slot[rows[bucket[rows] == b]])
+    writes = {b: np.unique(np.concatenate(parts)) for b, parts in slots.items()}
 
-    def write(b, slots, blocks):
-        writes.setdefault(int(b), ([], []))
-        writes[int(b)][0].append(slots)
-        writes[int(b)][1].append(blocks)
+    def positions(rows):
+        b = bucket_of(int(n_new[rows[0]]))
+        return b, np.searchsorted(writes[b], plan.new_slot[rows])
 
-    def read(b, slots):
-        got = _take_slots(old_buckets[b], jnp.asarray(pad_pow8(slots.astype(np.int32), 0)))
-        return np.asarray(got)[: slots.size]
-
-    # Slots left behind (the texture moved, was resized into another slot or removed): zeros.
-    left = (n_old > 0) & (plan.old_bucket >= 0) & ~unmoved
-    for b in np.unique(plan.old_bucket[left]):
-        slots = plan.old_slot[left & (plan.old_bucket == b)]
-        P = 1 << int(b)
-        write(b, slots, np.zeros((slots.size, P, P, ch), np.float32))
-    moved = (n_new > 0) & (n_new == n_old) & ~unmoved
-    for b in np.unique(plan.new_bucket[moved]):
-        idx = np.flatnonzero(moved & (plan.new_bucket == b))
-        write(b, plan.new_slot[idx], read(b, plan.old_slot[idx]))
-    for n, m, idx in _groups(np.flatnonzero((n_new > 0) & (n_new != n_old)), n_old, n_new):
-        b = bucket_of(m)
-        P = 1 << b
-        src = (np.zeros((idx.size, 1, 1, ch), np.float32) if n == 0
-               else read(bucket_of(n), plan.old_slot[idx])[:, :n, :n])
-        block = np.zeros((idx.size, P, P, ch), np.float32)
-        block[:, :m, :m] = _new_texels(n, m, src, fresh_value)
-        write(b, plan.new_slot[idx], block)
-
-    new = list(old_buckets)
-    for b, (slot_parts, block_parts) in writes.items():
-        slots, blocks = np.concatenate(slot_parts), np.concatenate(block_parts)
-        # A slot both left and taken: the later write (the arrival) must win, so keep its last entry.
-        _, last = np.unique(slots[::-1], return_index=True)
-        keep = slots.size - 1 - last
-        cap = int(plan.capacities[b])
-        new[b] = _set_slots(old_buckets[b], jnp.asarray(pad_pow8(slots[keep].astype(np.int32), cap)),
-                            jnp.asarray(pad_pow8(blocks[keep], 0.0)))
-    return new
+    reads: dict[int, list] = {}
+    resampled, fresh = [], []
+    for n, m, idx in _groups(arrive, n_old, n_new):
+        b_new, pos = positions(idx)
+        if n == 0:
+            fresh.append((m, b_new, pos))
+            continue
+        b_old = bucket_of(n)
+        parts = reads.setdefault(b_old, [])
+        start = sum(p.size for p in parts)
+        parts.append(plan.old_slot[idx])
+        resampled.append((n, m, b_old, slice(start, start + idx.size), b_new, pos))
+    return _KeptMoves({b: np.concatenate(p) for b, p in reads.items()}, resampled, fresh, writes)
 
 
-def _bank_from_plan(plan: _BankPlan, buckets, with_indices: bool) -> TextureBank:
+def _apply_plan_in_place(plan: _BankPlan, old_buckets, fresh_value, moves: _KeptMoves, donate: bool):
+    """The layout kept (a growth event within the headroom): the buckets stay on the device and only
+    the slots that change are read and written there (a few percent of them;
+    :mod:`patexgs_jax.textures.rebucket_device`), instead of a copy of every bucket through the host.
+    Written: the textures resized or new (their whole slot, zero padding included) and the slots left
+    (zeros); every other slot is unchanged, bit for bit."""
+    ch = plan.channels
+    got = rd.read_slots(old_buckets, moves.reads) if moves.reads else {}
+    blocks = {b: np.zeros((s.size, 1 << b, 1 << b, ch), np.float32) for b, s in moves.writes.items()}
+    for n, m, b_old, rows, b_new, pos in moves.resampled:
+        blocks[b_new][pos, :m, :m] = _new_texels(n, m, got[b_old][rows, :n, :n], fresh_value)
+    for m, b_new, pos in moves.fresh:
+        blocks[b_new][pos, :m, :m] = np.asarray(fresh_value, np.float32)
+    return rd.write_slots(old_buckets, {b: (s, blocks[b]) for b, s in moves.writes.items()}, donate)
+
+
+def _bank_from_plan(plan: _BankPlan, buckets, with_indices: bool, old: TextureBank | None = None) -> TextureBank:
+    """The new bank; a moment tree's index leaves (zeros) are ``old``'s where given, else new zeros."""
     C = plan.new_size.shape[0]
+    if not with_indices and old is not None:
+        return dataclasses.replace(old, buckets=tuple(buckets))
     if with_indices:
         bucket, slot, size = plan.new_bucket, np.where(plan.new_size > 0, plan.new_slot, 0), plan.new_size
     else:  # moment trees: index leaves are zeros
         bucket = slot = size = np.zeros(C)
-    return TextureBank(buckets=tuple(jnp.asarray(b) for b in buckets),
-                       bucket=jnp.asarray(bucket, jnp.float32), slot=jnp.asarray(slot, jnp.float32),
-                       size=jnp.asarray(size, jnp.float32), channels=plan.channels)
+    # (converted on the host: jnp.asarray of an int64 array converts with an XLA program)
+    bucket, slot, size = jax.device_put([np.asarray(x, np.float32) for x in (bucket, slot, size)])
+    return TextureBank(buckets=tuple(jnp.asarray(b) for b in buckets), bucket=bucket, slot=slot, size=size,
+                       channels=plan.channels)
 
 
 def _empty_bank(C: int, channels: int) -> TextureBank:
@@ -405,7 +415,8 @@ def _check_moment_bank(mbank, bank: TextureBank, name: str):
 
 
 def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capacity: int = 1,
-                    headroom: float = 0.0, min_spare: int = 0, max_size: int = MAX_TEXTURE_SIZE):
+                    headroom: float = 0.0, min_spare: int = 0, max_size: int = MAX_TEXTURE_SIZE,
+                    donate: bool = False):
     """Changes texture sides, resampling texels and their Adam moments (see the module docstring).
 
     Args:
@@ -420,6 +431,9 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
         slots beyond its count (then rounded up to a power of two), so that the next resizes that
         move a few textures into it keep the layout (and the jitted step's program).
       max_size: largest side accepted.
+      donate: where the layout is kept, the banks' buckets (parameters and moments) are written in
+        place, their old buffers reused: the caller must not read ``scene``'s or ``opt_state``'s
+        texture buckets afterwards (the trainer's growth events; ignored where a buffer is shared).
     Returns:
       ``(scene, opt_state, ResizeInfo)``; opt_state is None if it was None.
     """
@@ -441,12 +455,22 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
                 for name in plans:
                     _check_moment_bank(getattr(m, name), getattr(scene, name), name)
 
+    trees = [scene] + ([] if opt_state is None else
+                       [m for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene) if _is_scene(m)])
+    kept = {name: _kept_moves(plan) for name, plan in plans.items()
+            if _layout_kept(plan, getattr(scene, name).buckets)}
+    donate = bool(donate) and rd.can_donate([b for t in trees for name in kept for b in getattr(t, name).buckets])
+
     def apply(s: Scene, is_params: bool) -> Scene:
         kw = {}
         for name, plan in plans.items():
             fresh = (RGB_NEUTRAL if name == "rgb" else ALPHA_NEUTRAL) if is_params else 0.0
-            buckets = _apply_plan(plan, getattr(s, name).buckets, fresh)
-            kw[name] = _bank_from_plan(plan, buckets, with_indices=is_params)
+            old = getattr(s, name)
+            if name in kept:
+                buckets = _apply_plan_in_place(plan, old.buckets, fresh, kept[name], donate)
+                kw[name] = _bank_from_plan(plan, buckets, with_indices=is_params, old=old)
+            else:
+                kw[name] = _bank_from_plan(plan, _apply_plan(plan, old.buckets, fresh), with_indices=is_params)
         return s.replace(**kw)
 
     new_scene = apply(scene, True)
@@ -531,3 +555,14 @@ def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb
                 raise ValueError("optimiser state leaf shapes differ between the old and new scene.")
             merged.append(o)
     return new_scene, jax.tree_util.tree_unflatten(old_def, merged), info
+
+
+def prepare_growth(scene: Scene) -> None:
+    """Compiles, in a background thread, the programs with which :func:`resize_textures` (``donate=True``)
+    writes ``scene``'s bucket layout in place (:func:`patexgs_jax.textures.rebucket_device.prepare`):
+    called when a layout is made and growth events will follow, so that the first of them compiles
+    nothing."""
+    for name in _BANKS:
+        bank = getattr(scene, name)
+        if bank is not None:
+            rd.prepare(bank.buckets, donate=True)

@@ -273,3 +273,48 @@ def test_repeated_values_are_stored_once(tmp_path, monkeypatch):
             z.writestr(n, data)
     with pytest.raises(CorruptCheckpointError, match="not a block"):
         load_checkpoint(bad)
+
+
+def test_zero_rows_are_not_stored(tmp_path, monkeypatch):
+    """An array with many all-zero rows (a texture bucket's free slots) is stored without them and
+    read back bitwise (a row holding only -0.0 is not zero, nor one whose first element only is); one
+    with few zero rows is stored whole;
+    a row mask that does not fit its rows is a corrupt file."""
+    import json
+    import zipfile
+
+    from patexgs_jax import checkpoint_rows
+
+    monkeypatch.setattr(checkpoint_rows, "MIN_BYTES", 1024)
+    rng = np.random.default_rng(0)
+    bucket = rng.normal(size=(300, 4, 4, 3)).astype(np.float32)
+    bucket[rng.random(300) < 0.4] = 0.0
+    bucket[7] = -0.0
+    bucket[11] = 1.0
+    bucket[11, 0, 0, 0] = 0.0  # a row whose first element is zero, the rest not
+    few = rng.normal(size=(300, 8)).astype(np.float32)
+    few[:10] = 0.0
+    tree = {"bucket": jnp.asarray(bucket), "host": bucket.copy(), "few": few, "ints": (bucket != 0).astype(np.int16)}
+    path = save_checkpoint(tmp_path / "z.ckpt", tree)
+    with zipfile.ZipFile(path) as z:
+        spec = json.loads(z.read("spec.json"))
+        nodes = dict(zip(spec["tree"]["k"], spec["tree"]["v"]))
+        size = {k: z.getinfo(f"arrays/{v['i']}.npy").file_size for k, v in nodes.items()}
+    assert {k for k, v in nodes.items() if "rows" in v} == {"bucket", "host", "ints"}
+    assert size["bucket"] < 0.7 * bucket.nbytes and size["few"] > few.nbytes
+    back, _ = load_checkpoint(path)
+    for k, v in tree.items():
+        got = np.asarray(back[k])
+        assert got.dtype == np.asarray(v).dtype and got.tobytes() == np.asarray(v).tobytes(), k
+    assert isinstance(back["bucket"], jax.Array) and np.asarray(back["host"]).flags.writeable
+
+    with zipfile.ZipFile(path) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    nodes["bucket"]["rows"] = nodes["ints"]["i"]  # another member as the mask: it does not fit
+    members["spec.json"] = json.dumps(spec).encode()
+    bad = tmp_path / "bad.ckpt"
+    with zipfile.ZipFile(bad, "w", zipfile.ZIP_STORED) as z:
+        for n, data in members.items():
+            z.writestr(n, data)
+    with pytest.raises(CorruptCheckpointError, match="flagged rows"):
+        load_checkpoint(bad)

@@ -1,0 +1,182 @@
+"""Slot reads and writes of a texture bank on the device, for re-bucketing that keeps the layout.
+
+A growth event within the buckets' headroom changes a few percent of the slots
+(:func:`patexgs_jax.textures.rebucket.resize_textures`): the old slots of the textures being
+resampled are read (:func:`read_slots`), the host resamples them, and the new blocks, with zeros
+in the slots left, are written (:func:`write_slots`); every other slot stays where it is, bit for
+bit. With ``donate`` the buckets are written in place (their old buffers are reused: the caller must
+not read them again); without it, each call copies the bank.
+
+Shapes. Each bucket is read and written in chunks of :func:`chunk_slots` slots (about
+:data:`CHUNK_TEXELS` texels; the index padded past the capacity, which writes nothing), every bucket
+of a bank in one program, so that a layout has one read and one write program a bank whatever the
+event: they compile once per layout, at its first event or ahead of it (:func:`prepare`, in a
+background thread, e.g. while the training step that follows a new layout compiles).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import threading
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["CHUNK_TEXELS", "can_donate", "chunk_slots", "prepare", "read_slots", "write_slots"]
+
+#: Texels a bucket's chunk holds (its slots: this over the slot's texels, at least one, at most the
+#: capacity): a chunk's padding costs at most this many texels a bucket and a call.
+CHUNK_TEXELS = 1 << 17
+
+
+def chunk_slots(capacity: int, side: int) -> int:
+    """Slots a bucket of ``capacity`` slots of ``side x side`` texels reads or writes in one call."""
+    return max(1, min(int(capacity), CHUNK_TEXELS // (int(side) * int(side))))
+
+
+def _gather(buckets, idx):
+    return tuple(jnp.take(b, i, axis=0, mode="clip") for b, i in zip(buckets, idx))
+
+
+def _scatter(buckets, idx, blocks):
+    return tuple(b.at[i].set(v, mode="drop") for b, i, v in zip(buckets, idx, blocks))
+
+
+_gather_jit = jax.jit(_gather)
+_scatter_kept = jax.jit(_scatter)
+_scatter_donated = jax.jit(_scatter, donate_argnums=0)
+
+_ahead: dict = {}  # program key -> Future of its compiled program
+_ahead_lock = threading.Lock()
+_pool: concurrent.futures.ThreadPoolExecutor | None = None
+_KEEP = 16  # layouts whose programs are kept (a run makes a handful)
+
+
+def _live(buckets: Sequence) -> list:
+    """The non-empty buckets (the programs take only these)."""
+    return [b for b in buckets if b.shape[0] > 0]
+
+
+def _abstract(buckets: Sequence):
+    live = _live(buckets)
+    sizes = tuple(chunk_slots(b.shape[0], b.shape[1]) for b in live)
+    args = (tuple(jax.ShapeDtypeStruct(b.shape, b.dtype, sharding=b.sharding) for b in live),
+            tuple(jax.ShapeDtypeStruct((k,), jnp.int32) for k in sizes))
+    blocks = tuple(jax.ShapeDtypeStruct((k,) + tuple(b.shape[1:]), b.dtype) for b, k in zip(live, sizes))
+    key = tuple((tuple(b.shape), str(b.dtype), b.sharding) for b in live)
+    return key, args, blocks
+
+
+def _single_device(buckets: Sequence) -> bool:
+    return all(isinstance(b, jax.Array) and isinstance(b.sharding, jax.sharding.SingleDeviceSharding)
+               for b in buckets)
+
+
+def prepare(buckets: Sequence, donate: bool = True) -> None:
+    """Compiles a bank's read and write programs for its layout in a background thread (once a layout;
+    single-device banks only: others compile at first use, through ``jax.jit``)."""
+    global _pool
+    if not _live(buckets) or not _single_device(_live(buckets)):
+        return
+    key, args, blocks = _abstract(buckets)
+    with _ahead_lock:
+        if _pool is None:
+            _pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="rebucket-compile")
+        write = _scatter_donated if donate else _scatter_kept
+        for kind, don, fn, fargs in (("read", False, _gather_jit, args), ("write", donate, write, args + (blocks,))):
+            k = (kind, don, key)  # (reads never donate)
+            if k not in _ahead:
+                _ahead[k] = _pool.submit(lambda fn=fn, fargs=fargs: fn.lower(*fargs).compile())
+        while len(_ahead) > 2 * _KEEP:
+            _ahead.pop(next(iter(_ahead)))
+
+
+def _program(kind: str, donate: bool, buckets: Sequence):
+    """The compiled program prepared for this layout, or the jitted function (compiled at first use)."""
+    fn = {"read": _gather_jit, "write": _scatter_donated if donate else _scatter_kept}[kind]
+    if not _single_device(buckets):
+        return fn
+    with _ahead_lock:
+        fut = _ahead.get((kind, donate, _abstract(buckets)[0]))
+    return fn if fut is None else fut.result()
+
+
+def can_donate(buckets: Sequence) -> bool:
+    """Whether every bucket is a live jax array with a buffer of its own (donating one buffer twice in
+    a call would fail)."""
+    if not all(isinstance(b, jax.Array) and not b.is_deleted() for b in buckets):
+        return False
+    keys = []
+    for b in buckets:
+        try:
+            keys.append(b.unsafe_buffer_pointer())
+        except Exception:  # not a single-device array: its identity
+            keys.append(id(b))
+    return len(set(keys)) == len(keys)
+
+
+def _chunks(buckets: Sequence, counts: dict) -> tuple[list, list, int]:
+    """(live bucket indices, their chunk sizes, number of calls) for ``counts`` slots per bucket."""
+    live = [b for b, x in enumerate(buckets) if x.shape[0] > 0]
+    sizes = [chunk_slots(buckets[b].shape[0], buckets[b].shape[1]) for b in live]
+    calls = max([-(-int(counts.get(b, 0)) // k) for b, k in zip(live, sizes)], default=0)
+    return live, sizes, calls
+
+
+def read_slots(buckets: Sequence, slots: dict) -> dict:
+    """Host copies of some slots of a bank.
+
+    Args:
+      buckets: the bank's buckets; ``buckets[b]`` (cap_b, P_b, P_b, ch).
+      slots: {bucket b: (k_b,) int slots to read}.
+    Returns:
+      {b: (k_b, P_b, P_b, ch) numpy array} in the order of ``slots[b]``.
+    """
+    live, sizes, calls = _chunks(buckets, {b: len(s) for b, s in slots.items()})
+    got: dict = {b: [] for b in slots}
+    for c in range(calls):
+        idx = []
+        for b, k in zip(live, sizes):
+            s = np.asarray(slots.get(b, ()), np.int32)[c * k:(c + 1) * k]
+            idx.append(np.concatenate([s, np.zeros(k - s.size, np.int32)]))  # (padding reads slot 0)
+        out = _program("read", False, buckets)(tuple(buckets[b] for b in live), tuple(jax.device_put(idx)))
+        for b, k, o in zip(live, sizes, out):
+            if b in got:
+                n = min(k, len(slots[b]) - c * k)
+                if n > 0:
+                    got[b].append(np.asarray(o)[:n])
+    return {b: (parts[0] if len(parts) == 1 else np.concatenate(parts)) if parts
+            else np.zeros((0,) + tuple(buckets[b].shape[1:]), np.float32) for b, parts in got.items()}
+
+
+def write_slots(buckets: Sequence, writes: dict, donate: bool) -> list:
+    """A bank with some slots rewritten whole.
+
+    Args:
+      buckets: the bank's buckets; ``buckets[b]`` (cap_b, P_b, P_b, ch).
+      writes: {bucket b: ((k_b,) int unique slots, (k_b, P_b, P_b, ch) float32 blocks)}.
+      donate: write in place (the old buckets' buffers are reused; see :func:`can_donate`).
+    Returns:
+      The new buckets (a list; with no write at all, the old arrays).
+    """
+    live, sizes, calls = _chunks(buckets, {b: len(s) for b, (s, _) in writes.items()})
+    new = list(buckets)
+    for c in range(calls):
+        idx, blocks = [], []
+        for b, k in zip(live, sizes):
+            cap = int(buckets[b].shape[0])
+            s, v = writes.get(b, ((), None))
+            s = np.asarray(s, np.int32)[c * k:(c + 1) * k]
+            # Padding: distinct indices past the capacity, which write nothing.
+            idx.append(np.concatenate([s, cap + np.arange(k - s.size, dtype=np.int32)]))
+            block = np.zeros((k,) + tuple(buckets[b].shape[1:]), np.float32)
+            if s.size:
+                block[: s.size] = v[c * k: c * k + s.size]
+            blocks.append(block)
+        idx, blocks = jax.device_put((idx, blocks))  # (one batched transfer)
+        out = _program("write", donate, new)(tuple(new[b] for b in live), tuple(idx), tuple(blocks))
+        for b, o in zip(live, out):
+            new[b] = o
+    return new
