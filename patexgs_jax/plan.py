@@ -457,7 +457,8 @@ def memory_plan(dataset, config, gaussians: int, rgba_texels: int, device: Devic
 #: On a CPU the plan times steps at no more than this many Gaussians and padded pixels, and scales.
 MEASURE_MAX_GAUSSIANS = 20_000
 MEASURE_MAX_PIXELS = 1 << 20
-#: Steps timed a stage where the plan extrapolates anyway (the count scaled linearly).
+#: Steps timed a stage where the plan extrapolates anyway (the count scaled linearly); its Eq. 7
+#: allocation then runs at the texture stage's start (no warm-up step: one compile less).
 EXTRAPOLATED_STEPS = 3
 
 
@@ -492,17 +493,18 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     if measured is None and measure:
         m_n, scale, note = n, 1.0, ""
         px = max(padded_pixels(v.camera.width, v.camera.height) for v in dataset.train_views)
-        timed = steps
+        timed, quick = steps, False
         if here.kind == "cpu" and (n > MEASURE_MAX_GAUSSIANS or px > MEASURE_MAX_PIXELS or not plans[0]["fits"]):
             m_n = min(n, MEASURE_MAX_GAUSSIANS)
             scale = max(n / m_n, 1.0)
-            timed = min(steps, EXTRAPOLATED_STEPS)  # (scaled anyway: fewer steps say as much)
+            timed, quick = min(steps, EXTRAPOLATED_STEPS), True  # (scaled anyway: fewer steps, one compile less)
             note = (f"measured at {m_n:,} Gaussians and scaled by {scale:.3g} (linear in the count: an "
                     "extrapolation)")
         mean = mean_stage1_gaussians(config, len(dataset.points), n) * m_n // max(n, 1)
         pr = progress if isinstance(progress, Progress) else Progress() if progress else None
         with pr if pr is not None else contextlib.nullcontext():
-            got = measure_steps(dataset, config, m_n, steps=timed, stage1_gaussians=mean, progress=pr)
+            got = measure_steps(dataset, config, m_n, steps=timed, stage1_gaussians=mean, quick=quick,
+                                progress=pr)
         measured = dict(got, gaussians=m_n, scale=scale, note=note)
     elif measured is None:
         measured = dict(stage1=None, texture=None, compile_stage1=0.0, compile_texture=0.0, eval_view=0.0,

@@ -103,7 +103,7 @@ def advice_lines(dataset, config, measured, total, *, n, steps1, steps2, n_eval,
     fit = memory_plan(dataset, config, n, texels, h100)
     lines.append(f"on one {h100.name.split(' (')[0]} (NVIDIA H100): about {_hms(gpu['total'])} ({_hms(gpu['stage1'])} "
                  f"2DGS + {_hms(gpu['texture'])} textures + {_hms(gpu['compile'])} compiling; from its measured "
-                 f"steps at 1M and 3M Gaussians, {H100_STEPS['source']}), "
+                 f"steps at 1M and 3M Gaussians, {H100_STEPS.source}), "
                  + ("fits in its memory" if fit["fits"] else "does NOT fit: pass " + "; or ".join(fit["fixes"])))
     m = measured.get("padded_size") or [1, 1]
     timed_px = max(int(m[0]) * int(m[1]), 1)

@@ -137,7 +137,7 @@ def sample_eq6_counts(schedule, views, sample) -> None:
 
 
 def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gaussians: int | None = None,
-                  eq6_views: int = EQ6_SAMPLE_VIEWS, progress: Progress | None = None) -> dict:
+                  eq6_views: int = EQ6_SAMPLE_VIEWS, quick: bool = False, progress: Progress | None = None) -> dict:
     """Times a few real training steps of each stage on this device: the 2DGS stage's at
     ``stage1_gaussians`` active Gaussians (default ``gaussians``; the others inactive, so no shape
     changes), the texture stage's at ``gaussians``.
@@ -146,7 +146,8 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     small jitter when it has fewer), densification is off, and the run's own loop trains ``steps``
     steps of each stage after the ones that compile (the texture stage of adaptive methods runs the
     real Eq. 7 allocation on that scene after one warm-up step, its Eq. 6 count on ``eq6_views`` of
-    the training views and scaled to all: :func:`sample_eq6_counts`), with nothing compiled in the
+    the training views and scaled to all: :func:`sample_eq6_counts`; ``quick``: at the stage's start,
+    without the warm-up step, whose layout compiles a step of its own), with nothing compiled in the
     background (``PATEXGS_COMPILE_AHEAD=0`` meanwhile). Nothing is written. ``progress`` says what
     is measured (:class:`Progress`). The steps train on the
     views of one padded size (the most common one; ties: the largest): a run compiles its step once
@@ -174,9 +175,11 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     spec = config.spec
     textured = spec.textures is not None
     off = DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_interval=10**9)
+    allocates = spec.textures == "adaptive"
+    warm = 0 if quick else 1
     n1 = 1 + steps
-    n2 = 0 if not textured else (2 + steps if spec.grows else 1 + steps)
-    cfg = dataclasses.replace(config, iters_2dgs=n1, iters_tex=max(n2, 2), continue_2dgs=0, warmup_tex=1,
+    n2 = 0 if not textured else 1 + steps + (warm if allocates else 0)
+    cfg = dataclasses.replace(config, iters_2dgs=n1, iters_tex=max(n2, 2), continue_2dgs=0, warmup_tex=warm,
                               growth_interval=10**9, densify=off, max_gaussians=int(gaussians),
                               checkpoint_every=10**9, log_every=10**9, sh_interval=1, normal_from=0)
     pts, cols = _points_for(dataset.points, dataset.colors, int(gaussians), config.seed)
@@ -186,7 +189,6 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     say = progress or _Silent()
     m = int(gaussians) if stage1_gaussians is None else max(1, min(int(stage1_gaussians), int(gaussians)))
     at = f"{size[1]}x{size[0]} px"
-    allocates = spec.textures == "adaptive"
     phases = {0: f"compiling the 2DGS step ({m:,} active Gaussians of {int(gaussians):,}, {at})",
               1: f"timing {steps} steps of the 2DGS stage"}
     if textured:
