@@ -455,7 +455,7 @@ def memory_plan(dataset, config, gaussians: int, rgba_texels: int, device: Devic
 
 
 #: On a CPU the plan times steps at no more than this many Gaussians and padded pixels, and scales.
-MEASURE_MAX_GAUSSIANS = 20_000
+MEASURE_MAX_GAUSSIANS = 10_000
 MEASURE_MAX_PIXELS = 1 << 20
 #: Steps timed a stage where the plan extrapolates anyway (the count scaled linearly); its Eq. 7
 #: allocation then runs at the texture stage's start (no warm-up step: one compile less).

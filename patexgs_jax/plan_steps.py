@@ -19,7 +19,7 @@ __all__ = ["EQ6_SAMPLE_VIEWS", "Progress", "eq6_sample", "measure_steps", "sampl
 
 #: Training views the plan's Eq. 6 count renders (evenly spaced); Eq. 7's sums over all views are
 #: scaled from them (:func:`sample_eq6_counts`).
-EQ6_SAMPLE_VIEWS = 12
+EQ6_SAMPLE_VIEWS = 8
 
 
 class Progress:

@@ -259,7 +259,7 @@ def test_eq6_is_counted_on_a_sample_of_the_views_and_scaled():
     views = [SimpleNamespace(name=f"v{i}", camera=SimpleNamespace(width=64, height=48)) for i in range(40)]
     sample = plan_steps.eq6_sample(views)
     assert len(sample) == plan_steps.EQ6_SAMPLE_VIEWS < len(views)
-    assert [v.name for v in sample] == [f"v{int(i * 40 / 12)}" for i in range(12)]
+    assert [v.name for v in sample] == [f"v{i * 5}" for i in range(8)]
     assert plan_steps.eq6_sample(views[:5]) == views[:5]
     cfg = TrainConfig(method="patexgs")
     schedule = TextureSchedule(cfg, None, views, None)
@@ -268,13 +268,13 @@ def test_eq6_is_counted_on_a_sample_of_the_views_and_scaled():
     rng = np.random.default_rng(0)
     row = rng.integers(0, 60, size=500).astype(np.float32)  # one view's counts, every view alike
     act = np.ones(500, bool)
-    sampled, sigma, _ = schedule.allocation_sides(adaptive.ContributionCounts.from_views([row] * 12, 500), act)
+    sampled, sigma, _ = schedule.allocation_sides(adaptive.ContributionCounts.from_views([row] * 8, 500), act)
     assert schedule.train_views == sample
     full = TextureSchedule(cfg, None, views, None)
     want, want_sigma, _ = full.allocation_sides(adaptive.ContributionCounts.from_views([row] * 40, 500), act)
     assert sigma == pytest.approx(want_sigma) == pytest.approx(adaptive.pixel_share_sigma(40 * 64 * 48, 500))
     np.testing.assert_array_equal(sampled, want)
-    unscaled = full.allocation_sides(adaptive.ContributionCounts.from_views([row] * 12, 500), act)[0]
+    unscaled = full.allocation_sides(adaptive.ContributionCounts.from_views([row] * 8, 500), act)[0]
     assert unscaled.sum() < want.sum()  # (without the scaling the sample would allocate less)
 
 
