@@ -5,8 +5,9 @@ calls :func:`make_plan`: the views' padded sizes, the steps of each stage, the G
 run plans for, the texels Eq. 7 gives at that count, the peak memory of the 2DGS stage, the
 texture stage and evaluation (on this process's device and, when asked, on another:
 :func:`parse_device`), the time per step of each stage measured by a few real steps
-(:func:`measure_steps`), the whole run's time, and what would not fit with the flag that makes
-it fit (:func:`fixes`).
+(:func:`measure_steps`, saying what it measures at least every 10 s), the whole run's time, what
+would not fit with the flag that makes it fit (:func:`fixes`), and, for a run of days on a CPU,
+its time on an H100 and what trains here in an hour or a night (:mod:`patexgs_jax.plan_advice`).
 
 The memory model (pure functions; docs/memory.md has its terms and its measured error):
 
@@ -33,17 +34,18 @@ The memory model (pure functions; docs/memory.md has its terms and its measured 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 
 import numpy as np
 
-from . import adaptive, memory
+from . import adaptive, memory, plan_advice
 from .metrics import mb_to_texels
 from .padding import padded_shape
 from .plan_devices import DEVICES, GB, Device, parse_device, this_device
-from .plan_steps import measure_steps
+from .plan_steps import Progress, measure_steps
 from .rendering import tiling
 
 __all__ = [
@@ -354,6 +356,7 @@ class Plan:
     measured: dict
     total_seconds: float | None
     time_terms: dict
+    advice: list = dataclasses.field(default_factory=list)  # lines: where the run belongs, what fits here
 
     @property
     def fits(self) -> bool:
@@ -369,7 +372,8 @@ class Plan:
             texels_eq7=self.texels_eq7, texels_max=self.texels_max, sigma=self.sigma, sigma_from=self.sigma_from,
             device=here["device"], memory_bytes=here["memory_bytes"], peak_bytes=here["peak_bytes"],
             fits=self.fits, fixes=here["fixes"], devices=self.devices, step_seconds=self.step_seconds,
-            measured=self.measured, total_seconds=self.total_seconds, time_terms_seconds=self.time_terms)
+            measured=self.measured, total_seconds=self.total_seconds, time_terms_seconds=self.time_terms,
+            advice=self.advice)
 
     def text(self) -> str:
         """The plan as lines for a terminal."""
@@ -389,6 +393,7 @@ class Plan:
             lines.append("  step time: not measured (--plan-steps 0)")
         else:
             lines.extend(self._time_lines())
+            lines.extend(f"  {a}" for a in self.advice)
         for d in self.devices:
             p = d["peak_bytes"]
             lines.append(f"  peak memory on {d['device']}: 2DGS {p['stage1'] / GB:.2f} GB, texture "
@@ -450,12 +455,15 @@ def memory_plan(dataset, config, gaussians: int, rgba_texels: int, device: Devic
 
 
 #: On a CPU the plan times steps at no more than this many Gaussians and padded pixels, and scales.
-MEASURE_MAX_GAUSSIANS = 50_000
+MEASURE_MAX_GAUSSIANS = 10_000
 MEASURE_MAX_PIXELS = 1 << 20
+#: Steps timed a stage where the plan extrapolates anyway (the count scaled linearly); its Eq. 7
+#: allocation then runs at the texture stage's start (no warm-up step: one compile less).
+EXTRAPOLATED_STEPS = 3
 
 
 def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int = 5,
-              measured: dict | None = None) -> Plan:
+              measured: dict | None = None, progress: bool | Progress = True) -> Plan:
     """The plan of training ``config`` on ``dataset`` (see the module docstring).
 
     Args:
@@ -465,6 +473,8 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
       measure: time real steps (:func:`measure_steps`); False leaves the step times None.
       steps: timed steps a stage.
       measured: step times already measured for this dataset and config (skips measuring).
+      progress: say what is measured while measuring (:class:`patexgs_jax.plan_steps.Progress`: a line
+        at least every 10 s), or a Progress to say it with; False: silent.
     """
     spec = config.spec
     n, n_from = planned_gaussians(config, len(dataset.points))
@@ -483,14 +493,19 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     if measured is None and measure:
         m_n, scale, note = n, 1.0, ""
         px = max(padded_pixels(v.camera.width, v.camera.height) for v in dataset.train_views)
+        timed, quick = steps, False
         if here.kind == "cpu" and (n > MEASURE_MAX_GAUSSIANS or px > MEASURE_MAX_PIXELS or not plans[0]["fits"]):
             m_n = min(n, MEASURE_MAX_GAUSSIANS)
             scale = max(n / m_n, 1.0)
+            timed, quick = min(steps, EXTRAPOLATED_STEPS), True  # (scaled anyway: fewer steps, one compile less)
             note = (f"measured at {m_n:,} Gaussians and scaled by {scale:.3g} (linear in the count: an "
                     "extrapolation)")
         mean = mean_stage1_gaussians(config, len(dataset.points), n) * m_n // max(n, 1)
-        measured = dict(measure_steps(dataset, config, m_n, steps=steps, stage1_gaussians=mean), gaussians=m_n,
-                        scale=scale, note=note)
+        pr = progress if isinstance(progress, Progress) else Progress() if progress else None
+        with pr if pr is not None else contextlib.nullcontext():
+            got = measure_steps(dataset, config, m_n, steps=timed, stage1_gaussians=mean, quick=quick,
+                                progress=pr)
+        measured = dict(got, gaussians=m_n, scale=scale, note=note)
     elif measured is None:
         measured = dict(stage1=None, texture=None, compile_stage1=0.0, compile_texture=0.0, eval_view=0.0,
                         eval_compile=0.0, steps=0,
@@ -505,10 +520,16 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     terms = dict(stage1=steps1 * (t1 or 0.0), texture=steps2 * (t2 or 0.0),
                  compile=sizes * (measured["compile_stage1"] * (1 + doublings) + measured["compile_texture"] * 2),
                  eval=n_eval * measured["eval_view"] * sc + 2 * measured.get("eval_compile", 0.0))
+    total = None if t1 is None else float(sum(terms.values()))
+    advice = []
+    if total is not None and here.kind == "cpu" and total > plan_advice.ABSURD_SECONDS:
+        advice = plan_advice.advice_lines(dataset, config, measured, total, n=n, steps1=steps1, steps2=steps2,
+                                          n_eval=n_eval, compile_seconds=terms["compile"], sizes=sizes,
+                                          texels=texels_max)
     return Plan(method=config.method, views=views, steps=dict(stage1=steps1, texture=steps2), gaussians=n,
                 gaussians_from=n_from, texels_eq7=texels, texels_max=texels_max, sigma=sigma, sigma_from=sigma_from,
                 devices=plans, step_seconds=dict(stage1=t1, texture=t2), measured=measured,
-                total_seconds=None if t1 is None else float(sum(terms.values())), time_terms=terms)
+                total_seconds=total, time_terms=terms, advice=advice)
 
 
 def check_fits(dataset, config, gaussians: int, device: Device | None = None) -> dict:

@@ -9,7 +9,8 @@ import re
 from . import memory
 from .rendering import tiling
 
-__all__ = ["DEVICES", "GB", "GPU_MEMORY_SHARE", "Device", "parse_device", "this_device"]
+__all__ = ["DEVICES", "GB", "GPU_MEMORY_SHARE", "H100_STEPS", "Device", "StepTimes", "h100_run_seconds",
+           "parse_device", "this_device"]
 
 GB = 1e9
 #: The share of a GPU's memory JAX's allocator takes by default (``XLA_PYTHON_CLIENT_MEM_FRACTION``).
@@ -71,3 +72,59 @@ def this_device() -> Device:
     dev = jax.devices()[0]
     limit = tiling.device_memory(dev) or tiling.DEFAULT_DEVICE_MEMORY
     return Device(f"this {dev.device_kind} ({limit / GB:.1f} GB for JAX)", "gpu", int(limit))
+
+
+@dataclasses.dataclass(frozen=True)
+class StepTimes:
+    """Training steps measured on one device: seconds of a steady step of each stage at two Gaussian
+    counts, and of the first step (compiling it).
+
+    Attributes:
+      size: the views' (width, height).
+      gaussians: the two counts.
+      stage1, texture: seconds of a 2DGS and of a textured step (at Eq. 7's allocation) at each count.
+      first_stage1, first_texture: seconds of the first step of each.
+      source: the measurements' file.
+    """
+
+    size: tuple[int, int]
+    gaussians: tuple[int, int]
+    stage1: tuple[float, float]
+    texture: tuple[float, float]
+    first_stage1: float
+    first_texture: float
+    source: str
+
+
+#: One NVIDIA H100 80GB (``experiments.bench_scale``, 1237 x 822 views, jax 0.11.2).
+H100_STEPS = StepTimes(size=(1237, 822), gaussians=(1_000_000, 3_000_000), stage1=(0.0438, 0.0922),
+                       texture=(0.0889, 0.2100), first_stage1=7.5, first_texture=21.2,
+                       source="benchmarks/bench_scale_h100_{1m,3m}_43b446a.json")
+
+
+def _h100_step(stage: str, gaussians: float, pixels: int) -> float:
+    """Seconds of one steady step of ``stage`` on the H100: the line through the two measured
+    counts (its value at 0 Gaussians kept as the least), scaled by the pixels where the views are
+    larger than the measured ones (smaller views are not scaled down: the figure is then a bound)."""
+    (n0, n1), (t0, t1) = H100_STEPS.gaussians, getattr(H100_STEPS, stage)
+    slope = (t1 - t0) / (n1 - n0)
+    t = max(t0 + slope * (float(gaussians) - n0), t0 - slope * n0)
+    w, h = H100_STEPS.size
+    return t * max(1.0, pixels / float(w * h))
+
+
+def h100_run_seconds(*, steps1: int, stage1_gaussians: int, steps2: int, gaussians: int, pixels: int,
+                     sizes: int = 1) -> dict:
+    """The run's time on one H100 from :data:`H100_STEPS`: ``{"stage1", "texture", "compile",
+    "total"}`` in seconds.
+
+    Args:
+      steps1, steps2: steps of the 2DGS and the texture stage.
+      stage1_gaussians: the 2DGS stage's mean active Gaussians; ``gaussians``: the texture stage's.
+      pixels: the largest training view's pixels.
+      sizes: the training views' padded sizes (each compiles its steps).
+    """
+    t1 = steps1 * _h100_step("stage1", stage1_gaussians, pixels)
+    t2 = steps2 * _h100_step("texture", gaussians, pixels) if steps2 else 0.0
+    comp = sizes * (H100_STEPS.first_stage1 + (2 * H100_STEPS.first_texture if steps2 else 0.0))
+    return dict(stage1=t1, texture=t2, compile=comp, total=t1 + t2 + comp)

@@ -1,19 +1,143 @@
 """The run plan's step timing (:func:`measure_steps`): a few real training steps of each stage on
-this device at the planned size, and an evaluation render (:mod:`patexgs_jax.plan` uses them)."""
+this device at the planned size, and an evaluation render (:mod:`patexgs_jax.plan` uses them);
+the lines that say what it measures while it does (:class:`Progress`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import os
 import statistics
+import threading
 import time
 
 import numpy as np
 
-__all__ = ["measure_steps"]
+from . import adaptive, interrupt
+from . import progress as bars
+
+__all__ = ["EQ6_SAMPLE_VIEWS", "Progress", "eq6_sample", "measure_steps", "sample_eq6_counts"]
+
+#: Training views the plan's Eq. 6 count renders (evenly spaced); Eq. 7's sums over all views are
+#: scaled from them (:func:`sample_eq6_counts`).
+EQ6_SAMPLE_VIEWS = 8
 
 
-def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gaussians: int | None = None) -> dict:
+class Progress:
+    """The plan's progress lines: one when a phase starts (:meth:`phase`), and, while it lasts, one
+    at least every ``every`` seconds (:meth:`tick`, called by a background thread inside ``with``)
+    saying what is measured and for how long.
+
+    Args:
+      every: seconds between two lines at most.
+      say: prints a line (default :func:`patexgs_jax.progress.say`, above any progress bar).
+      clock: seconds (default ``time.monotonic``; tests pass their own).
+    """
+
+    def __init__(self, every: float = 10.0, say=None, clock=time.monotonic):
+        self.every, self.clock = float(every), clock
+        self.say = say or bars.say
+        self.what: str | None = None
+        self.since = self.last = clock()
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._depth = 0
+
+    def phase(self, what: str) -> None:
+        """``what`` starts now (e.g. ``"timing 3 steps of the 2DGS stage"``): says it."""
+        self.what, self.since = what, self.clock()
+        interrupt.set_phase(f"plan: {what}")
+        self._line(f"plan: {what}")
+
+    def tick(self) -> None:
+        """Says the current phase again (with its seconds so far) when nothing was said for ``every``
+        seconds."""
+        now = self.clock()
+        if self.what is not None and now - self.last >= self.every:
+            self._line(f"plan: {self.what} ({now - self.since:.0f} s so far)")
+
+    def _line(self, text: str) -> None:
+        self.last = self.clock()
+        try:
+            self.say(text)
+        except (OSError, ValueError):  # (a closed stdout: the plan goes on)
+            pass
+
+    def __enter__(self):
+        self._depth += 1
+        if self._depth == 1:  # (entered again inside: the same thread goes on)
+            def beat():
+                while not self._done.wait(min(1.0, self.every / 4)):
+                    self.tick()
+
+            self._done.clear()
+            self._thread = threading.Thread(target=beat, name="patexgs-plan-progress", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._depth -= 1
+        if self._depth == 0:
+            self._done.set()
+            if self._thread is not None:
+                self._thread.join(timeout=2.0)
+            interrupt.set_phase(None)
+        return False
+
+
+class _Silent(Progress):
+    def __init__(self):
+        super().__init__(say=lambda text: None)
+
+    def phase(self, what: str) -> None:
+        self.what = what
+
+
+def eq6_sample(views, k: int = EQ6_SAMPLE_VIEWS) -> list:
+    """``k`` of ``views`` evenly spaced (all of them when there are no more than ``k``)."""
+    views = list(views)
+    if len(views) <= k:
+        return views
+    return [views[int(i * len(views) / k)] for i in range(k)]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _ScaledCounts(adaptive.ContributionCounts):
+    """Eq. 6's counts on a sample of the views, whose Eq. 7 sums (:meth:`sizes`) are scaled by
+    ``weight`` (all views / sampled views): an estimate of the sums over every view."""
+
+    weight: float = 1.0
+
+    def sizes(self, sigma: float) -> np.ndarray:
+        return super().sizes(sigma) * self.weight
+
+
+def sample_eq6_counts(schedule, views, sample) -> None:
+    """Makes the texture schedule ``schedule`` (a :class:`patexgs_jax.schedule.TextureSchedule`)
+    count Eq. 6 on ``sample`` (some of the training views, e.g. :func:`eq6_sample`) instead of all
+    of ``views``: its Eq. 7 sums ``T_i = sum_j log2(1 + S_ij / sigma)`` are scaled by
+    ``len(views) / len(sample)``, and sigma (the pixel share) still comes from all of ``views``'
+    pixels. With a texture budget the sample's allocation is solved for the budget as it is (the
+    budget sets the texels)."""
+    views, sample = list(views), list(sample)
+    weight = len(views) / max(len(sample), 1)
+    sides_of = schedule.allocation_sides
+    schedule.train_views = sample
+
+    def allocation_sides(S, act):
+        if schedule.cfg.texture_budget_mb is None:
+            S = adaptive._as_counts(S)
+            S = _ScaledCounts(S.values, S.index, S.offsets, S.capacity, weight=weight)
+        schedule.train_views = views  # (the pixel share counts every view's pixels)
+        try:
+            return sides_of(S, act)
+        finally:
+            schedule.train_views = sample
+
+    schedule.allocation_sides = allocation_sides
+
+
+def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gaussians: int | None = None,
+                  eq6_views: int = EQ6_SAMPLE_VIEWS, quick: bool = False, progress: Progress | None = None) -> dict:
     """Times a few real training steps of each stage on this device: the 2DGS stage's at
     ``stage1_gaussians`` active Gaussians (default ``gaussians``; the others inactive, so no shape
     changes), the texture stage's at ``gaussians``.
@@ -21,8 +145,11 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     A scene of ``gaussians`` Gaussians is initialised from the dataset's points (repeated with a
     small jitter when it has fewer), densification is off, and the run's own loop trains ``steps``
     steps of each stage after the ones that compile (the texture stage of adaptive methods runs the
-    real Eq. 7 allocation on that scene after one warm-up step), with nothing compiled in the
-    background (``PATEXGS_COMPILE_AHEAD=0`` meanwhile). Nothing is written. The steps train on the
+    real Eq. 7 allocation on that scene after one warm-up step, its Eq. 6 count on ``eq6_views`` of
+    the training views and scaled to all: :func:`sample_eq6_counts`; ``quick``: at the stage's start,
+    without the warm-up step, whose layout compiles a step of its own), with nothing compiled in the
+    background (``PATEXGS_COMPILE_AHEAD=0`` meanwhile). Nothing is written. ``progress`` says what
+    is measured (:class:`Progress`). The steps train on the
     views of one padded size (the most common one; ties: the largest): a run compiles its step once
     per padded size (:mod:`patexgs_jax.padding`), so on views of several sizes the timed steps would
     be compiles (an undistorted capture has several: beer at full size six).
@@ -34,7 +161,8 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
       ``eval_view``, ``eval_compile``: seconds of one evaluation render and of compiling one
       evaluation; ``steps``; ``seconds``: the time this took (all in seconds); ``padded_size``:
       the (height, width) stepped; ``padded_sizes``: how many padded sizes the training views have
-      (each compiles its own steps in a run).
+      (each compiles its own steps in a run); ``eq6_views``: the views Eq. 6 counted on (0 without
+      an Eq. 7 allocation).
     """
     import jax
 
@@ -47,32 +175,55 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     spec = config.spec
     textured = spec.textures is not None
     off = DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_interval=10**9)
+    allocates = spec.textures == "adaptive"
+    warm = 0 if quick else 1
     n1 = 1 + steps
-    n2 = 0 if not textured else (2 + steps if spec.grows else 1 + steps)
-    cfg = dataclasses.replace(config, iters_2dgs=n1, iters_tex=max(n2, 2), continue_2dgs=0, warmup_tex=1,
+    n2 = 0 if not textured else 1 + steps + (warm if allocates else 0)
+    cfg = dataclasses.replace(config, iters_2dgs=n1, iters_tex=max(n2, 2), continue_2dgs=0, warmup_tex=warm,
                               growth_interval=10**9, densify=off, max_gaussians=int(gaussians),
                               checkpoint_every=10**9, log_every=10**9, sh_interval=1, normal_from=0)
     pts, cols = _points_for(dataset.points, dataset.colors, int(gaussians), config.seed)
     size, n_sizes, views = _one_size(dataset.train_views, config)
     ds = dataclasses.replace(dataset, points=pts, colors=cols, train_views=views)
     stamps: list[tuple[int, float]] = []
-
+    say = progress or _Silent()
     m = int(gaussians) if stage1_gaussians is None else max(1, min(int(stage1_gaussians), int(gaussians)))
+    at = f"{size[1]}x{size[0]} px"
+    phases = {0: f"compiling the 2DGS step ({m:,} active Gaussians of {int(gaussians):,}, {at})",
+              1: f"timing {steps} steps of the 2DGS stage"}
+    if textured:
+        phases[n1] = "compiling the texture stage's first step"
+        phases[n1 + n2 - steps] = f"timing {steps} steps of the texture stage ({int(gaussians):,} Gaussians)"
+    # Eq. 6 on a sample of the views of the stepped size, Eq. 7's sums scaled to all the training views.
+    sample = eq6_sample(views, eq6_views) if allocates else []
 
     class Run(Trainer):
         def before_step(self, step):
+            if step in phases:
+                say.phase(phases[step])
             if m < gaussians and step in (0, n1):  # stage 1 at m active Gaussians, stage 2 at all of them
                 act = np.asarray(self.scene.active).copy()
                 act[m:gaussians] = act[0] if step == n1 else 0
                 self.scene = self.scene.replace(active=jax.numpy.asarray(act))
+                if step == n1:  # more Gaussians, more tile pairs: refit (its counter is compiled) rather than
+                    self.capacity = None  # overflow, retry and compile the step twice
+            allocation = allocates and self.textures.allocates_at(self.state, step)
+            if allocation:
+                say.phase(f"Eq. 6 counts on {len(sample)} of the {len(dataset.train_views)} training views "
+                          "(Eq. 7's sums scaled to all of them)")
             super().before_step(step)
+            if allocation:
+                say.phase("compiling the texture step of the allocated sizes")
 
         def after_step(self, step):
             super().after_step(step)
             jax.block_until_ready(self.scene.means)
             stamps.append((step, time.perf_counter()))
 
+    say.phase(f"setting up a scene of {int(gaussians):,} Gaussians on the {len(views)} training views of {at}")
     run = Run(ds, cfg, None, verbose=False)
+    if allocates:
+        sample_eq6_counts(run.textures, dataset.train_views, sample)
     run.fresh()
     # No background compiles: on a few steps they would share the cores with the timed ones.
     saved = os.environ.get(AHEAD_ENV)
@@ -97,6 +248,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
             for k, v in spans.items()}
     # Evaluation: one compile per call, then a render per view: time 1 view and 3 views.
     view = (list(dataset.test_views) or list(dataset.train_views))[0]
+    say.phase(f"timing an evaluation render ({view.camera.width}x{view.camera.height} px, compiling it first)")
     t = time.perf_counter()
     evaluate(run.scene, [view], run.render_cfg)
     one = time.perf_counter() - t
@@ -107,7 +259,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     eval_compile = max(one - eval_view, 0.0)
     return dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
                 compile_texture=comp[2] if textured else 0.0, eval_view=eval_view, eval_compile=eval_compile,
-                steps=steps, padded_size=list(size), padded_sizes=n_sizes,
+                steps=steps, padded_size=list(size), padded_sizes=n_sizes, eq6_views=len(sample),
                 seconds=time.perf_counter() - t_all)
 
 

@@ -10,28 +10,34 @@ COLMAP scenes), ``all`` the three. They are extracted into ``DEST/360_v2/<scene>
 ``DEST/tandt/<scene>`` and ``DEST/db/<scene>``, the layout ``python -m experiments.mipnerf360 --data
 DEST`` reads (:mod:`patexgs_jax.data.benchmarks`); the command ends by printing that command line.
 
-How a download goes (pooch fetches and checks each archive, :data:`ARCHIVES` names them):
+How a download goes (pooch fetches each archive, :data:`ARCHIVES` names them):
 
 * Bytes arrive in ``DEST/<name>.part``, with a progress bar (size, speed) when stderr is a
   terminal; an interrupted transfer (network failure, Ctrl-C, a truncated response) leaves the
   ``.part`` file and the same command resumes it (an HTTP ``Range`` request; a server that ignores
   it sends the whole file again).
-* The file gets its name (``DEST/<name>``) only once every byte the server announced has arrived
-  and its SHA-256 matches the pinned one: a partial or corrupt file is never taken for the archive
-  (a mismatching one is deleted).
+* The file gets its name (``DEST/<name>``) only once every byte the server announced
+  (``Content-Length``, or the total of its ``Content-Range``) has arrived, and, where a SHA-256 is
+  pinned or given (``--sha256 NAME=HEX``), only if it matches: a partial or mismatching file is
+  never taken for the archive (a mismatching one is deleted).
+* The archive is then checked before anything is extracted (:func:`check_archive`): every member
+  is read and its CRC-32 compared with the one the zip records, and the scene folders the layout
+  needs must be there. A corrupt member or a missing scene refuses the archive, naming it; nothing
+  is extracted and the file is deleted (the same command downloads it anew).
 * The free disk space is checked first: the bytes still to fetch and, again, the archive's size for
   its extraction.
-* Extraction goes through a temporary folder; each scene is then moved into place and
-  ``DEST/.patexgs_downloads/<name>.json`` records it, so a second run finds every scene there
-  and fetches nothing. The archive is deleted after extraction (``--keep-archives`` keeps it).
-* ``--mirror URL`` takes each archive from ``URL/<its file name>`` (a lab's copy) with the same
-  checksums.
+* Extraction goes into a temporary folder of DEST; each scene is then renamed into place and
+  ``DEST/.patexgs_downloads/<name>.json`` records it, with the archive's SHA-256 computed here, its
+  size and its source, so a second run finds every scene there and fetches nothing. The archive is
+  deleted after extraction (``--keep-archives`` keeps it).
+* ``--mirror URL`` takes each archive from ``URL/<its file name>`` (a lab's copy), checked the same
+  way.
 
-Checksums: the SHA-256 and size of each archive are pinned in :data:`ARCHIVES`. Where this version
-pins none (``None``: not verified yet, see the values' comments), the archive is downloaded, its
-SHA-256 printed, and extraction refused until the value is given with ``--sha256 NAME=HEX`` after
-checking it against a copy you trust (the file is kept: nothing is downloaded again). Tests pass
-their own table of ``{name: (sha256, size)}`` to :func:`download` (``registry=``).
+Checksums: no SHA-256 is pinned for the public archives (:data:`ARCHIVES`: ``None``); the server's
+size, the zip's own CRC-32 of every member and the scene list check them instead, and the SHA-256
+computed is recorded beside the data (compare it with a copy you trust). A SHA-256 given with
+``--sha256 NAME=HEX`` is checked before the archive is used. Tests pass their own table of
+``{name: (sha256, size)}`` to :func:`download` (``registry=``).
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ import time
 import urllib.error
 import urllib.request
 import zipfile
+import zlib
 from pathlib import Path
 
 import pooch
@@ -54,7 +61,7 @@ from tqdm import tqdm
 
 from .. import progress
 
-__all__ = ["ARCHIVES", "SETS", "Archive", "DownloadError", "download", "main"]
+__all__ = ["ARCHIVES", "SETS", "Archive", "DownloadError", "check_archive", "download", "main"]
 
 
 class DownloadError(RuntimeError):
@@ -83,11 +90,12 @@ class Archive:
     size: int | None = None
 
 
-#: The archives, by file name. No SHA-256 or byte size is pinned yet: none could be computed from
-#: the published files where this code was written (no network), and none was found published
-#: beside them; the command refuses to extract such an archive until the user gives its SHA-256
-#: (``--sha256``), and prints the one it computed. Public reports put 360_v2.zip at about 12.5 GB
-#: and tandt_db.zip at about 650 MB (unverified; not used by the code).
+#: The archives, by file name. No SHA-256 or byte size is pinned: none could be computed from the
+#: published files where this code was written (no network), and none is published beside them.
+#: An archive is taken when its transfer has the server's size, every member passes the zip's own
+#: CRC-32 and its scenes are there; the SHA-256 computed is recorded (``--sha256`` checks a known
+#: one). Public reports put 360_v2.zip at about 12.5 GB and tandt_db.zip at about 650 MB
+#: (unverified; not used by the code).
 ARCHIVES = {
     a.name: a for a in (
         Archive("360_v2.zip", "http://storage.googleapis.com/gresearch/refraw360/360_v2.zip", "360_v2",
@@ -138,6 +146,7 @@ class _ResumingDownload:
         self.size = size
         self.show = show
         self.timeout = timeout
+        self.total: int | None = None  # the bytes of the complete transfer, once it is complete
 
     def __call__(self, fname: str, action, pooch=None, *, check_only: bool | None = None) -> None:
         # pooch's downloader protocol: ``fname`` is the URL, ``action`` the temporary file to fill.
@@ -148,6 +157,7 @@ class _ResumingDownload:
             offset = 0
         if offset and self.size is not None and offset == self.size:  # every byte there already
             os.replace(self.part, output_file)
+            self.total = offset
             return
         headers = {"User-Agent": "patexgs_jax-download"}
         if offset:
@@ -208,6 +218,7 @@ class _ResumingDownload:
             raise DownloadError(f"the transfer of {url} ended at {received} of {total} bytes (a truncated "
                                 f"response); they are kept in {self.part}. {_network_hint(url)}")
         os.replace(self.part, output_file)
+        self.total = received
 
 
 def _record_path(dest: Path, archive: Archive) -> Path:
@@ -223,55 +234,106 @@ def _is_done(dest: Path, archive: Archive) -> bool:
     return _record_path(dest, archive).is_file() and all(p.is_dir() for p in _scene_dirs(dest, archive))
 
 
-def _extract(path: Path, dest: Path, archive: Archive, sha256: str, source: str) -> None:
-    """Extracts ``path`` into a temporary folder of ``dest``, moves each of its scenes into
-    ``dest/folder`` (replacing a scene folder of that name) and writes the record."""
+def _archive_root(names, archive: Archive) -> str:
+    """The folder of the zip (``""`` or ``"top/"``) that holds ``archive``'s scenes: an archive whose
+    contents sit under one folder (e.g. ``tandt_db/``) is read from inside it."""
+    tops = {s.split("/")[0] for s in archive.scenes}
+    names = [n for n in names if n.strip("/") and not n.startswith(("__MACOSX", "."))]
+    root = ""
+    while True:
+        inner = [n[len(root):] for n in names if n.startswith(root) and n != root]
+        firsts = {n.split("/")[0] for n in inner}
+        nested = all("/" in n for n in inner)  # (a file at this level: the contents start here)
+        if len(firsts) == 1 and nested and next(iter(firsts)) not in tops:
+            root += next(iter(firsts)) + "/"
+        else:
+            return root
+
+
+def check_archive(path, archive: Archive, *, show: bool = False) -> dict:
+    """Checks the zip ``path`` before anything of it is extracted: it opens as a zip, every scene
+    folder of ``archive`` is in it, and every member reads back with the CRC-32 the zip records.
+
+    Args:
+      path: the downloaded archive.
+      archive: what it should hold (:attr:`Archive.scenes`).
+      show: draw a progress bar over the bytes read.
+    Returns:
+      ``{"root": the folder of the zip holding the scenes ("" or "top/"), "members": their number,
+      "bytes": their uncompressed size}``.
+    Raises:
+      DownloadError: not a zip, a scene missing, or a member that does not read back (its name).
+    """
+    path = Path(path)
+    name = None  # the member being read
     try:
         with zipfile.ZipFile(path) as z:
-            members = z.infolist()
-            _check_space(dest, sum(m.file_size for m in members), f"extracting {archive.name}")
-            tmp = dest / f".extracting-{archive.name}"
-            shutil.rmtree(tmp, ignore_errors=True)
+            members = [m for m in z.infolist() if not m.is_dir()]
+            root = _archive_root(z.namelist(), archive)
+            missing = [s for s in archive.scenes if not any(n.startswith(f"{root}{s}/") for n in z.namelist())]
+            if missing:
+                raise DownloadError(f"{archive.name} holds no {', '.join(missing)} (its scenes: "
+                                    f"{', '.join(archive.scenes)}): it is not the archive this code knows (a changed "
+                                    "release, or a wrong --mirror); nothing was extracted.")
+            total = sum(m.file_size for m in members)
+            bar = tqdm(total=total, unit="B", unit_scale=True, unit_divisor=1024, desc=f"checking {archive.name}",
+                       file=sys.stderr, disable=not show, dynamic_ncols=True)
+            try:
+                for m in members:
+                    name = m.filename
+                    # zipfile compares the CRC-32 of what it read with the recorded one at the end.
+                    with z.open(m) as f:
+                        while f.read(_CHUNK):
+                            pass
+                    bar.update(m.file_size)
+            finally:
+                bar.close()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, EOFError, OSError, NotImplementedError) as e:
+        what = f"it is not a readable zip ({e})" if name is None else f"its member {name!r} does not read back ({e})"
+        raise DownloadError(f"{path}: {what}: the archive is corrupt; nothing was extracted.") from None
+    return dict(root=root, members=len(members), bytes=total)
+
+
+def _extract(path: Path, dest: Path, archive: Archive, record: dict, root: str) -> None:
+    """Extracts ``path`` (checked by :func:`check_archive`; its scenes under ``root``) into a
+    temporary folder of ``dest``, renames each scene into ``dest/folder`` (replacing a scene folder
+    of that name) and writes the record (``record`` and the scenes)."""
+    tmp = dest / f".extracting-{archive.name}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        with zipfile.ZipFile(path) as z:
+            _check_space(dest, sum(m.file_size for m in z.infolist()), f"extracting {archive.name}")
             z.extractall(tmp)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile) as e:
-        raise DownloadError(f"{path} is not a readable zip archive ({e}) although its checksum matched: delete it "
-                            "and run the same command again.") from None
-    root = tmp
-    tops = {s.split("/")[0] for s in archive.scenes}
-    while True:  # an archive whose contents sit under one folder (e.g. tandt_db/): descend into it
-        entries = [p for p in root.iterdir() if not p.name.startswith(("__MACOSX", "."))]
-        if len(entries) == 1 and entries[0].is_dir() and entries[0].name not in tops:
-            root = entries[0]
-        else:
-            break
-    missing = [s for s in archive.scenes if not (root / s).is_dir()]
-    if missing:
+    except (zipfile.BadZipFile, OSError) as e:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise DownloadError(f"{archive.name} (from {source}) holds no {', '.join(missing)}: it is not the archive "
-                            "this code knows; nothing was extracted.")
+        raise DownloadError(f"extracting {path} into {tmp} failed ({e}); nothing was moved into place: free some "
+                            "space or fix the folder, then run the same command again.") from None
+    base = tmp / root
     for s in archive.scenes:
         target = dest / archive.folder / s
         target.parent.mkdir(parents=True, exist_ok=True)
         if target.exists():
             shutil.rmtree(target)
-        os.replace(root / s, target)
+        os.replace(base / s, target)
     shutil.rmtree(tmp, ignore_errors=True)
-    record = _record_path(dest, archive)
-    record.parent.mkdir(parents=True, exist_ok=True)
-    record.write_text(json.dumps(dict(archive=archive.name, source=source, sha256=sha256,
-                                      scenes=[str(p.relative_to(dest)) for p in _scene_dirs(dest, archive)],
-                                      extracted=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())), indent=1))
+    path_ = _record_path(dest, archive)
+    path_.parent.mkdir(parents=True, exist_ok=True)
+    path_.write_text(json.dumps(dict(archive=archive.name, **record,
+                                     scenes=[str(p.relative_to(dest)) for p in _scene_dirs(dest, archive)],
+                                     extracted=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())), indent=1))
 
 
-def _fetch(archive: Archive, dest: Path, url: str, sha256: str | None, show: bool) -> Path:
-    """The archive's complete file in ``dest``, downloaded (resumed) unless it is there already,
-    its SHA-256 checked when known (pooch)."""
+def _fetch(archive: Archive, dest: Path, url: str, sha256: str | None, show: bool) -> tuple[Path, int | None]:
+    """The archive's complete file in ``dest`` and the bytes the server announced for it (None
+    when the file was there already), downloaded (resumed) unless it is there already, its
+    SHA-256 checked when known (pooch)."""
     path = dest / archive.name
-    if path.is_file():
+    if path.is_file():  # (a file gets its name only once its transfer is complete)
         if sha256 is not None and pooch.file_hash(str(path)) != sha256:
-            raise DownloadError(f"{path} is there but its SHA-256 is not the pinned {sha256}: delete it and run the "
-                                "same command again to download it anew.")
-        return path
+            raise DownloadError(f"{path} is there but its SHA-256 is not {sha256} (pinned, or given with "
+                                "--sha256): if that value is right, delete the file and run the same command again "
+                                "to download it anew.")
+        return path, None
     if archive.size is not None:
         part = path.with_name(path.name + ".part")
         have = part.stat().st_size if part.is_file() else 0
@@ -282,11 +344,11 @@ def _fetch(archive: Archive, dest: Path, url: str, sha256: str | None, show: boo
         pooch.retrieve(url, known_hash=None if sha256 is None else f"sha256:{sha256}", fname=archive.name,
                        path=dest, downloader=downloader)
     except ValueError as e:  # pooch: the hash of the complete transfer does not match
-        raise DownloadError(f"{archive.name} from {url} does not match its pinned checksum ({e}); the file was "
-                            "deleted and nothing was extracted. Run the same command again to download it anew; "
-                            "if it fails the same way the server holds another file than the one pinned here "
-                            "(a changed release, or a wrong --mirror).") from None
-    return path
+        raise DownloadError(f"{archive.name} from {url} does not match its SHA-256, pinned or given with --sha256 "
+                            f"({e}); the file was deleted and nothing was extracted. Run the same command again "
+                            "to download it anew; if it fails the same way the server holds another file than "
+                            "that checksum's (a changed release, or a wrong --mirror or --sha256).") from None
+    return path, downloader.total
 
 
 def download(which: str, dest, *, mirror: str | None = None, registry: dict | None = None,
@@ -300,16 +362,17 @@ def download(which: str, dest, *, mirror: str | None = None, registry: dict | No
       mirror: a base URL to take each archive from (``mirror/<name>``) instead of its own.
       registry: ``{name: (sha256, size)}`` replacing the pinned values of those archives (for tests,
         and for a lab's own pinned copies).
-      sha256: ``{name: hex}`` SHA-256 values given by the user (``--sha256``) for archives that have
-        no pinned one (or to replace it).
+      sha256: ``{name: hex}`` SHA-256 values given by the user (``--sha256``), checked before the
+        archive is used (replacing a pinned one).
       keep_archives: keep each archive after extraction (default: deleted).
       show: draw progress bars (default: :func:`patexgs_jax.progress.enabled`).
       verbose: print what is done.
 
     Raises:
-      DownloadError: a network failure, a server error, a truncated transfer (kept for resuming), a
-        checksum that does not match, an archive without a pinned checksum (its computed one printed),
-        too little disk space, or an archive that is not the expected one.
+      DownloadError: a network failure, a server error, a transfer shorter than the server announced
+        (kept for resuming), a SHA-256 or pinned size that does not match, a corrupt member or a
+        missing scene (:func:`check_archive`: nothing extracted, the file deleted), or too little
+        disk space.
     """
     if which not in SETS:
         raise DownloadError(f"unknown dataset set {which!r}: use one of {', '.join(SETS)}.")
@@ -340,19 +403,24 @@ def download(which: str, dest, *, mirror: str | None = None, registry: dict | No
             scenes += _scene_dirs(dest, archive)
             continue
         say(f"{name}: from {url}", flush=True)
-        path = _fetch(archive, dest, url, archive.sha256, show)
-        digest = archive.sha256
-        if digest is None:
-            digest = pooch.file_hash(str(path))
-            raise DownloadError(
-                f"{name} is downloaded ({path}, {path.stat().st_size} bytes, SHA-256 {digest}), but this version "
-                "pins no checksum for it, so it is not extracted unchecked. Compare that SHA-256 with one from a "
-                f"source you trust, then run the same command with --sha256 {name}={digest} to extract it "
-                "(nothing is downloaded again).")
-        _extract(path, dest, archive, digest, url)
+        path, announced = _fetch(archive, dest, url, archive.sha256, show)
+        say(f"{name}: checking its members' CRC-32 and scenes before extracting", flush=True)
+        try:
+            info = check_archive(path, archive, show=show)
+        except DownloadError as e:
+            path.unlink()
+            raise DownloadError(f"{e} {path.name} was deleted: run the same command again to download it anew; "
+                                "if it fails the same way, the server's copy is not the archive this code takes "
+                                "(try another --mirror URL).") from None
+        digest = archive.sha256 or pooch.file_hash(str(path))
+        how = ("given (--sha256)" if name in given else "pinned") if archive.sha256 else "computed here, not compared"
+        record = dict(source=url, sha256=digest, sha256_is=how, size=path.stat().st_size, server_size=announced,
+                      members=info["members"], crc32="every member checked")
+        _extract(path, dest, archive, record, info["root"])
         if not keep_archives:
             path.unlink()
-        say(f"{name}: extracted {', '.join(archive.scenes)} into {dest / archive.folder}", flush=True)
+        say(f"{name}: extracted {', '.join(archive.scenes)} into {dest / archive.folder} (SHA-256 {digest}, "
+            f"recorded in {_record_path(dest, archive)})", flush=True)
         scenes += _scene_dirs(dest, archive)
     return scenes
 
@@ -381,7 +449,8 @@ def main(argv=None, *, registry: dict | None = None) -> int:
     ap.add_argument("--mirror", default=None, help="take each archive from URL/<its file name>, with the same "
                     "checksums")
     ap.add_argument("--sha256", action="append", type=_sha256_arg, default=[], metavar="NAME=HEX",
-                    help="the SHA-256 of an archive this version pins none for, checked before extracting it")
+                    help="a known SHA-256 of an archive, checked before it is extracted (none is needed: the "
+                    "server's size and the zip's CRC-32s check it, and the SHA-256 computed is recorded)")
     ap.add_argument("--keep-archives", action="store_true", help="keep each archive after extracting it")
     args = ap.parse_args(argv)
     try:

@@ -248,6 +248,7 @@ def _plan(args) -> None:
     """``--plan``: the run's plan (:func:`patexgs_jax.plan.make_plan`), printed and in ``--json``."""
     from .. import compiled
     from .. import plan as planning
+    from ..plan_steps import Progress
 
     devices = [planning.parse_device(d) for d in args.plan_device]
     if args.plan_steps < 0:
@@ -258,9 +259,12 @@ def _plan(args) -> None:
         from ..data.synthetic import ensure_default_scene
 
         args.data = str(ensure_default_scene())
-    ds = _load(args)
-    print_plans([planning.make_plan(ds, cfg, devices=devices, measure=args.plan_steps > 0, steps=args.plan_steps)],
-                args.json)
+    with Progress() as progress:  # (a line at least every 10 s until the plan is printed)
+        progress.phase(f"loading {args.data}")
+        ds = _load(args)
+        plan = planning.make_plan(ds, cfg, devices=devices, measure=args.plan_steps > 0, steps=args.plan_steps,
+                                  progress=progress)
+    print_plans([plan], args.json)
 
 
 def _load(args):

@@ -1,6 +1,6 @@
 """``python -m patexgs_jax.train --plan`` on the embedded scene (at a third of its resolution), with
 its real timed steps: the plan is printed and written to ``--json`` only, with each stage's measured
-step time and peak memory."""
+step time and peak memory, after the lines that say what it measures."""
 
 from __future__ import annotations
 
@@ -25,3 +25,12 @@ def test_plan_on_the_embedded_scene_times_real_steps_and_writes_only_its_json(tm
     assert doc["fits"] is True and set(doc["peak_bytes"]) == {"stage1", "texture", "eval"}
     assert doc["devices"][1]["kind"] == "gpu" and doc["devices"][1]["fits"]
     assert "2DGS" in text and "texture" in text and "whole run" in text
+    lines = text.splitlines()
+    said = [line for line in lines if line.startswith("plan: ")]
+    assert said[0].startswith("plan: loading ") and lines.index(said[-1]) < lines.index(
+        next(line for line in lines if line.startswith("plan for ")))  # every progress line before the plan
+    for what in ("compiling the 2DGS step (500 active Gaussians", "timing 5 steps of the 2DGS stage",
+                 "compiling the texture stage's first step", "timing 5 steps of the texture stage",
+                 "timing an evaluation render"):
+        assert any(line.startswith(f"plan: {what}") for line in said), (what, said)
+    assert doc["measured"]["eq6_views"] == 0  # (fixed sizes: no Eq. 7 allocation)

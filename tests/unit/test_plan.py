@@ -216,3 +216,105 @@ def test_steps_are_timed_on_views_of_one_padded_size(ds):
     one = plan.make_plan(ds, cfg, measured=dict(MEASURED, padded_sizes=1)).time_terms["compile"]
     three = plan.make_plan(ds, cfg, measured=dict(MEASURED, padded_sizes=3)).time_terms["compile"]
     assert three == pytest.approx(3 * one) and one > 0
+
+
+def test_progress_says_the_phase_at_least_every_interval():
+    """The plan's progress lines: one when a phase starts, then one each time ``every`` seconds pass
+    without a line (the clock mocked; the background thread calls :meth:`tick`)."""
+    from patexgs_jax.plan_steps import Progress
+
+    now, lines = [100.0], []
+    pr = Progress(every=10.0, say=lines.append, clock=lambda: now[0])
+    pr.tick()
+    assert lines == []  # no phase yet: nothing to say
+    pr.phase("compiling the 2DGS step")
+    now[0] += 9.0
+    pr.tick()
+    assert lines == ["plan: compiling the 2DGS step"]
+    now[0] += 1.0
+    pr.tick()
+    now[0] += 4.0
+    pr.tick()  # (4 s after the last line: quiet)
+    assert lines[1:] == ["plan: compiling the 2DGS step (10 s so far)"]
+    now[0] += 6.0
+    pr.tick()
+    pr.phase("timing 3 steps of the 2DGS stage")
+    assert lines[2:] == ["plan: compiling the 2DGS step (20 s so far)", "plan: timing 3 steps of the 2DGS stage"]
+    with pr, pr:  # (entered again inside: one thread, stopped at the outer exit)
+        assert pr._thread is not None and pr._thread.is_alive()
+    assert not pr._thread.is_alive()
+
+
+def test_eq6_is_counted_on_a_sample_of_the_views_and_scaled():
+    """The plan's Eq. 7 allocation counts Eq. 6 on EQ6_SAMPLE_VIEWS views (evenly spaced), not all:
+    the schedule renders the sample, its Eq. 7 sums are scaled by all / sampled views, and sigma is
+    the pixel share of every view's pixels; on views that repeat, the sides equal the full count's."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from patexgs_jax import adaptive, plan_steps
+    from patexgs_jax.schedule import TextureSchedule
+
+    views = [SimpleNamespace(name=f"v{i}", camera=SimpleNamespace(width=64, height=48)) for i in range(40)]
+    sample = plan_steps.eq6_sample(views)
+    assert len(sample) == plan_steps.EQ6_SAMPLE_VIEWS < len(views)
+    assert [v.name for v in sample] == [f"v{i * 5}" for i in range(8)]
+    assert plan_steps.eq6_sample(views[:5]) == views[:5]
+    cfg = TrainConfig(method="patexgs")
+    schedule = TextureSchedule(cfg, None, views, None)
+    plan_steps.sample_eq6_counts(schedule, views, sample)
+    assert schedule.train_views == sample  # what allocate() renders the counts of
+    rng = np.random.default_rng(0)
+    row = rng.integers(0, 60, size=500).astype(np.float32)  # one view's counts, every view alike
+    act = np.ones(500, bool)
+    sampled, sigma, _ = schedule.allocation_sides(adaptive.ContributionCounts.from_views([row] * 8, 500), act)
+    assert schedule.train_views == sample
+    full = TextureSchedule(cfg, None, views, None)
+    want, want_sigma, _ = full.allocation_sides(adaptive.ContributionCounts.from_views([row] * 40, 500), act)
+    assert sigma == pytest.approx(want_sigma) == pytest.approx(adaptive.pixel_share_sigma(40 * 64 * 48, 500))
+    np.testing.assert_array_equal(sampled, want)
+    unscaled = full.allocation_sides(adaptive.ContributionCounts.from_views([row] * 8, 500), act)[0]
+    assert unscaled.sum() < want.sum()  # (without the scaling the sample would allocate less)
+
+
+def _absurd(ds, stage1=4.0, texture=8.0):
+    """A plan of the paper preset with step times of days on this CPU (the step timer stubbed)."""
+    cfg = preset_config("paper", method="patexgs")
+    measured = dict(MEASURED, stage1=stage1, texture=texture, gaussians=20_000, stage1_gaussians=12_000,
+                    padded_size=[48, 64], padded_sizes=1, scale=150.0, note="scaled")
+    return plan.make_plan(ds, cfg, measured=measured)
+
+
+def test_a_plan_of_days_on_a_cpu_says_where_it_belongs_and_what_fits_here(ds, monkeypatch):
+    from patexgs_jax import plan_devices
+
+    monkeypatch.setattr(plan, "this_device", lambda: plan.Device("this CPU", "cpu", int(64e9)))
+    p = _absurd(ds)
+    assert p.total_seconds > 86400 and p.advice
+    text = p.text()
+    assert "days on this CPU: it belongs on a GPU" in text
+    h100 = next(a for a in p.advice if "NVIDIA H100" in a)
+    assert "bench_scale_h100" in h100 and "fits in its memory" in h100
+    gpu = plan_devices.h100_run_seconds(steps1=30_000, steps2=30_000, gaussians=p.gaussians, pixels=64 * 48,
+                                        stage1_gaussians=plan.mean_stage1_gaussians(preset_config("paper"),
+                                                                                    len(ds.points), p.gaussians))
+    assert f"about {plan._hms(gpu['total'])}" in h100
+    assert gpu["texture"] == pytest.approx(30_000 * (0.0889 + (0.2100 - 0.0889) / 2e6 * (p.gaussians - 1e6)))
+    hour, night = [a for a in p.advice if a.startswith("here ")]
+    assert hour.startswith("here in an hour: --preset ") and night.startswith("here in a night (10 h): --preset ")
+    for line, budget in ((hour, 3600), (night, 36000)):
+        preset, factor, cap = line.split("--preset ")[1].split()[0], int(line.split("--factor ")[1].split()[0]), \
+            int(line.split("--max-gaussians ")[1].split()[0])
+        # That command's own plan, with the same step timer, takes no more than the budget here.
+        cfg = preset_config(preset, method="patexgs", max_gaussians=cap)
+        secs = plan.plan_advice.scaled_seconds(
+            dict(MEASURED, stage1=4.0, texture=8.0, gaussians=20_000, stage1_gaussians=12_000), cfg,
+            points=len(ds.points), pixel_scale=plan.padded_pixels(round(64 / factor), round(48 / factor)) / (48 * 64),
+            n_eval=len(ds.test_views) + min(len(ds.train_views), 32), compile_seconds=p.time_terms["compile"],
+            count=plan.planned_gaussians, mean=plan.mean_stage1_gaussians)
+        assert secs <= budget and f"about {plan._hms(secs)}" in line
+    assert p.to_json()["advice"] == p.advice
+    # A plan of hours says nothing of the kind.
+    short = _absurd(ds, stage1=0.0005, texture=0.001)
+    assert short.total_seconds < 86400 and not short.advice
