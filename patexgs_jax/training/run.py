@@ -193,7 +193,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         memory.check_training_memory(dataset, gaussians=slots, textured=run.spec.textures is not None)
         plan.check_fits(dataset, config, slots)  # every stage, on a GPU too
     run.say(start_line(dataset, config, run, preset))
+    xla_before = compiled.xla_compiles()
     run.run()
+    xla_programs, xla_seconds = (a - b for a, b in zip(compiled.xla_compiles(), xla_before, strict=True))
     interrupt.check()
     scene = run.scene
     size = scene_storage(scene)
@@ -201,6 +203,11 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
         storage_mb=size["storage_mb"], recompiles=run.recompiles, compiled_at_steps=run.compiled_at,
+        # The step's programs (every run: ``recompiles``) and the seconds the steps that traced them
+        # took in this process; every XLA program this process compiled or loaded while it trained.
+        compiles=dict(step_programs=run.recompiles, step_seconds=round(run.compile_s, 3),
+                      xla_programs=xla_programs, xla_seconds=round(xla_seconds, 3)),
+        padding=run.pad.summary(run.render_cfg.tile_size),
         compile_ahead=run.ahead.summary(), skipped_steps=run.skipped,
         allocation=run.textures.allocation, growth_events=run.textures.growth_events,
         sides_final=None if scene.rgb is None else side_histogram(np.asarray(scene.rgb.size),
