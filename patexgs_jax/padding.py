@@ -112,6 +112,9 @@ class TrainPadding:
     #: twice the one it was fitted to) before it overflows; "per-size" keeps the CPU's 1.25, where a
     #: larger pair list costs its sort on every step.
     HEADROOM = {"per-size": 1.25, "one": 2.0}
+    #: A capacity in use is kept while it holds this many times the pairs a refit counts (a new
+    #: capacity is a new program): it grows only when the pairs near it, and then by ``headroom``.
+    KEEP_WHILE = 1.25
 
     def __init__(self, policy: str, cameras: Sequence[Camera], backend: str | None = None):
         self.policy = resolve_padding(policy, backend)
@@ -131,10 +134,18 @@ class TrainPadding:
         """The camera the step renders ``camera`` with (:func:`train_camera`)."""
         return train_camera(camera, tile_size, self.size(tile_size))
 
-    def capacity(self, pairs_needed, minimum: Capacity | None = None) -> Capacity:
+    def capacity(self, pairs_needed, minimum: Capacity | None = None, current: Capacity | None = None) -> Capacity:
         """The tile capacity for ``pairs_needed`` pairs: ``headroom`` times them, rounded up to the
-        power-of-two bucket (:meth:`Capacity.fit`), never below ``minimum``."""
-        return Capacity.fit(float(pairs_needed) * self.headroom, minimum=minimum)
+        power-of-two bucket (:meth:`Capacity.fit`), never below ``minimum`` or ``current``; the
+        capacity in use, ``current`` (a refit, an overflow), is kept while it holds
+        :data:`KEEP_WHILE` times the pairs (for "per-size" the same as growing it: its headroom is
+        that share)."""
+        pairs = float(pairs_needed)
+        floors = [c for c in (minimum, current) if c is not None]
+        floor = max(floors, key=lambda c: c.pairs) if floors else None
+        if current is not None and pairs * self.KEEP_WHILE <= current.pairs:
+            return floor
+        return Capacity.fit(pairs * self.headroom, minimum=floor)
 
     def summary(self, tile_size: int = 16) -> dict:
         """summary.json's ``padding``: the policy, the headroom and the pixel shares of

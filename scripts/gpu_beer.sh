@@ -23,4 +23,6 @@ export XLA_PYTHON_CLIENT_PREALLOCATE=false PATEXGS_PROGRESS=0 PYTHONUNBUFFERED=1
 export JAX_COMPILATION_CACHE_DIR="${JAX_COMPILATION_CACHE_DIR:-/tmp/patexgs_xla_cache}"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || true
 python=${PYTHON:-python}
-exec "$python" -m experiments.gpu_beer --data "$BEER" --out "$out" --budget-s "${BUDGET_S:-540}" "$@"
+budget=()
+[ -n "${BUDGET_S:-}" ] && budget=(--budget-s "$BUDGET_S")  # (default 540 s; the rehearsal's 4 h)
+exec "$python" -m experiments.gpu_beer --data "$BEER" --out "$out" "${budget[@]}" "$@"

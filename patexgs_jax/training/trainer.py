@@ -378,7 +378,8 @@ class Trainer:
         hw = None if self.cfg.batch_size > 1 else np.array([camera.height, camera.width], np.int32)
         camera = camera if self.cfg.batch_size > 1 else self.pad.camera(camera, self.render_cfg.tile_size)
         needed, _ = count_pairs(self.scene, camera, self.render_cfg, hw)
-        cap = self.pad.capacity(needed, minimum=self.capacity or self.capacity_floor)
+        # (None after the scene grew: the step compiles anyway, so the fit takes the full headroom)
+        cap = self.pad.capacity(needed, minimum=self.capacity_floor, current=self.capacity)
         if cap != self.capacity:
             self.capacity = cap
 
@@ -538,7 +539,7 @@ class Trainer:
                     interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"])):
                     old = self.capacity
-                    self.capacity = self.pad.capacity(m["pairs_needed"], minimum=old)
+                    self.capacity = self.pad.capacity(m["pairs_needed"], current=old)
                     self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.capacity} and retrying")
                     continue
                 if not bool(m["ok"]):

@@ -56,3 +56,15 @@ def test_capacity_growth_has_room_for_the_pairs_to_double(needed):
     cap = one.capacity(needed)
     grown = one.capacity(cap.pairs + 1, minimum=cap)
     assert grown.pairs >= 2 * (cap.pairs + 1)
+
+
+def test_a_capacity_in_use_is_kept_until_the_pairs_near_it():
+    """A refit keeps the capacity in use (no new program) while it holds 1.25x the pairs, then grows
+    it by the policy's headroom; for "per-size" that is the fit itself (its headroom is 1.25x)."""
+    one, per = padding.TrainPadding("one", CAMS), padding.TrainPadding("per-size", CAMS)
+    cap = Capacity(1 << 16)
+    assert one.capacity(0.8 * cap.pairs, current=cap) == cap  # (2x would be 2^17: kept)
+    assert one.capacity(0.81 * cap.pairs, current=cap) == Capacity.fit(2 * 0.81 * cap.pairs)
+    assert one.capacity(10, minimum=Capacity(1 << 18), current=cap) == Capacity(1 << 18)
+    for needed in (100, 0.5 * cap.pairs, 0.8 * cap.pairs, 0.81 * cap.pairs, 3 * cap.pairs):
+        assert per.capacity(needed, current=cap) == Capacity.fit(1.25 * needed, minimum=cap)
