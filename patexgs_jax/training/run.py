@@ -203,9 +203,10 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
         storage_mb=size["storage_mb"], recompiles=run.recompiles, compiled_at_steps=run.compiled_at,
-        # The step's programs (every run: ``recompiles``) and the seconds the steps that traced them
-        # took in this process; every XLA program this process compiled or loaded while it trained.
-        compiles=dict(step_programs=run.recompiles, step_seconds=round(run.compile_s, 3),
+        # The step's programs this process traced for the run (``recompiles`` also counts those of a
+        # run resumed or started from a stage-1 checkpoint) and the seconds those steps took; every
+        # XLA program the process compiled or loaded while it trained.
+        compiles=dict(step_programs=len(run.compiled_at), step_seconds=round(run.compile_s, 3),
                       xla_programs=xla_programs, xla_seconds=round(xla_seconds, 3)),
         padding=run.pad.summary(run.render_cfg.tile_size),
         compile_ahead=run.ahead.summary(), skipped_steps=run.skipped,
