@@ -141,10 +141,9 @@ class TrainPadding:
         :data:`KEEP_WHILE` times the pairs (for "per-size" the same as growing it: its headroom is
         that share)."""
         pairs = float(pairs_needed)
-        floors = [c for c in (minimum, current) if c is not None]
-        floor = max(floors, key=lambda c: c.pairs) if floors else None
+        floor = current if minimum is None or (current is not None and current.pairs >= minimum.pairs) else minimum
         if current is not None and pairs * self.KEEP_WHILE <= current.pairs:
-            return floor
+            return current if floor is None else floor
         return Capacity.fit(pairs * self.headroom, minimum=floor)
 
     def summary(self, tile_size: int = 16) -> dict:
