@@ -418,6 +418,9 @@ def main(argv=None) -> int:
                     "data-parallel (part of the protocol)")
     ap.add_argument("--devices", type=int, default=None, help="devices the batch is split over (default: as many "
                     "as divide it); on CPU this many CPU devices are created")
+    ap.add_argument("--padding", default=None, choices=["auto", "per-size", "one"],
+                    help="padded sizes of the training views (TrainConfig.padding; default auto: one on a GPU, "
+                         "per-size on a CPU)")
     from patexgs_jax import parallel
     from patexgs_jax.checkpoint import CheckpointError
     from patexgs_jax.training.cli import add_plan_arguments
@@ -462,6 +465,8 @@ def _study(args) -> int:
         config["zoom_in"] = True
     if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
         config["train_overrides"] = dict(batch_size=args.batch_size)
+    if args.padding not in (None, "auto"):  # (auto keeps older results.json files valid)
+        config["train_overrides"] = dict(config.get("train_overrides", {}), padding=args.padding)
     methods = split(args.methods)
     if methods:
         expand_methods(methods)  # (an unknown name fails before --out is made)

@@ -119,6 +119,30 @@ def drop_empty_entries(folder) -> int:
     return removed
 
 
+#: JAX's event for an XLA program being compiled, or loaded from the persistent cache.
+_BACKEND_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+
+#: XLA programs this process has compiled or loaded from the persistent cache (every thread, every
+#: jitted function and eager op), and their seconds, from JAX's monitoring events: what
+#: :func:`xla_compiles` reads.
+_XLA_COMPILES = [0, 0.0]
+
+
+def _on_duration(event: str, duration_secs: float, **_) -> None:
+    if event == _BACKEND_COMPILE_EVENT:
+        _XLA_COMPILES[0] += 1
+        _XLA_COMPILES[1] += float(duration_secs)
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_duration)
+
+
+def xla_compiles() -> tuple[int, float]:
+    """(programs, seconds) XLA has compiled or loaded from the persistent cache in this process so
+    far (see :data:`_XLA_COMPILES`): differences of two readings count a run's."""
+    return int(_XLA_COMPILES[0]), float(_XLA_COMPILES[1])
+
+
 class MapLimitReached(OSError):
     """The process holds nearly as many memory mappings as the kernel allows (see :class:`MapGuard`)."""
 

@@ -16,6 +16,14 @@ octave: t itself up to ``steps_per_octave`` tiles, above that the next ``m 2^k``
 ``steps_per_octave=None`` keeps the tile grid exactly: then every per-splat output (visibility,
 radius, pair count) equals the unpadded render's too, which training needs (densification
 statistics); evaluation uses :data:`EVAL_STEPS_PER_OCTAVE`.
+
+Training pads a view in one of two ways (:func:`resolve_padding`, ``TrainConfig.padding``):
+"per-size" pads each view to its own tile grid (one step program per distinct tile grid of the
+training views); "one" pads every view to the largest tile grid of the training views
+(:func:`one_size`; one step program per tile capacity), and the renderer bins only the tiles of the
+view's own grid (``render_jit(..., valid_hw=)``), so the splats' visibility, radii and pair counts
+are the per-size ones and the extra tiles stay empty (their cost: the pixels the loss and the
+compositor pass over, :func:`extra_pixel_share`).
 """
 
 from __future__ import annotations
@@ -34,6 +42,114 @@ from .render import Capacity, count_pairs, prepare_textures, render_jit
 #: pixels a side, at most an eighth of extra tiles above (beer's test views at 1/4 and their
 #: zoom-outs by 2, 4, 8: 5 padded sizes).
 EVAL_STEPS_PER_OCTAVE = 8
+
+
+#: ``TrainConfig.padding``'s values: "auto" resolves to "one" on a GPU or TPU (compiles cost the
+#: most there: tens of seconds a program at full size) and "per-size" on a CPU (where the step's
+#: time grows with its pixels and a compile costs less than the padding would over a run).
+PADDING_POLICIES = ("auto", "per-size", "one")
+
+
+def resolve_padding(policy: str, backend: str | None = None) -> str:
+    """"per-size" or "one": ``policy``, or for "auto" the backend's choice (see
+    :data:`PADDING_POLICIES`; ``backend`` defaults to ``jax.default_backend()``)."""
+    if policy not in PADDING_POLICIES:
+        raise ValueError(f"padding must be one of {PADDING_POLICIES}, got {policy!r}.")
+    if policy != "auto":
+        return policy
+    backend = jax.default_backend() if backend is None else backend
+    return "per-size" if backend == "cpu" else "one"
+
+
+def one_size(cameras: Sequence[Camera], tile_size: int = 16) -> tuple[int, int]:
+    """(height, width) of the "one" padding of views ``cameras``: the largest padded height and the
+    largest padded width among their own tile grids (every view fits it)."""
+    if not cameras:
+        raise ValueError("one_size needs at least one camera.")
+    shapes = [padded_shape(c.height, c.width, tile_size) for c in cameras]
+    return max(h for h, _ in shapes), max(w for _, w in shapes)
+
+
+def train_camera(camera: Camera, tile_size: int = 16, size: tuple[int, int] | None = None) -> Camera:
+    """The camera a training step renders ``camera`` with: at its own tile grid (``size`` None,
+    "per-size") or at ``size`` = (height, width) ("one", :func:`one_size`); K and pose unchanged."""
+    if size is None:
+        return padded_camera(camera, tile_size)
+    h, w = size
+    if camera.height > h or camera.width > w:
+        raise ValueError(f"a {camera.width}x{camera.height} view does not fit the padded size {w}x{h}; "
+                         "compute the size with one_size over every view trained.")
+    if (h, w) == (camera.height, camera.width):
+        return camera
+    return Camera(K=camera.K, world_to_camera=camera.world_to_camera, width=w, height=h)
+
+
+def extra_pixel_share(cameras: Sequence[Camera], tile_size: int = 16) -> dict:
+    """Pixels a step passes over, as a share over the views' own pixels, per padding: ``per_size``
+    (each view's own tile grid), ``one`` (:func:`one_size`), ``one_over_per_size`` (the "one"
+    padding's pixels over the per-size padding's, minus 1), and ``sizes`` (distinct per-size
+    padded sizes)."""
+    own = sum(c.height * c.width for c in cameras)
+    per = sum(int(np.prod(padded_shape(c.height, c.width, tile_size))) for c in cameras)
+    h, w = one_size(cameras, tile_size)
+    one = len(cameras) * h * w
+    sizes = {padded_shape(c.height, c.width, tile_size) for c in cameras}
+    return dict(per_size=per / own - 1.0, one=one / own - 1.0, one_over_per_size=one / per - 1.0,
+                sizes=len(sizes), one_size=[h, w])
+
+
+class TrainPadding:
+    """How a run pads its training views (``TrainConfig.padding``, resolved: :func:`resolve_padding`)
+    and how much headroom its step's tile capacity gets over the pairs a view needs.
+
+    Attributes:
+      policy: "per-size" or "one".
+      headroom: the tile capacity's share over the pairs counted (:data:`HEADROOM`).
+    """
+
+    #: Tile-capacity headroom per policy. "one" compiles a program per capacity, so the capacity
+    #: gets room for the pairs to double (a densification interval's growth, or a view that needs
+    #: twice the one it was fitted to) before it overflows; "per-size" keeps the CPU's 1.25, where a
+    #: larger pair list costs its sort on every step.
+    HEADROOM = {"per-size": 1.25, "one": 2.0}
+    #: A capacity in use is kept while it holds this many times the pairs a refit counts (a new
+    #: capacity is a new program): it grows only when the pairs near it, and then by ``headroom``.
+    KEEP_WHILE = 1.25
+
+    def __init__(self, policy: str, cameras: Sequence[Camera], backend: str | None = None):
+        self.policy = resolve_padding(policy, backend)
+        self.headroom = self.HEADROOM[self.policy]
+        self._cameras = list(cameras)
+        self._sizes: dict[int, tuple[int, int]] = {}  # tile size -> the "one" size
+
+    def size(self, tile_size: int = 16) -> tuple[int, int] | None:
+        """(height, width) every view is padded to ("one"), or None ("per-size")."""
+        if self.policy != "one":
+            return None
+        if tile_size not in self._sizes:
+            self._sizes[tile_size] = one_size(self._cameras, tile_size)
+        return self._sizes[tile_size]
+
+    def camera(self, camera: Camera, tile_size: int = 16) -> Camera:
+        """The camera the step renders ``camera`` with (:func:`train_camera`)."""
+        return train_camera(camera, tile_size, self.size(tile_size))
+
+    def capacity(self, pairs_needed, minimum: Capacity | None = None, current: Capacity | None = None) -> Capacity:
+        """The tile capacity for ``pairs_needed`` pairs: ``headroom`` times them, rounded up to the
+        power-of-two bucket (:meth:`Capacity.fit`), never below ``minimum`` or ``current``; the
+        capacity in use, ``current`` (a refit, an overflow), is kept while it holds
+        :data:`KEEP_WHILE` times the pairs (for "per-size" the same as growing it: its headroom is
+        that share)."""
+        pairs = float(pairs_needed)
+        floor = current if minimum is None or (current is not None and current.pairs >= minimum.pairs) else minimum
+        if current is not None and pairs * self.KEEP_WHILE <= current.pairs:
+            return current if floor is None else floor
+        return Capacity.fit(pairs * self.headroom, minimum=floor)
+
+    def summary(self, tile_size: int = 16) -> dict:
+        """summary.json's ``padding``: the policy, the headroom and the pixel shares of
+        :func:`extra_pixel_share`."""
+        return dict(policy=self.policy, headroom=self.headroom, **extra_pixel_share(self._cameras, tile_size))
 
 
 def padded_side(side: int, tile_size: int = 16, steps_per_octave: int | None = None) -> int:

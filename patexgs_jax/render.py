@@ -191,16 +191,29 @@ def _tile_grid(camera: Camera, config: RenderConfig):
     return -(-camera.width // ts), -(-camera.height // ts)
 
 
+def _valid_tiles(camera: Camera, config: RenderConfig, valid_hw):
+    """(columns, rows) of tiles covering the top-left ``valid_hw = (H, W)`` pixels of a padded
+    ``camera`` (traced () int32 each), or None for the whole image (``valid_hw`` None)."""
+    if valid_hw is None:
+        return None
+    tiles_x, tiles_y = _tile_grid(camera, config)
+    ts = config.tile_size
+    hw = jnp.asarray(valid_hw, jnp.int32)
+    return jnp.minimum((hw[1] + ts - 1) // ts, tiles_x), jnp.minimum((hw[0] + ts - 1) // ts, tiles_y)
+
+
 def _project_and_range(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, active_sh_degree, peak,
-                       constant=None):
+                       constant=None, valid_hw=None):
     """The projection of a view, its splats' tile ranges (tx0, tx1, ty0, ty1, ok), the (splat, tile)
-    pairs it needs (() float32) and the most splats any tile lists (() int32)."""
+    pairs it needs (() float32) and the most splats any tile lists (() int32); with ``valid_hw``
+    ((2,) int, the view's own (H, W) within a padded camera), of the tiles covering it only."""
     tiles_x, tiles_y = _tile_grid(camera, config)
     if scene.is_3d:
         proj = project3d(scene, camera, config, screen_offset, active_sh_degree)
     else:
         proj = project(scene, camera, config, screen_offset, active_sh_degree, peak, constant)
-    ranges = tile_ranges(proj.bounds, proj.visible, config.tile_size, tiles_x, tiles_y)
+    ranges = tile_ranges(proj.bounds, proj.visible, config.tile_size, tiles_x, tiles_y,
+                         _valid_tiles(camera, config, valid_hw))
     hist = tile_histogram(*ranges, tiles_x, tiles_y)
     return proj, ranges, pair_count(*ranges), jnp.max(hist)
 
@@ -254,7 +267,8 @@ prepare_textures = jax.jit(_scene_textures, static_argnames=("config",))
 
 
 def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capacity,
-            screen_offset=None, active_sh_degree=None, textures: SceneTextures | None = None) -> RenderOutput:
+            screen_offset=None, active_sh_degree=None, textures: SceneTextures | None = None,
+            valid_hw=None) -> RenderOutput:
     TRACE_COUNTS[(config, capacity)] += 1
     check_inputs(scene, camera)
     H, W, ts = camera.height, camera.width, config.tile_size
@@ -270,7 +284,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     rgb_const, alpha_const = textures.rgb_const, textures.alpha_const
     rgb_atlas, alpha_atlas = textures.rgb_atlas, textures.alpha_atlas
     proj, ranges, pairs_needed, max_tile = _project_and_range(
-        scene, camera, config, screen_offset, active_sh_degree, peak, (rgb_add, alpha_mul))
+        scene, camera, config, screen_offset, active_sh_degree, peak, (rgb_add, alpha_mul), valid_hw)
     kcfg = kernel_config(config, scene)  # 3D Gaussians: the compositor's screen-space (prefilter) kernel
     ids_sorted, tile_start, binned = bin_projection(proj, ranges, tiles_x, num_tiles, capacity.pairs, kcfg)
     ok = ranges[4]
@@ -329,19 +343,24 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
 #: ``screen_offset`` ((C, 2) zeros) is a gradient hook: its gradient is the loss gradient with
 #: respect to a screen-space translation of each splat, in pixels (the densification statistic);
 #: ``active_sh_degree`` (traced int) masks SH bands above it; ``textures``: the scene's
-#: :func:`prepare_textures` for this config, or None to build them (differentiably) in the render.
+#: :func:`prepare_textures` for this config, or None to build them (differentiably) in the render;
+#: ``valid_hw``: None, or the view's own (H, W) ((2,) int, traced) when ``camera`` is a larger padded
+#: size of it: only the tiles covering it are binned (the others stay empty and show the background),
+#: so visibility, radii and ``pairs_needed`` are those of the view's own tile grid.
 render_jit = jax.jit(_render, static_argnames=("config", "capacity"))
 
 
 _capacity_cache: dict = {}
 
 
-def _count(scene: Scene, camera: Camera, config: RenderConfig):
-    _, _, pairs_needed, max_tile = _project_and_range(scene, camera, config, None, None, alpha_peak(scene))
+def _count(scene: Scene, camera: Camera, config: RenderConfig, valid_hw=None):
+    _, _, pairs_needed, max_tile = _project_and_range(scene, camera, config, None, None, alpha_peak(scene),
+                                                      valid_hw=valid_hw)
     return pairs_needed, max_tile
 
 
-#: Exact (pairs_needed, max_tile_count) of a view, without rendering it.
+#: Exact (pairs_needed, max_tile_count) of a view, without rendering it (``valid_hw`` as
+#: :data:`render_jit`'s).
 count_pairs = jax.jit(_count, static_argnames=("config",))
 
 _DEFAULT_CONFIG = RenderConfig()

@@ -19,22 +19,25 @@ TOUCH_GROW = 1.0
 TOUCH_EPS = 1e-4
 
 
-def tile_ranges(bounds, visible, tile_size, tiles_x, tiles_y):
+def tile_ranges(bounds, visible, tile_size, tiles_x, tiles_y, limit=None):
     """The tiles each splat's screen box ``bounds`` (xmin, xmax, ymin, ymax, each (C,), pixels)
     overlaps: (tx0, tx1, ty0, ty1, ok), each (C,), the half-open ranges [tx0, tx1) x [ty0, ty1) of
     tile columns and rows (int32) whose pixel centres the box may reach, and ok, ``visible`` with a
-    non-empty range."""
+    non-empty range. ``limit``: None, or (columns, rows) of tiles (() int32 each, may be traced, at
+    most tiles_x and tiles_y) that exist: the ranges are cut to them, so that a view rendered on a
+    larger padded grid bins the splats of its own tiles only."""
     xmin, xmax, ymin, ymax = bounds
+    lim_x, lim_y = (tiles_x, tiles_y) if limit is None else limit
 
-    def rng(lo, hi, n):
+    def rng(lo, hi, n, lim):
         lo = jnp.floor(jnp.clip((lo - 0.5) / tile_size, -1.0, n + 1.0))
         hi = jnp.floor(jnp.clip((hi - 0.5) / tile_size, -1.0, n + 1.0)) + 1
         lo = jnp.where(jnp.isnan(lo), 0.0, lo)
         hi = jnp.where(jnp.isnan(hi), float(n), hi)
-        return jnp.clip(lo, 0, n).astype(jnp.int32), jnp.clip(hi, 0, n).astype(jnp.int32)
+        return jnp.clip(lo, 0, lim).astype(jnp.int32), jnp.clip(hi, 0, lim).astype(jnp.int32)
 
-    tx0, tx1 = rng(xmin, xmax, tiles_x)
-    ty0, ty1 = rng(ymin, ymax, tiles_y)
+    tx0, tx1 = rng(xmin, xmax, tiles_x, lim_x)
+    ty0, ty1 = rng(ymin, ymax, tiles_y, lim_y)
     ok = visible & (tx1 > tx0) & (ty1 > ty0)
     return tx0, tx1, ty0, ty1, ok
 

@@ -123,6 +123,10 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", type=int, default=None,
                     help="devices the batch is split over (must divide --batch-size; default: as many as "
                          "divide it); on CPU this many CPU devices are created")
+    ap.add_argument("--padding", default=None, choices=["auto", "per-size", "one"],
+                    help="padded sizes of the training views: one (every view at the largest tile grid: one step "
+                         "program per tile capacity), per-size (each view at its own grid) or auto (default: one "
+                         "on a GPU, per-size on a CPU); see TrainConfig.padding")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
     ap.add_argument("--skip-unreadable", action="store_true", help="leave out the views whose image file is "
                     "missing or cannot be decoded (default: stop and name them)")
@@ -240,7 +244,7 @@ def _config(args):
                          texture_budget_mb=args.texture_budget_mb, seed=args.seed,
                          checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                          checkpoint_on_stop=args.checkpoint_on_stop, batch_size=args.batch_size,
-                         devices=args.devices)
+                         devices=args.devices, padding=args.padding)
     return equal_steps(cfg)  # (an untextured method continues its first stage for the --iters-tex steps)
 
 

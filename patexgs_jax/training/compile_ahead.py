@@ -212,7 +212,9 @@ class CompileAhead:
         state = stage.start(self.run.state)
         scene, opt_state, stats = owned_copy(tuple(state))
         view = self.run.view(config.iters_2dgs, config.seed)
-        cam = padding.padded_camera(view.camera, render_cfg.tile_size)
+        pad = self._pad(config)
+        cam = pad.camera(view.camera, render_cfg.tile_size)
+        hw = np.array([view.camera.height, view.camera.width], np.int32)
         layout = layout_of(scene)
         same = [p for p in PREPARED if (p.identity, p.render_cfg, p.layout) == (identity, render_cfg, layout)]
         if same and not own:
@@ -222,7 +224,7 @@ class CompileAhead:
             with contextlib.suppress(ValueError):
                 PREPARED.remove(old)
         prep = Prepared(identity, render_cfg, layout, (cam.height, cam.width), 0 if not own else id(self))
-        # The stage's first step fits the capacity (1.25 x its view's pairs) from none (a run started
+        # The stage's first step fits the capacity (pad.headroom x its view's pairs) from none (a run started
         # from a stage-1 checkpoint), or this run keeps its own (refitted up at the stage's start
         # when a refit falls there).
         minimum = self.run.capacity if own else None
@@ -235,8 +237,8 @@ class CompileAhead:
                 if keep:
                     prep.capacity = minimum
                 else:  # (its own program: the main thread releases the shared jitted ones at will)
-                    needed, _ = count_pairs.lower(scene, cam, config=render_cfg).compile()(scene, cam)
-                    prep.capacity = Capacity.fit(float(needed) * 1.25, minimum=minimum)
+                    needed, _ = count_pairs.lower(scene, cam, hw, config=render_cfg).compile()(scene, cam, hw)
+                    prep.capacity = pad.capacity(needed, current=minimum)  # (as the run's refit)
                 done = shared_step(identity, (render_cfg, prep.capacity), layout, prep.padded)
                 prep.fn = done or single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dist > 0)
             finally:
@@ -290,7 +292,7 @@ class CompileAhead:
         render_cfg = config.render_config(stage=2)
         scene, opt_state, stats = state
         view = self.run.view(config.iters_2dgs + config.warmup_tex, config.seed)
-        cam = padding.padded_camera(view.camera, render_cfg.tile_size)
+        cam = self._pad(config).camera(view.camera, render_cfg.tile_size)
         alloc = Prepared(identity, render_cfg, None, (cam.height, cam.width), owner)
         args = step_image_args(cam)
 
@@ -350,6 +352,12 @@ class CompileAhead:
             # allocation are two entries): the next run's always, later runs' while there is room.
             self.prepare(other, predict_allocation=i == 0 or len(PREPARED) + 2 <= MAX_PREPARED)
         self.prepare_for = ()
+
+    def _pad(self, config: TrainConfig) -> padding.TrainPadding:
+        """The training padding of ``config`` (this run's, or another run's on the same views)."""
+        if config.padding == self.run.cfg.padding:
+            return self.run.pad
+        return padding.TrainPadding(config.padding, [v.camera for v in self.run.train_views])
 
     def _find(self, render_cfg: RenderConfig, layout: tuple) -> Prepared | None:
         identity = step_identity(self.run.cfg)

@@ -14,6 +14,7 @@ import json
 from .. import densify as dens
 from ..adaptive import DEFAULT_MAX_SIZE
 from ..optim import LearningRates
+from ..padding import PADDING_POLICIES
 from ..render import RenderConfig
 
 __all__ = [
@@ -184,6 +185,13 @@ class TrainConfig:
         same image size.
       devices: devices the batch is split over (must divide ``batch_size``); None: as many as
         JAX sees that divide it. Unused when ``batch_size`` is 1.
+      padding: the padded sizes the single-view step trains at (:mod:`patexgs_jax.padding`):
+        "per-size" (each view at its own tile grid: a program per distinct grid and tile capacity),
+        "one" (every view at the largest grid: a program per tile capacity; the tile capacity then
+        grows with 2x headroom, so that one densification's doubling does not overflow it) or
+        "auto" (default): "one" on a GPU or TPU, "per-size" on a CPU. The same result either way
+        (to float rounding: tiles are batched differently); batches (``batch_size`` > 1) have one
+        size already.
     """
 
     method: str = _field("patexgs", stage2=True)
@@ -217,11 +225,14 @@ class TrainConfig:
     init_opacity: float = 0.1
     batch_size: int = 1
     devices: int | None = _field(None, runtime=True)
+    padding: str = _field("auto", runtime=True)
 
     def __post_init__(self):
         spec = Method.from_name(self.method)
         if self.batch_size < 1 or (self.devices is not None and self.devices < 1):
             raise ValueError(f"batch_size and devices must be >= 1, got {self.batch_size} and {self.devices}.")
+        if self.padding not in PADDING_POLICIES:
+            raise ValueError(f"padding must be one of {', '.join(PADDING_POLICIES)}, got {self.padding!r}.")
         if self.checkpoint_on_stop < 0:
             raise ValueError(f"checkpoint_on_stop must be >= 0, got {self.checkpoint_on_stop}.")
         if self.checkpoint_every < 1 or self.log_every < 1:

@@ -193,7 +193,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         memory.check_training_memory(dataset, gaussians=slots, textured=run.spec.textures is not None)
         plan.check_fits(dataset, config, slots)  # every stage, on a GPU too
     run.say(start_line(dataset, config, run, preset))
+    xla_before = compiled.xla_compiles()
     run.run()
+    xla_programs, xla_seconds = (a - b for a, b in zip(compiled.xla_compiles(), xla_before, strict=True))
     interrupt.check()
     scene = run.scene
     size = scene_storage(scene)
@@ -201,6 +203,12 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
         storage_mb=size["storage_mb"], recompiles=run.recompiles, compiled_at_steps=run.compiled_at,
+        # The step's programs this process traced for the run (``recompiles`` also counts those of a
+        # run resumed or started from a stage-1 checkpoint) and the seconds those steps took; every
+        # XLA program the process compiled or loaded while it trained.
+        compiles=dict(step_programs=len(run.compiled_at), step_seconds=round(run.compile_s, 3),
+                      xla_programs=xla_programs, xla_seconds=round(xla_seconds, 3)),
+        padding=run.pad.summary(run.render_cfg.tile_size),
         compile_ahead=run.ahead.summary(), skipped_steps=run.skipped,
         allocation=run.textures.allocation, growth_events=run.textures.growth_events,
         sides_final=None if scene.rgb is None else side_histogram(np.asarray(scene.rgb.size),

@@ -48,7 +48,9 @@ def view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_con
 
     ``camera`` and ``image`` (Hb, Wb, 3) may be padded to a padded size (:mod:`patexgs_jax.padding`);
     ``valid_hw`` ((2,) int, traced) is then the view's own (H, W): the loss is that of the top-left
-    H x W block, so views of every size of one padded size share one compiled step."""
+    H x W block and the renderer bins the tiles covering that block only, so views of every size
+    of one padded size share one compiled step, whatever the padded size (one per view's tile grid,
+    or one for every view: :func:`patexgs_jax.padding.train_camera`)."""
     chex.assert_shape(image, (camera.height, camera.width, 3), custom_message=(
         "the training image and its camera disagree; each view's image must be (H, W, 3) at its "
         "camera's size (a loader or a hand-made view gave another size)"))
@@ -58,7 +60,7 @@ def view_loss_and_grads(scene, camera, image, active_sh, w_normal, *, render_con
 
     def loss_fn(sc, off):
         out = render_jit(sc, camera, config=render_config, capacity=capacity, screen_offset=off,
-                         active_sh_degree=active_sh)
+                         active_sh_degree=active_sh, valid_hw=valid_hw)
         photo, l1 = losses.photometric(out.rgb, image, lambda_dssim, valid=valid)
         loss = photo
         loss = loss + w_normal * losses.normal_consistency(out.normal, out.depth, out.alpha, camera.K, valid=valid)
@@ -102,8 +104,9 @@ def single_view_step(scene, opt_state, stats, camera, image, valid_hw, active_sh
     """One single-view update.
 
     Args:
-      camera: the view's camera at its padded size (``padding.padded_camera`` with the exact tile
-        grid: every per-splat output equals the unpadded render's).
+      camera: the view's camera at its padded size (:func:`patexgs_jax.padding.train_camera`: its
+        own tile grid or a larger one; either way every per-splat output equals the unpadded
+        render's, the renderer binning the tiles of the view's own grid only).
       image: (Hb, Wb, 3) float32, the view's image zero-padded to its padded size.
       valid_hw: (2,) int32, the view's own (H, W).
       active_sh, w_normal: traced SH degree and normal-consistency weight.

@@ -15,10 +15,11 @@ Robustness
   good checkpoint.
 
 Compiled programs (see :mod:`patexgs_jax.compiled`)
-  A training view is padded to the renderer's tile grid (:mod:`patexgs_jax.padding`; the loss is
-  the view's own, the per-splat statistics the unpadded render's), so the step compiles once per
-  distinct tile grid of the training images, not once per image size, and again only when the
-  tile capacity or the scene's shapes change (densification; the texture stage's start and Eq. 7
+  A training view is padded to its tile grid, or on a GPU to the largest grid of the training
+  views (``TrainConfig.padding``, :mod:`patexgs_jax.padding`; the loss is the view's own, the
+  per-splat statistics the unpadded render's), so the step compiles once per distinct tile grid
+  (or once), not once per image size, and again only when the tile capacity or the scene's
+  shapes change (densification; the texture stage's start and Eq. 7
   allocation; a growth event only when it overflows a texture bucket's headroom, see
   :mod:`patexgs_jax.textures.rebucket`). The runs of one process share their steps (a resumed run, a
   study's runs of one configuration, a notebook's second run take the executables an earlier run
@@ -127,6 +128,9 @@ class Trainer:
         self.optimizer = make_optimizer(self.radius, self.lr)
         # The step's learning rates and loss weights, passed to it (not compiled into it).
         self.hp = jax.device_put(step_args(self.radius, config))
+        # How the views are padded and the tile capacity sized (TrainConfig.padding; batches have one size).
+        self.pad = padding.TrainPadding(config.padding if config.batch_size == 1 else "per-size",
+                                        [v.camera for v in self.train_views])
         self.capacity = None
         # The tile capacity before the scene last grew: a refit after densification never goes below
         # it (more Gaussians do not need fewer pairs; a smaller capacity would overflow and compile
@@ -137,6 +141,7 @@ class Trainer:
         self.skipped = 0
         self.recompiles = 0
         self.compiled_at: list[int] = []  # steps whose program this process traced in the main thread
+        self.compile_s = 0.0  # seconds those steps' calls took (tracing, compiling, dispatch)
         self.t_train = 0.0
         self.stage1_saved = False
         # With several processes (jax.distributed) only process 0 writes and prints progress.
@@ -283,8 +288,8 @@ class Trainer:
 
     def step_fn(self) -> Callable[..., Any]:
         """The training step as ``fn(scene, opt_state, stats, camera, image, active_sh, w_normal)``
-        (``image`` (H, W, 3) of the camera's size). The view is padded to its padded size (the
-        renderer's exact tile grid) on the host, so the views of one padded size share a program."""
+        (``image`` (H, W, 3) of the camera's size). The view is padded on the host to its own tile
+        grid or to the run's one size (:attr:`pad`), so the views of one padded size share a program."""
         if self.cfg.batch_size > 1:
             return self._batch_step_fn()
         cfg, render_cfg, capacity = self.cfg, self.render_cfg, self.capacity
@@ -294,7 +299,7 @@ class Trainer:
             claim=lambda layout: self.ahead.claim_step(render_cfg, capacity, layout), shared=True)
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
-            cam = padding.padded_camera(camera, render_cfg.tile_size)
+            cam = self.pad.camera(camera, render_cfg.tile_size)
             if (cam.height, cam.width) not in buckets_seen:  # this call compiles (see StepCache.get)
                 buckets_seen.add((cam.height, cam.width))
                 job = ahead_jobs.pop((cam.height, cam.width), None)
@@ -369,10 +374,12 @@ class Trainer:
 
     def fit_capacity(self, camera):
         interrupt.set_phase("counting the tile pairs of a view (the counter compiles once per size)")
-        # Counted at the step's padded size (the same tile grid: the same count), one program a size.
-        camera = camera if self.cfg.batch_size > 1 else padding.padded_camera(camera, self.render_cfg.tile_size)
-        needed, _ = count_pairs(self.scene, camera, self.render_cfg)
-        cap = Capacity.fit(float(needed) * 1.25, minimum=self.capacity or self.capacity_floor)
+        # Counted at the step's padded size, on the view's own tiles (the step's count), one program a size.
+        hw = None if self.cfg.batch_size > 1 else np.array([camera.height, camera.width], np.int32)
+        camera = camera if self.cfg.batch_size > 1 else self.pad.camera(camera, self.render_cfg.tile_size)
+        needed, _ = count_pairs(self.scene, camera, self.render_cfg, hw)
+        # (None after the scene grew: the step compiles anyway, so the fit takes the full headroom)
+        cap = self.pad.capacity(needed, minimum=self.capacity_floor, current=self.capacity)
         if cap != self.capacity:
             self.capacity = cap
 
@@ -525,14 +532,14 @@ class Trainer:
                     self.ahead.took, compiled_last = False, True
                     interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if sum(STEP_TRACES.values()) > traces:
+                    self.compile_s += time.perf_counter() - t0  # (compiling is synchronous; the step is not)
                     self.recompiles += 1
                     self.compiled_at.append(step)
                     compiled_last = True
                     interrupt.set_phase(f"training the {self.stage_name(step)} stage")
                 if bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"])):
                     old = self.capacity
-                    self.capacity = Capacity.fit(float(m["pairs_needed"]) * 1.25,
-                                                 minimum=old)
+                    self.capacity = self.pad.capacity(m["pairs_needed"], current=old)
                     self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.capacity} and retrying")
                     continue
                 if not bool(m["ok"]):

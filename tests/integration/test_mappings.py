@@ -193,8 +193,10 @@ def test_training_compiles_per_tile_grid_and_stops_near_the_map_limit(mixed_size
     assert sum(STEP_TRACES.values()) - mid <= 2
 
 
-def test_padded_step_matches_the_cropped_loss(mixed_sizes):
-    """The loss and gradients of a view padded to its tile grid are those of the view itself (the
+@pytest.mark.parametrize("size", [None, (48, 64)], ids=["own-grid", "one-size"])
+def test_padded_step_matches_the_cropped_loss(mixed_sizes, size):
+    """The loss and gradients of a view padded to its tile grid, or to a larger padded size (the
+    "one" padding: the renderer bins the view's own tiles only), are those of the view itself (the
     densification statistic, the screen-offset gradient, included)."""
     import jax.numpy as jnp
 
@@ -202,14 +204,17 @@ def test_padded_step_matches_the_cropped_loss(mixed_sizes):
     run = Trainer(mixed_sizes, cfg, None, verbose=False)
     run.fresh()
     v = mixed_sizes.train_views[1]  # 45 x 30 in a 48 x 32 bucket
-    cam = padding.padded_camera(v.camera)
+    cam = padding.train_camera(v.camera, 16, size)
     grads = jax.jit(functools.partial(view_loss_and_grads, render_config=cfg.render_config(1),
                                       capacity=Capacity.fit(4096), lambda_dssim=0.2, lambda_dist=0.1))
     args = (jnp.int32(1), jnp.float32(0.05))
     (want, (_, l1_want, mse_want)), (g_want, off_want) = grads(run.scene, v.camera, jnp.asarray(v.image), *args)
-    (loss, (_, l1, mse)), (g, off) = grads(
+    (loss, (out, l1, mse)), (g, off) = grads(
         run.scene, cam, jnp.asarray(padding.pad_image(v.image, cam.height, cam.width)), *args,
         valid_hw=jnp.asarray([v.camera.height, v.camera.width]))
+    own = render_jit(run.scene, v.camera, config=cfg.render_config(1), capacity=Capacity.fit(4096))
+    np.testing.assert_array_equal(np.asarray(out.visible), np.asarray(own.visible))
+    assert float(out.pairs_needed) == float(own.pairs_needed)
     for a, b in ((loss, want), (l1, l1_want), (mse, mse_want)):
         assert float(a) == pytest.approx(float(b), rel=1e-5)
     pairs = ((off, off_want), (g.means, g_want.means), (g.sh, g_want.sh), (g.opacity_logits, g_want.opacity_logits))
@@ -219,3 +224,23 @@ def test_padded_step_matches_the_cropped_loss(mixed_sizes):
     # its default ones). A pixel lost or counted twice would move entries by their own size.
     for a, b in pairs:
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=5e-4 * float(np.max(np.abs(b))))
+
+
+def test_one_padding_compiles_the_step_once(mixed_sizes):
+    """With ``padding="one"`` the 8 views of 6 sizes (2 tile grids: 2 programs per-size, see
+    test_training_compiles_per_tile_grid_and_stops_near_the_map_limit) train with one program,
+    and summary.json counts it."""
+    from patexgs_jax.training.step_cache import release_steps
+
+    cfg = TrainConfig(method="2dgs", iters_2dgs=10, sh_interval=4, normal_from=2, padding="one",
+                      densify=DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000))
+    release_steps()  # (a step of this layout shared by an earlier run would hide the count)
+    start = sum(STEP_TRACES.values())
+    summary = train(mixed_sizes, cfg, None, verbose=False).summary
+    assert sum(STEP_TRACES.values()) - start == 1
+    assert summary["compiles"]["step_programs"] == summary["recompiles"] == 1
+    assert summary["compiles"]["step_seconds"] > 0 and summary["compiles"]["xla_programs"] >= 1
+    pad = summary["padding"]
+    assert (pad["policy"], pad["sizes"], pad["one_size"], pad["headroom"]) == ("one", 2, [48, 48], 2.0)
+    # (heights 30-32: 2 tile rows; 33-40: 3)
+    assert pad["one_over_per_size"] == pytest.approx(8 * 48 * 48 / (5 * 48 * 32 + 3 * 48 * 48) - 1)
