@@ -199,8 +199,10 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=None, help="one scene (default: the embedded synthetic scene)")
     ap.add_argument("--factor", type=int, default=None, help="image downsampling of --data (default: as train's)")
-    ap.add_argument("--preset", default="tiny", choices=["tiny", "small", "paper"], help="the study's schedule (default tiny)")
-    ap.add_argument("--methods", default="2dgs,patexgs", help="the study's methods, comma-separated (default 2dgs,patexgs)")
+    ap.add_argument("--preset", default="tiny", choices=["tiny", "small", "paper"],
+                    help="the study's schedule (default tiny)")
+    ap.add_argument("--methods", default="2dgs,patexgs",
+                    help="the study's methods, comma-separated (default 2dgs,patexgs)")
     ap.add_argument("--iters-2dgs", type=int, default=None, help="steps of the 2DGS stage (default: the preset's)")
     ap.add_argument("--iters-tex", type=int, default=None, help="steps of the texture stage (default: the preset's)")
     ap.add_argument("--test-views", type=int, default=None, help="at most this many test views evaluated")

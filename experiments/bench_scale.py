@@ -462,7 +462,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--gaussians", type=int, nargs="+", default=[100_000], help="N (several: one set of rows each)")
-    p.add_argument("--width", type=int, default=1237, help="view width in pixels (default 1237: Mip-NeRF 360 bicycle at factor 4)")
+    p.add_argument("--width", type=int, default=1237,
+                   help="view width in pixels (default 1237: Mip-NeRF 360 bicycle at factor 4)")
     p.add_argument("--height", type=int, default=822, help="view height in pixels (default 822)")
     p.add_argument("--views", type=int, default=4, help="views rendered for the Eq. 6 counts (and the step's views)")
     p.add_argument("--eq7-views", type=int, default=200, help="views Eq. 7 sums over (a Mip-NeRF 360 capture: 150-300)")

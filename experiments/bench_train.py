@@ -257,11 +257,13 @@ def main_memory(args, names):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--gaussians", type=int, nargs="+", default=[1_000, 4_000], help="scene sizes to time (default 1000 4000)")
+    ap.add_argument("--gaussians", type=int, nargs="+", default=[1_000, 4_000],
+                    help="scene sizes to time (default 1000 4000)")
     ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(128, 96)],
                     help="image sizes WxH (default 128x96)")
     ap.add_argument("--steps", type=int, default=5, help="timed steps after the first (compiling) one")
-    ap.add_argument("--configs", default=",".join(CONFIGS), help=f"comma-separated, from {', '.join(CONFIGS)} (default all)")
+    ap.add_argument("--configs", default=",".join(CONFIGS),
+                    help=f"comma-separated, from {', '.join(CONFIGS)} (default all)")
     ap.add_argument("--devices", type=int, default=None,
                     help="also time the data-parallel step over this many devices (CPU devices are forced)")
     ap.add_argument("--batch-size", type=int, default=None, help="views per data-parallel step (default --devices)")

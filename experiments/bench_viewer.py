@@ -152,7 +152,8 @@ def main(argv=None) -> int:
                     help="canvas sizes WxH (default 320x240 640x480 1280x720)")
     ap.add_argument("--gaussians", type=int, default=50_000, help="the synthetic model's size (0: skip it)")
     ap.add_argument("--repeats", type=int, default=5, help="timed frames per row (default 5)")
-    ap.add_argument("--preview", type=int, default=4, help="the preview frames' downscale a side, as the viewer's (default 4)")
+    ap.add_argument("--preview", type=int, default=4,
+                    help="the preview frames' downscale a side, as the viewer's (default 4)")
     ap.add_argument("--models", default="tiny,synthetic", help="comma-separated: tiny, synthetic")
     ap.add_argument("--json", default=None, help="write the results here (e.g. benchmarks/viewer.json)")
     args = ap.parse_args(argv)

@@ -484,7 +484,8 @@ def main(argv=None) -> int:
     g.add_argument("--seed", type=int, default=0, help="seed of every run (default 0)")
     g.add_argument("--fixed-sizes", type=_ints, default=FIXED_SIZES, help="texture sides of the fixed-texture settings "
                    "(the texture knob), comma-separated")
-    g.add_argument("--budget-fractions", type=_floats, default=BUDGET_FRACTIONS, help="Gaussian budgets as fractions of "
+    g.add_argument("--budget-fractions", type=_floats, default=BUDGET_FRACTIONS,
+                   help="Gaussian budgets as fractions of "
                    "the base run's count (the budget knob; default 1,0.1,0.01)")
     g.add_argument("--iter-fractions", type=_floats, default=ITER_FRACTIONS, help="run lengths as fractions of the "
                    "preset's (the iters knob; default 0.25,0.5,1)")

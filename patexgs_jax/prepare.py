@@ -242,7 +242,8 @@ def main(argv=None) -> int:
     ap.add_argument("out_dir", type=Path, help="scene folder to write (images/, sparse/0/: the Mip-NeRF 360 layout)")
     ap.add_argument("--matcher", choices=("auto", "exhaustive", "sequential"), default="auto",
                     help="auto: exhaustive for <= 50 images, sequential otherwise")
-    ap.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model to estimate (default SIMPLE_RADIAL; "
+    ap.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                    help="COLMAP camera model to estimate (default SIMPLE_RADIAL; "
                     "undistorted when the scene is loaded)")
     ap.add_argument("--multiple-cameras", action="store_true",
                     help="estimate one camera per image size/EXIF instead of one shared camera")

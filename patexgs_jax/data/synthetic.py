@@ -351,8 +351,10 @@ def main(argv=None) -> int:
     ap.add_argument("--num-views", type=int, default=24, help="cameras around the scene (default 24)")
     ap.add_argument("--width", type=int, default=128, help="image width in pixels (default 128)")
     ap.add_argument("--height", type=int, default=96, help="image height in pixels (default 96)")
-    ap.add_argument("--supersample", type=int, default=4, help="samples per pixel side of the anti-aliased renders (default 4)")
-    ap.add_argument("--num-points", type=int, default=3000, help="points of the sparse model (the SfM stand-in; default 3000)")
+    ap.add_argument("--supersample", type=int, default=4,
+                    help="samples per pixel side of the anti-aliased renders (default 4)")
+    ap.add_argument("--num-points", type=int, default=3000,
+                    help="points of the sparse model (the SfM stand-in; default 3000)")
     ap.add_argument("--overwrite", action="store_true", help="replace an existing synthetic scene")
     a = ap.parse_args(argv)
     try:
