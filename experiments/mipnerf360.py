@@ -2,7 +2,7 @@
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
         [--preset tiny|cpu|small|paper] [--factor F] [--dataset mipnerf360|tandt|db] [--out DIR]
-        [--budgets 100%,10%,1%|N] [--zoom-in] [--renders K]
+        [--budgets 100%,10%,1%|N] [--sigma paper|scene|VALUE] [--zoom-in] [--renders K]
         [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
         [--coordinator HOST:PORT --num-processes N --process-id I]
 
@@ -420,8 +420,9 @@ def main(argv=None) -> int:
                     "as divide it); on CPU this many CPU devices are created")
     from patexgs_jax import parallel
     from patexgs_jax.checkpoint import CheckpointError
-    from patexgs_jax.training.cli import add_plan_arguments
+    from patexgs_jax.training.cli import add_plan_arguments, add_sigma_argument
 
+    add_sigma_argument(ap)
     add_plan_arguments(ap)
     parallel.add_cli_arguments(ap)
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -460,8 +461,11 @@ def _study(args) -> int:
                                     test_views=args.test_views).items() if v is not None}
     if args.zoom_in:
         config["zoom_in"] = True
-    if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
-        config["train_overrides"] = dict(batch_size=args.batch_size)
+    overrides = {k: v for k, v in dict(batch_size=args.batch_size, sigma=args.sigma).items() if v is not None}
+    if overrides.get("batch_size") == 1:  # (batch 1 and no --sigma keep older results.json files valid)
+        del overrides["batch_size"]
+    if overrides:
+        config["train_overrides"] = overrides
     methods = split(args.methods)
     if methods:
         expand_methods(methods)  # (an unknown name fails before --out is made)

@@ -74,6 +74,7 @@ import jax
 
 from .. import checkpoint as ckpt
 from .. import interrupt
+from ..adaptive import sigma_setting
 from .config import PRESETS, default_preset, equal_steps, preset_config
 from .run import train
 
@@ -108,6 +109,7 @@ def main(argv=None) -> int:
                     "untextured method after its first stage")
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--texture-budget-mb", type=float, default=None)
+    add_sigma_argument(ap)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--checkpoint-every", type=int, default=None, help="steps between checkpoints (default: the "
                     "preset's; one is always written at the end)")
@@ -147,6 +149,21 @@ def add_plan_arguments(ap) -> None:
                     "(24e9, 24GB, 80GiB: a GPU's; cpu:24GB a CPU's); repeatable")
     ap.add_argument("--plan-steps", type=int, default=5, metavar="N",
                     help="with --plan: steps timed in each stage (default 5; 0: the memory plan alone, in seconds)")
+
+
+def add_sigma_argument(ap) -> None:
+    """The ``--sigma`` flag (train's and the study's command lines): Eq. 7's sigma (``TrainConfig.sigma``)."""
+    def setting(text):
+        try:
+            return sigma_setting(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+
+    ap.add_argument("--sigma", type=setting, default=None, metavar="paper|scene|VALUE",
+                    help="Eq. 7's sigma: paper (H x W / 1e4 of the training views, as the paper), scene (half "
+                    "the training pixels a Gaussian: the paper's value at its scale of 200 views and a million "
+                    "Gaussians) or a number (default: the method's own, scene; paper for patexgs-literal); "
+                    "the allocation line and --plan say which")
 
 
 def print_plans(plans, json_path) -> None:
@@ -228,7 +245,7 @@ def _config(args):
     args.preset = args.preset or default_preset(args.data)
     cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                          iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
-                         texture_budget_mb=args.texture_budget_mb, seed=args.seed,
+                         texture_budget_mb=args.texture_budget_mb, sigma=args.sigma, seed=args.seed,
                          checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                          checkpoint_on_stop=args.checkpoint_on_stop, batch_size=args.batch_size,
                          devices=args.devices)

@@ -1,0 +1,75 @@
+"""The paper's settings: ``--sigma`` (Eq. 7's sigma), ``patexgs-literal`` read end to end, and
+docs/paper.md's settings table checked against the code's defaults."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from patexgs_jax import adaptive
+from patexgs_jax.plan import eq7_texels
+from patexgs_jax.schedule import TextureSchedule, growth_schedule, growth_steps
+from patexgs_jax.training.config import TrainConfig, preset_config
+
+
+def _views(sizes):
+    return [SimpleNamespace(camera=SimpleNamespace(height=h, width=w)) for h, w in sizes]
+
+
+def _schedule(cfg, sizes):
+    return TextureSchedule(cfg, None, _views(sizes), cfg.render_config())
+
+
+@pytest.mark.parametrize("h, w", [(96, 128), (1080, 1920)])
+def test_paper_sigma_is_h_times_w_over_1e4_of_the_views(h, w):
+    cfg = preset_config("tiny", sigma="paper")
+    sched = _schedule(cfg, [(h, w)] * 3)
+    act = np.ones(50, bool)
+    sides, sigma, budget = sched.allocation_sides(np.ones((3, 50)), act)
+    assert sigma == pytest.approx(h * w / 1e4, rel=1e-12) and budget is None
+    np.testing.assert_array_equal(sides, adaptive.initial_texture_sizes(np.ones((3, 50)), h * w / 1e4))
+    assert sched.sigma_from(act) == f"the paper's H x W / 1e4 (H x W = {h} x {w})"
+    # --plan's Eq. 7 line says the same.
+    _, _, plan_sigma, how = eq7_texels([h * w] * 3, 50, cfg)
+    assert plan_sigma == pytest.approx(h * w / 1e4, rel=1e-12) and "from the paper's H x W / 1e4" in how
+
+
+def test_views_of_two_sizes_take_their_mean_and_the_other_settings():
+    act = np.ones(40, bool)
+    sizes = [(96, 128), (48, 64)]
+    paper = _schedule(preset_config("tiny", sigma="paper"), sizes)
+    assert paper.allocation_sides(np.ones((2, 40)), act)[1] == pytest.approx((96 * 128 + 48 * 64) / 2 / 1e4)
+    assert paper.sigma_from(act) == "the paper's H x W / 1e4 (H x W = 48 x 64, 96 x 128)"
+    scene = _schedule(preset_config("tiny"), sizes)  # the default: half the pixel-views a Gaussian
+    assert scene.allocation_sides(np.ones((2, 40)), act)[1] == pytest.approx(0.5 * (96 * 128 + 48 * 64) / 40)
+    assert scene.sigma_from(act) == "the pixel share"
+    given = _schedule(preset_config("tiny", sigma="2.5"), sizes)
+    assert given.cfg.sigma == 2.5 and given.allocation_sides(np.ones((2, 40)), act)[1] == 2.5
+    assert given.sigma_from(act) == "given"
+
+
+@pytest.mark.parametrize("bad", ["papr", "0", "-1", "nan", True, "inf"])
+def test_a_bad_sigma_is_refused_naming_the_choices(bad):
+    with pytest.raises(ValueError, match="sigma must be 'paper'.*'scene'.*positive number"):
+        TrainConfig(sigma=bad)
+
+
+def test_the_sigma_flag_refuses_a_bad_value(capsys):
+    from patexgs_jax.training.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--plan", "--sigma", "papr"])
+    assert e.value.code == 2 and "sigma must be 'paper'" in capsys.readouterr().err
+
+
+def test_literal_is_the_paper_end_to_end():
+    lit, ours = preset_config("tiny", method="patexgs-literal"), preset_config("tiny", method="patexgs")
+    assert lit.sigma_setting == "paper" and ours.sigma_setting == "scene"
+    assert preset_config("tiny", method="patexgs-literal", sigma="scene").sigma_setting == "scene"
+    assert lit.render_config().lambda_mip == 0.4 and lit.render_config().coverage == "lowpass"
+    assert growth_schedule(lit).t_final == lit.total_steps  # Eq. 9's t_final: the stage's last step
+    assert growth_schedule(ours).t_final == ours.iters_2dgs + int(ours.growth_stop * ours.iters_tex)
+    assert growth_steps(lit)[-1] > growth_steps(ours)[-1]
+    assert preset_config("tiny", method="patexgs-paper-sigma").render_config() == ours.render_config()
