@@ -73,3 +73,50 @@ def test_literal_is_the_paper_end_to_end():
     assert growth_schedule(ours).t_final == ours.iters_2dgs + int(ours.growth_stop * ours.iters_tex)
     assert growth_steps(lit)[-1] > growth_steps(ours)[-1]
     assert preset_config("tiny", method="patexgs-paper-sigma").render_config() == ours.render_config()
+
+
+def _settings_table() -> dict[str, list[str]]:
+    """docs/paper.md's settings table: {setting: its cells}."""
+    from locations import REPO
+
+    rows = {}
+    for line in (REPO / "docs" / "paper.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("|") and len(cells) == 5 and not set(cells[0]) <= {"-", " "} and cells[0] != "setting":
+            rows[cells[0]] = cells
+    return rows
+
+
+def _first_code(cell: str) -> str:
+    import re
+
+    m = re.search(r"`([^`]*)`", cell)
+    assert m, f"no value in backticks in {cell!r}"
+    return m.group(1)
+
+
+def test_the_settings_table_matches_the_code():
+    """Each code column's first value in backticks is what the `paper` preset and the method use."""
+    from patexgs_jax.adaptive import DEFAULT_MAX_SIZE
+
+    table = _settings_table()
+    for col, method in ((2, "patexgs"), (3, "patexgs-literal")):
+        cfg = preset_config("paper", method=method)
+        rc, spec = cfg.render_config(), cfg.spec
+        want = {
+            "iterations (2DGS, textures)": f"{cfg.iters_2dgs:,} + {cfg.iters_tex:,}",
+            "texture warm-up": f"{cfg.warmup_tex:,}",
+            "Eq. 7 sigma": str(cfg.sigma_setting),
+            "Eq. 9 tau_preset": repr(cfg.tau_preset),
+            "Eqs. 8-10 growth statistic": str(cfg.growth_interval),
+            "Eq. 9 t_final": repr(1.0 if spec.growth_to_end else cfg.growth_stop),
+            "Eq. 11 lambda_mip": f"{rc.lambda_mip:.4g}",
+            "Eq. 11 level": rc.mip,
+            "RGBA mipmaps (Eq. 12-13)": "on" if rc.rgb_mip and rc.alpha_mip else "off",
+            "Eq. 13 coverage": rc.coverage,
+            "largest texture side": str(cfg.max_texture_size),
+        }
+        assert set(want) <= set(table), sorted(set(want) - set(table))
+        for setting, value in want.items():
+            assert _first_code(table[setting][col]) == value, (method, setting, table[setting][col], value)
+    assert preset_config("paper").max_texture_size == DEFAULT_MAX_SIZE
