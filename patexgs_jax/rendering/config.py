@@ -65,10 +65,11 @@ class RenderConfig:
         splat's summed alpha varies from 0.6 to 1.1 times its coverage as it moves).
       mip: "none" (level 0 only), "nearest" (paper Eq. 11, default) or "trilinear".
       lambda_mip: the paper's lambda_mip in Eq. 11; None takes the coverage mode's value
-        (:data:`LAMBDA_MIP_DEFAULT`: 0.4 as the paper for "lowpass"; 1/6 for "prefilter", where
-        ``lambda n D`` is then the texels per pixel of a texture spanning 6 scale units; 0.4 / 3
-        for "billboard": the paper's 0.4 in BBSplat's units, whose textures span 2 of its scale
-        units, one of which is 3 of ours).
+        (:data:`LAMBDA_MIP_DEFAULT`). D is in the primitive's own scale units and the paper's 0.4 a
+        value in them (docs/zoom_out.md): 0.4 for "lowpass", "object" and "texel-grid"; 0.4 / 3 for
+        "billboard", the paper's 0.4 on BBSplat's D, whose scale unit is 3 of ours; 1/6 for
+        "prefilter", a calibration that makes ``lambda n D`` the texels per pixel of a texture
+        spanning 6 scale units.
       rgb_mip: use mipmaps for the RGB textures (False: level 0 always; paper Table 3 ablation).
       alpha_mip: use mipmaps for the alpha textures (paper Eq. 13).
       background: RGB colour behind everything.
