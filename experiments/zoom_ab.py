@@ -87,6 +87,21 @@ def probe(scene, views, config: RenderConfig, scales=SCALES) -> dict:
             for s in scales}
 
 
+def reading_rows(data: dict, scene_label: str, runs=None) -> list[str]:
+    """docs/results.md's rows of a ``--json`` file (``| scene_label | run | variant | PSNR full | 1/2 | 1/4 |
+    1/8 | alias 1/2 | 1/4 | 1/8 |``), one per (run, variant) in the file's order; its first scene, the
+    ``runs`` named (default all)."""
+    per = next(iter(data["results"].values()))
+    rows = []
+    for run, variants in per.items():
+        if runs is not None and run not in runs:
+            continue
+        for name, res in variants.items():
+            cells = [f"{res[str(s)]['gt']:.2f}" for s in SCALES] + [f"{res[str(s)]['alias']:.2f}" for s in SCALES[1:]]
+            rows.append(f"| {scene_label} | {run} | {name} | " + " | ".join(cells) + " |")
+    return rows
+
+
 def main(argv=None) -> int:
     from patexgs_jax.data import load
     from patexgs_jax.training import TrainConfig
