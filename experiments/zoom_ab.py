@@ -163,12 +163,12 @@ def main(argv=None) -> int:
                 "" if s == 1 else f" / {res[str(s)]['alias']:.2f} / {res[str(s)]['bound']:.2f}") for s in SCALES)
             print(f"{scene_name} {label:>10} {n:>20}: gt / alias / bound  {cells} | {res['ms']:.1f} ms "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)
-        jax.clear_caches()
-    if args.json:
-        from experiments.provenance import header, write_json
+            if args.json:  # after every variant: a stopped comparison keeps what it measured
+                from experiments.provenance import header, write_json
 
-        write_json(args.json, {**header(1), "study": str(study), "study_config": cfg,
-                               "variants": {n: VARIANTS[n] for n in names}, "results": figures})
+                write_json(args.json, {**header(1), "study": str(study), "study_config": cfg,
+                                       "variants": {n: VARIANTS[n] for n in names}, "results": figures})
+        jax.clear_caches()
     return 0
 
 
