@@ -120,3 +120,31 @@ def test_the_settings_table_matches_the_code():
         for setting, value in want.items():
             assert _first_code(table[setting][col]) == value, (method, setting, table[setting][col], value)
     assert preset_config("paper").max_texture_size == DEFAULT_MAX_SIZE
+
+
+def test_results_rows_match_their_benchmark_files():
+    """docs/results.md's side-by-side of the paper read literally and its readings of Eq. 13 are the
+    rows of ``experiments.headline --paper`` and ``experiments.zoom_ab.reading_rows`` of their files."""
+    import json
+
+    from experiments import headline, zoom_ab
+    from locations import REPO
+
+    text = (REPO / "docs" / "results.md").read_text() + "\n## end"
+    section = text[text.index("## Results: the paper read literally"):]
+    section = section[:section.index("\n## ", 1)]
+    data = json.loads((REPO / "benchmarks" / "paper_tiny.json").read_text())
+    assert data["date"] and data["conditions"] and f"commit `{data['version']['git']}`" in section
+    rows = headline.paper_rows(data, "embedded")
+    assert [r.split(" | ")[1] for r in rows] == ["2dgs", "patexgs", "patexgs-literal"]
+    literal = next(r for r in rows if " patexgs-literal " in r)
+    for row in rows:
+        assert row in section, row
+    readings = json.loads((REPO / "benchmarks" / "eq13_tiny.json").read_text())
+    assert readings["date"] and f"commit `{readings['git'].split('-')[0]}`" in section
+    rows = zoom_ab.reading_rows(readings, "embedded")
+    assert rows and all(r in section for r in rows), rows
+    # The study's own row of the literal model is its lowpass reading.
+    entry = data["results"]["synthetic-v1-seed0"]["patexgs-literal"]
+    own = f"| embedded | patexgs-literal | lowpass | {entry['1']['psnr']:.2f} | "
+    assert own in section and f" | {entry['1']['psnr']:.2f} | " in literal
