@@ -29,8 +29,10 @@ Gaussians), ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs
 ``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
 the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: ``patexgs`` with N x
 N textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
-Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly), ``patexgs-literal`` (the paper's
-Eqs. 11-13 read literally: the 2DGS screen-space low-pass and lambda_mip 0.4), ``patexgs+filter3d``
+Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly), ``patexgs-literal`` (the paper
+read literally end to end, docs/paper.md: the 2DGS screen-space low-pass under Eq. 13, lambda_mip
+0.4, sigma H x W / 1e4, growth through the stage's end), ``patexgs-paper-sigma`` (``patexgs`` with
+the paper's sigma; ``--sigma paper|scene|VALUE`` sets Eq. 7's sigma of any method), ``patexgs+filter3d``
 (with Mip-Splatting's 3D smoothing filter in each splat's plane from the first step, its own stage
 1: for renders zoomed in beyond the training views), the baselines ``bbsplat`` (BBSplat's
 billboards, ``RenderConfig(coverage="billboard")``, with 16x16 RGBA textures), ``bbsplat+mip`` (and
