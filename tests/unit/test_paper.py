@@ -57,11 +57,13 @@ def test_a_bad_sigma_is_refused_naming_the_choices(bad):
 
 
 def test_the_sigma_flag_refuses_a_bad_value(capsys):
+    from experiments import mipnerf360
     from patexgs_jax.training.cli import main
 
-    with pytest.raises(SystemExit) as e:
-        main(["--plan", "--sigma", "papr"])
-    assert e.value.code == 2 and "sigma must be 'paper'" in capsys.readouterr().err
+    for cli in (main, mipnerf360.main):
+        with pytest.raises(SystemExit) as e:
+            cli(["--plan", "--sigma", "papr"])
+        assert e.value.code == 2 and "sigma must be 'paper'" in capsys.readouterr().err
 
 
 def test_literal_is_the_paper_end_to_end():
