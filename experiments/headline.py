@@ -4,6 +4,7 @@
     python -m experiments.headline STUDY --budgets LABEL [--save FILE --conditions TEXT]
     python -m experiments.headline STUDY --zoom LABEL [--save FILE --conditions TEXT]
     python -m experiments.headline STUDY --tables LABEL [--save FILE --conditions TEXT]
+    python -m experiments.headline STUDY --paper LABEL [--save FILE --conditions TEXT]
 
 SOURCE is a main-job output folder (``python -m experiments.mipnerf360 --out DIR``: its
 ``results.json``) or a benchmark file written by ``--save``. The command prints the README's
@@ -19,7 +20,9 @@ the README's zoom-out rows of any study (``benchmarks/zoom_*.json``), and ``--ta
 README's rows of the paper's Tables 1 and 2 (ours beside the paper's figures) and, for a
 ``--zoom-in`` study, of the zoom-in table (:func:`table1_rows`, :func:`table2_rows`,
 :func:`zoom_in_rows`; means over the study's scenes), each block under its header, checked the same
-way; with ``--save`` any of them keeps the study as a benchmark file first.
+way; ``--paper LABEL`` the rows of docs/results.md's side-by-side of ``patexgs``, ``patexgs-literal``
+and ``patexgs-paper-sigma`` (:func:`paper_rows`; ``benchmarks/paper_*.json``); with ``--save`` any of
+them keeps the study as a benchmark file first.
 
 Benchmark file schema (``schema`` 1)::
 
@@ -169,6 +172,22 @@ def zoom_rows(data: dict, scene_label: str) -> list[str]:
     return rows
 
 
+def paper_rows(data: dict, scene_label: str) -> list[str]:
+    """docs/results.md's rows of the paper read literally (``| scene_label | method | sigma | texels |
+    storage MB | PSNR full | 1/8 | alias 1/8 |``) of a study's record, one per method evaluated at 1 and
+    1/8 in the study's order; the record's first scene. ``sigma`` is the Eq. 7 sigma (``-`` where none)."""
+    per = next(iter(data["results"].values()))
+    rows = []
+    for method, entry in per.items():
+        if not all(isinstance(entry.get(s), dict) for s in ("1", "8")):
+            continue
+        sigma = "-" if entry.get("sigma") is None else f"{entry['sigma']:.4g}"
+        cells = [sigma, f"{int(entry['texels']):,}", f"{entry['storage_mb']:.2f}", f"{entry['1']['psnr']:.2f}",
+                 f"{entry['8']['psnr']:.2f}", f"{entry['8']['alias_psnr']:.2f}"]
+        rows.append(f"| {scene_label} | {method} | " + " | ".join(cells) + " |")
+    return rows
+
+
 def _mean(data: dict, key: str, field):
     from experiments.study_tables import _mean_over_scenes
 
@@ -305,12 +324,17 @@ def main(argv=None) -> int:
                     help="SOURCE is any study (means over its scenes): print the README's rows of the paper's "
                     "Tables 1 and 2, ours beside the paper's figures, and the zoom-in rows of a --zoom-in study, "
                     "with LABEL in the scene column")
+    kind.add_argument("--paper", default=None, metavar="LABEL",
+                    help="SOURCE is any study (its first scene): print docs/results.md's rows of the paper read "
+                    "literally (sigma, texels, storage, PSNR full and 1/8, alias 1/8), with LABEL in the scene column")
     args = ap.parse_args(argv)
-    if args.budgets is not None or args.zoom is not None or args.tables is not None:
+    if args.budgets is not None or args.zoom is not None or args.tables is not None or args.paper is not None:
         try:
             data = read(args.source)
             if args.tables is not None:
                 rows = tables_blocks(data, args.tables)
+            elif args.paper is not None:
+                rows = paper_rows(data, args.paper)
             else:
                 rows = budget_rows(data, args.budgets) if args.budgets is not None else zoom_rows(data, args.zoom)
         except HeadlineError as e:

@@ -2,7 +2,7 @@
 
     python -m experiments.mipnerf360 [--data ROOT] [--scenes a,b] [--methods patexgs,2dgs,...]
         [--preset tiny|cpu|small|paper] [--factor F] [--dataset mipnerf360|tandt|db] [--out DIR]
-        [--budgets 100%,10%,1%|N] [--zoom-in] [--renders K]
+        [--budgets 100%,10%,1%|N] [--sigma paper|scene|VALUE] [--zoom-in] [--renders K]
         [--lpips-net alex|vgg] [--no-lpips] [--batch-size B [--devices D]]
         [--coordinator HOST:PORT --num-processes N --process-id I]
 
@@ -397,20 +397,21 @@ def main(argv=None) -> int:
                     help="train every scene under the protocol of this dataset instead of the one recognised "
                     "from its folder and name (mipnerf360: factor 4 outdoors, 2 indoors; tandt, db: the "
                     "images' own size)")
-    ap.add_argument("--out", default="runs/mipnerf360")
+    ap.add_argument("--out", default="runs/mipnerf360", help="the study's folder (default runs/mipnerf360): "
+                    "results.json, tables.md, plots/, renders/, runs/<scene>/<method>/; a study there is resumed")
     ap.add_argument("--budget", "--budgets", dest="budget", default=None,
                     help="Gaussian budget(s): 10%%, 1%% (of the unbudgeted 2DGS count) or a count; several "
                     "comma-separated (100%%,10%%,1%%) run in one study and share the unbudgeted 2DGS run")
-    ap.add_argument("--iters-2dgs", type=int, default=None)
+    ap.add_argument("--iters-2dgs", type=int, default=None, help="first-stage (2DGS) steps (default: the preset's)")
     ap.add_argument("--iters-tex", type=int, default=None,
                     help="texture-stage steps; the preset's warm-up and growth interval scale with it")
-    ap.add_argument("--max-gaussians", type=int, default=None)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--max-gaussians", type=int, default=None, help="Gaussian cap of every run (default: the preset's)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of every run's data order and random choices (default 0)")
     ap.add_argument("--test-views", type=int, default=None, help="evaluate at most this many test views")
     ap.add_argument("--renders", type=int, default=3, help="test views saved side by side per method (0: none)")
     ap.add_argument("--lpips-net", default="alex", choices=["alex", "vgg"],
                     help="LPIPS trunk: alex (AlexNet, default) or vgg (VGG16)")
-    ap.add_argument("--no-lpips", action="store_true")
+    ap.add_argument("--no-lpips", action="store_true", help="leave LPIPS out of the evaluation (null in results.json)")
     ap.add_argument("--no-compile-cache", action="store_true", help="do not keep compiled XLA code between runs "
                     "(default: kept in $PATEXGS_COMPILE_CACHE, else ~/.cache/patexgs_jax/xla; "
                     "PATEXGS_COMPILE_CACHE=off turns it off everywhere)")
@@ -423,8 +424,9 @@ def main(argv=None) -> int:
                          "per-size on a CPU)")
     from patexgs_jax import parallel
     from patexgs_jax.checkpoint import CheckpointError
-    from patexgs_jax.training.cli import add_plan_arguments
+    from patexgs_jax.training.cli import add_plan_arguments, add_sigma_argument
 
+    add_sigma_argument(ap)
     add_plan_arguments(ap)
     parallel.add_cli_arguments(ap)
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -463,10 +465,13 @@ def _study(args) -> int:
                                     test_views=args.test_views).items() if v is not None}
     if args.zoom_in:
         config["zoom_in"] = True
-    if args.batch_size is not None and args.batch_size != 1:  # (batch 1 keeps older results.json files valid)
-        config["train_overrides"] = dict(batch_size=args.batch_size)
+    overrides = {k: v for k, v in dict(batch_size=args.batch_size, sigma=args.sigma).items() if v is not None}
+    if overrides.get("batch_size") == 1:  # (batch 1 and no --sigma keep older results.json files valid)
+        del overrides["batch_size"]
     if args.padding not in (None, "auto"):  # (auto keeps older results.json files valid)
-        config["train_overrides"] = dict(config.get("train_overrides", {}), padding=args.padding)
+        overrides["padding"] = args.padding
+    if overrides:
+        config["train_overrides"] = overrides
     methods = split(args.methods)
     if methods:
         expand_methods(methods)  # (an unknown name fails before --out is made)

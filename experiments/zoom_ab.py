@@ -16,7 +16,10 @@ comparisons belong in one run). For each scale s it prints
 
 The variants are the keys of :data:`VARIANTS`. A model is judged with the settings it was not trained
 with too (a render-time switch), which shows what the renderer itself does, separately from what
-training does with it.
+training does with it. The readings of the paper's Eq. 13 (docs/zoom_out.md) are ``lowpass`` (the 2DGS
+low-pass, ``patexgs-literal``'s), ``object`` (Eq. 2's G as written), ``texel-grid`` (G x A on the texel
+grid, in the alpha pyramid; textured runs only) and ``prefilter`` (ours). ``--json`` writes the figures
+with the provenance header of :mod:`experiments.provenance`.
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ SCALES = ZOOM_SCALES
 #: Named render settings (mip flags of the run's method are applied on top: see :func:`_config`).
 VARIANTS = {
     "lowpass": dict(coverage="lowpass", lambda_mip=0.4),
+    "object": dict(coverage="object", lambda_mip=0.4),
+    "texel-grid": dict(coverage="texel-grid", lambda_mip=0.4),
     "prefilter": dict(coverage="prefilter"),
     "prefilter-v.083": dict(coverage="prefilter", pixel_var=1.0 / 12.0),
     "prefilter-v.2": dict(coverage="prefilter", pixel_var=0.2),
@@ -80,6 +85,21 @@ def probe(scene, views, config: RenderConfig, scales=SCALES) -> dict:
     ev = evaluate_scales(scene, views, config, scales=scales)
     return {str(s): dict(alias=ev[str(s)]["alias_psnr"], gt=ev[str(s)]["psnr"], bound=ev[str(s)]["supersampled_psnr"])
             for s in scales}
+
+
+def reading_rows(data: dict, scene_label: str, runs=None) -> list[str]:
+    """docs/results.md's rows of a ``--json`` file (``| scene_label | run | variant | PSNR full | 1/2 | 1/4 |
+    1/8 | alias 1/2 | 1/4 | 1/8 |``), one per (run, variant) in the file's order; its first scene, the
+    ``runs`` named (default all)."""
+    per = next(iter(data["results"].values()))
+    rows = []
+    for run, variants in per.items():
+        if runs is not None and run not in runs:
+            continue
+        for name, res in variants.items():
+            cells = [f"{res[str(s)]['gt']:.2f}" for s in SCALES] + [f"{res[str(s)]['alias']:.2f}" for s in SCALES[1:]]
+            rows.append(f"| {scene_label} | {run} | {name} | " + " | ".join(cells) + " |")
+    return rows
 
 
 def main(argv=None) -> int:
@@ -133,6 +153,9 @@ def main(argv=None) -> int:
         scene = tree["scene"]
         for n in names:
             rc = _config(base, VARIANTS[n])
+            if rc.coverage == "texel-grid" and scene.alpha is None:
+                print(f"{scene_name} {label:>10} {n:>20}: not rendered (no alpha textures to weight)", flush=True)
+                continue
             t = time.perf_counter()
             res = probe(scene, views, rc)
             res["ms"] = render_ms(scene, views, rc, max_views=4)
@@ -141,9 +164,12 @@ def main(argv=None) -> int:
                 "" if s == 1 else f" / {res[str(s)]['alias']:.2f} / {res[str(s)]['bound']:.2f}") for s in SCALES)
             print(f"{scene_name} {label:>10} {n:>20}: gt / alias / bound  {cells} | {res['ms']:.1f} ms "
                   f"({time.perf_counter() - t:.0f} s)", flush=True)
+            if args.json:  # after every variant: a stopped comparison keeps what it measured
+                from experiments.provenance import header, write_json
+
+                write_json(args.json, {**header(1), "study": str(study), "study_config": cfg,
+                                       "variants": {n: VARIANTS[n] for n in names}, "results": figures})
         jax.clear_caches()
-    if args.json:
-        Path(args.json).write_text(json.dumps(figures, indent=1))
     return 0
 
 

@@ -30,18 +30,9 @@ import numpy as np
 from .metrics import texel_count
 
 __all__ = [
-    "ContributionCounts",
-    "DEFAULT_MAX_SIZE",
-    "GrowthSchedule",
-    "SIGMA_PIXEL_SHARE",
-    "TextureScheduleState",
-    "contribution_sizes",
-    "default_sigma",
-    "grow_sizes",
-    "initial_texture_sizes",
-    "pixel_share_sigma",
-    "side_of",
-    "solve_sigma_for_budget",
+    "ContributionCounts", "DEFAULT_MAX_SIZE", "GrowthSchedule", "SIGMA_PIXEL_SHARE", "SIGMA_SETTINGS",
+    "TextureScheduleState", "contribution_sizes", "default_sigma", "eq7_sigma", "grow_sizes",
+    "initial_texture_sizes", "pixel_share_sigma", "side_of", "sigma_setting", "solve_sigma_for_budget",
     "total_texels",
 ]
 
@@ -53,10 +44,10 @@ DEFAULT_MAX_SIZE = 32
 # Eq. 7: initial sizes from contribution counts
 # =============================================================================================
 def default_sigma(height: int, width: int) -> float:
-    """The paper's Eq. 7 sigma, ``H * W / 1e4`` for training images of H x W pixels.
+    """The paper's Eq. 7 sigma, ``H * W / 1e4`` for training images of H x W pixels (``--sigma paper``).
 
     It was set for Mip-NeRF 360 captures (about 200 views of about 1 MP) trained to about a million
-    Gaussians; :func:`pixel_share_sigma` keeps its meaning at other scales (training uses that).
+    Gaussians; :func:`pixel_share_sigma` (``--sigma scene``, the default) keeps its meaning at other scales.
     """
     if height <= 0 or width <= 0:
         raise ValueError(f"image size must be positive, got {height} x {width}.")
@@ -71,21 +62,51 @@ SIGMA_PIXEL_SHARE = 0.5
 def pixel_share_sigma(total_pixels: float, num_gaussians: int, share: float = SIGMA_PIXEL_SHARE) -> float:
     """Eq. 7 sigma from the scene's size: ``share * total_pixels / num_gaussians``.
 
-    ``total_pixels`` is the sum of H * W over the training views and ``num_gaussians`` the active
-    Gaussians, so ``total_pixels / num_gaussians`` is a Gaussian's fair share of the pixel-views
-    (what it would dominate if every Gaussian dominated as much). Eq. 7 sums ``log2(1 + S_ij /
-    sigma)`` over views: more views and more pixels a view raise every T_i, more Gaussians lower
-    each one's S_ij. Where ``S_ij << sigma``, ``T_i ~ sum_j S_ij / (sigma ln 2) = 2 f / ln 2`` for a
-    Gaussian that dominates f times its fair share in all: the same T at any scale (where S_ij is
-    near sigma or above, the log makes T grow more slowly). With ``share = 0.5`` it equals the paper's
-    ``H * W / 1e4`` at the paper's scale (200 views of H * W pixels and 10^6 Gaussians:
-    ``0.5 * 200 H W / 10^6``); on a 128 x 96 scene of 21 views and 3,900 Gaussians the paper's value
-    (1.2) would give 43% of the Gaussians side >= 8 and 99% of the texels to them (docs/tradeoffs.md).
+    ``total_pixels`` is the sum of H * W over the training views, ``num_gaussians`` the active
+    Gaussians: ``total_pixels / num_gaussians`` is a Gaussian's fair share of the pixel-views. Where
+    ``S_ij << sigma``, ``T_i ~ sum_j S_ij / (sigma ln 2) = 2 f / ln 2`` for a Gaussian that dominates f
+    times its fair share in all: the same T at any scale. With ``share = 0.5`` it equals the paper's
+    ``H * W / 1e4`` at 200 views and 10^6 Gaussians (``0.5 * 200 H W / 10^6``); on a 128 x 96 scene of
+    21 views and 3,900 Gaussians the paper's value (1.2) would give 43% of the Gaussians side >= 8 and
+    99% of the texels to them (docs/tradeoffs.md, docs/paper.md).
     """
     if not total_pixels > 0 or num_gaussians < 1 or not share > 0:
         raise ValueError(f"need total_pixels > 0, num_gaussians >= 1 and share > 0, got {total_pixels}, "
                          f"{num_gaussians} and {share}.")
     return float(share) * float(total_pixels) / float(num_gaussians)
+
+
+#: The named Eq. 7 sigma settings (``TrainConfig.sigma``, ``--sigma``; a positive number is the third).
+SIGMA_SETTINGS = ("paper", "scene")
+
+
+def sigma_setting(value) -> str | float:
+    """An Eq. 7 sigma setting as ``TrainConfig.sigma`` keeps it: ``"paper"`` (:func:`default_sigma`),
+    ``"scene"`` (:func:`pixel_share_sigma`) or a positive number (or its text, as ``--sigma`` gives it)."""
+    if isinstance(value, str) and value.strip().lower() in SIGMA_SETTINGS:
+        return value.strip().lower()
+    try:
+        x = float(value) if not isinstance(value, bool) else float("nan")
+    except (TypeError, ValueError):
+        x = float("nan")
+    if not (np.isfinite(x) and x > 0):
+        raise ValueError(f"sigma must be 'paper' (H x W / 1e4 of the training views, the paper's Eq. 7), 'scene' "
+                         f"(half the training pixels a Gaussian) or a positive number, got {value!r}.")
+    return x
+
+
+def eq7_sigma(setting, view_pixels, num_gaussians: int) -> tuple[float, str]:
+    """Eq. 7's sigma of a :func:`sigma_setting` and where it came from, for (V,) ``view_pixels`` (H * W
+    of each training view) and ``num_gaussians`` active at the allocation: ``"paper"``, the views' (mean)
+    ``H * W / 1e4``; ``"scene"``, :func:`pixel_share_sigma`; a number, itself. Returns (sigma, words)."""
+    setting, P = sigma_setting(setting), np.asarray(view_pixels, np.float64).ravel()
+    if setting == "paper":
+        if P.size == 0 or not np.all(P > 0):
+            raise ValueError("the paper's sigma needs the training views' sizes (H * W > 0 each).")
+        return float(P.mean()) / 1e4, "the paper's H x W / 1e4"
+    if setting == "scene":
+        return pixel_share_sigma(float(P.sum()), int(num_gaussians)), "the pixel share"
+    return float(setting), "given"
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

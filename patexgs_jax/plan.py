@@ -148,10 +148,9 @@ def eq7_texels(view_pixels, gaussians: int, config) -> tuple[int, int, float | N
         target = max(int(round(config.budget_eq7_share * budget)), n)
         return target, max(budget, target), None, (f"solved for {config.budget_eq7_share:.0%} of the "
                                                    f"{config.texture_budget_mb:g} MiB budget")
-    sigma = config.sigma or adaptive.pixel_share_sigma(float(P.sum()), n)
+    sigma, how = adaptive.eq7_sigma(config.sigma_setting, P, n)  # (the paper's H x W / 1e4, the pixel share, given)
     side = int(adaptive.initial_texture_sizes(S, sigma, max_size=config.max_texture_size)[0])
     t = n * side ** 2
-    how = "given" if config.sigma else "the pixel share"
     return t, int(t * (1 + GROWTH_SHARE)), float(sigma), f"sigma {sigma:.4g} from {how}; side {side} a Gaussian"
 
 

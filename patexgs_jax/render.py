@@ -114,6 +114,7 @@ from .rendering.projection import alpha_peak, constant_textures, project
 from .rendering.texture_lookup import meta_table
 from .rendering.tiling import resolve_tile_batch
 from .scene import Scene
+from .textures.billboard_alpha import gaussian_weighted
 
 __all__ = [
     "ALPHA_MAX",
@@ -247,14 +248,22 @@ class SceneTextures:
     rgb_atlas: tex.Atlas | None
     alpha_atlas: tex.Atlas | None
     mips: tuple = dataclasses.field(metadata=dict(static=True))
+    texel_grid: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
 
 def _scene_textures(scene: Scene, config: RenderConfig) -> SceneTextures:
     rgb_mip, alpha_mip = mips = _mip_banks(config)
+    texel_grid = config.coverage == "texel-grid"
+    if texel_grid:  # Eq. 13's G x A on the texel grid: the pyramid, peaks and folds are of the product
+        if scene.alpha is None:
+            raise ValueError("render: coverage 'texel-grid' weights the alpha textures by Eq. 2's Gaussian, and the "
+                             "scene has none; render an untextured scene with coverage 'lowpass' or 'object'.")
+        scene = scene.replace(alpha=gaussian_weighted(scene.alpha))
     return SceneTextures(
         alpha_peak(scene), *constant_textures(scene),
         rgb_atlas=None if scene.rgb is None else tex.build_atlas(scene.rgb, rgb_mip),
-        alpha_atlas=None if scene.alpha is None else tex.build_atlas(scene.alpha, alpha_mip), mips=mips)
+        alpha_atlas=None if scene.alpha is None else tex.build_atlas(scene.alpha, alpha_mip), mips=mips,
+        texel_grid=texel_grid)
 
 
 #: ``prepare_textures(scene, config=...)`` -> :class:`SceneTextures`: the texture atlases (with
@@ -277,7 +286,8 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     if textures is None:
         textures = _scene_textures(scene, config)
     elif textures.mips != _mip_banks(config) or (textures.rgb_atlas is None) != (scene.rgb is None) or (
-            textures.alpha_atlas is None) != (scene.alpha is None):
+            textures.alpha_atlas is None) != (scene.alpha is None) or textures.texel_grid != (
+            config.coverage == "texel-grid"):
         raise ValueError("render: the prepared textures were made for another scene or other mip settings; "
                          "call prepare_textures(scene, config=config) with this render's scene and config.")
     peak, rgb_add, alpha_mul = textures.peak, textures.rgb_add, textures.alpha_mul

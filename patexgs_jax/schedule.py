@@ -7,10 +7,14 @@ What happens to the textures of a textured method over its texture stage (paper 
      every Gaussian its N x N RGBA texture (:meth:`TextureSchedule.start`).
   2. Warm-up end (step ``iters_2dgs + warmup_tex``): Eq. 6's max-contribution counts over every
      training view, then Eq. 7's sizes (:meth:`TextureSchedule.allocate`; sigma from the pixel
-     share or solved for a texel budget).
+     share, the paper's H x W / 1e4 or a number, ``TrainConfig.sigma``, or solved for a texel budget).
   3. Growth events (every ``growth_interval`` steps from one interval after the allocation up to
-     ``growth_stop`` of the stage): Eqs. 8-10 select the Gaussians whose mean texture gradient
-     exceeds the decaying threshold and grow their sides (:meth:`TextureSchedule.after_step`).
+     ``growth_stop`` of the stage, or its end for ``patexgs-literal``): Eqs. 8-10 select the Gaussians
+     whose screen-space position gradient, averaged over the steps since the last event (the
+     densification statistic; the paper takes it "at each iteration"), lies in Eq. 8's band
+     ``(0.9 tau_high, tau_high)`` under Eq. 9's threshold, which rises from ``tau_preset`` to the
+     largest gradient as ``r^3`` over the growth window, and grow their sides by Eq. 10
+     (:meth:`TextureSchedule.after_step`). These departures are named in docs/paper.md.
 
 The equations are the named functions of :mod:`patexgs_jax.adaptive` (``initial_texture_sizes``,
 ``solve_sigma_for_budget``, ``GrowthSchedule``, ``TextureScheduleState.step``); every size change
@@ -64,9 +68,11 @@ class TrainState(NamedTuple):
 
 def growth_schedule(cfg: TrainConfig) -> adaptive.GrowthSchedule:
     """The Eqs. 8-10 schedule of a run: growth every ``growth_interval`` steps from one interval after
-    the Eq. 7 allocation (step ``iters_2dgs + warmup_tex``) up to ``growth_stop`` of the texture stage."""
+    the Eq. 7 allocation (step ``iters_2dgs + warmup_tex``) up to ``growth_stop`` of the texture stage
+    (up to its last step for a method that grows to the end, ``patexgs-literal``)."""
     t0 = cfg.iters_2dgs + cfg.warmup_tex + cfg.growth_interval
-    t_final = max(t0 + 1, cfg.iters_2dgs + int(cfg.growth_stop * cfg.iters_tex))
+    stop = 1.0 if cfg.spec.growth_to_end else cfg.growth_stop
+    t_final = max(t0 + 1, cfg.iters_2dgs + int(stop * cfg.iters_tex))
     return adaptive.GrowthSchedule(t0=t0, t_final=t_final, interval=cfg.growth_interval, tau_preset=cfg.tau_preset,
                                 max_size=cfg.max_texture_size)
 
@@ -173,18 +179,19 @@ class TextureSchedule:
                 (np.asarray(renderer(v.camera).max_contrib_count) for v in self.train_views), scene.capacity)
         act = np.asarray(scene.active) > 0
         sides, sigma, budget = self.allocation_sides(counts, act)
+        sigma_from = self.sigma_from(act) if sigma is not None else None
         self.state = adaptive.TextureScheduleState.create(sides)
         scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                               min_spare=TEXTURE_MIN_SPARE)
         if self.spec.grows and self.spec.size is None:  # the growth events' programs, compiled meanwhile
             prepare_growth(scene)
         self.texel_budget = budget
-        self.allocation = dict(step=step, sigma=None if sigma is None else float(sigma),
+        self.allocation = dict(step=step, sigma=None if sigma is None else float(sigma), sigma_from=sigma_from,
                                texels=_texels(sides, act), budget_texels=None if budget is None else 2 * budget,
                                sides=side_histogram(sides, act))
         self.log(dict(event="allocation", **self.allocation))
         n = self.spec.size
-        how = f"{n}x{n} for every Gaussian" if sigma is None else f"Eq. 7, sigma {sigma:.4g}"
+        how = f"{n}x{n} for every Gaussian" if sigma is None else f"Eq. 7, sigma {sigma:.4g} from {sigma_from}"
         self.say(f"[stage 2] allocation ({how}): sides {np.bincount(sides[act]).nonzero()[0].tolist()}, "
                  f"{_texels(sides, act)} texels")
         return TrainState(scene, opt_state, dens.DensifyStats.zeros(scene.capacity))
@@ -205,9 +212,24 @@ class TextureSchedule:
             target = max(int(round(cfg.budget_eq7_share * budget)), int(act.sum()))
             sigma = adaptive.solve_sigma_for_budget(S, target, max_size=cfg.max_texture_size, active=act)
         else:
-            pixels = sum(v.camera.height * v.camera.width for v in self.train_views)
-            sigma = cfg.sigma or adaptive.pixel_share_sigma(pixels, int(act.sum()))
+            sigma = self._sigma(act)[0]
         return adaptive.initial_texture_sizes(S, sigma, max_size=cfg.max_texture_size, active=act), sigma, budget
+
+    def _sigma(self, act: np.ndarray) -> tuple[float, str]:
+        """Eq. 7's sigma without a budget (``TrainConfig.sigma_setting``) and where it came from."""
+        pixels = [v.camera.height * v.camera.width for v in self.train_views]
+        return adaptive.eq7_sigma(self.cfg.sigma_setting, pixels, int(act.sum()))
+
+    def sigma_from(self, act: np.ndarray) -> str:
+        """Where the allocation's sigma came from, as the allocation line and ``summary.json`` say it:
+        ``"the paper's H x W / 1e4 (H x W = 96 x 128)"``, ``"the pixel share"``, ``"given"`` or the budget."""
+        if self.cfg.texture_budget_mb is not None:
+            return f"the {self.cfg.texture_budget_mb:g} MiB texel budget"
+        how = self._sigma(act)[1]
+        if self.cfg.sigma_setting == "paper":
+            sizes = sorted({f"{v.camera.height} x {v.camera.width}" for v in self.train_views})
+            how += f" (H x W = {', '.join(sizes)})"
+        return how
 
     def after_step(self, state: TrainState, step: int) -> TrainState:
         """An Eqs. 8-10 growth event at the schedule's growth steps (``patexgs`` sizes only); the

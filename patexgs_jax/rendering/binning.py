@@ -220,7 +220,8 @@ def bin_projection(proj, ranges, tiles_x: int, num_tiles: int, pair_capacity: in
     tx0, tx1, ty0, ty1, ok = ranges
     return bin_pairs(proj.depth, tx0, tx1, ty0, ty1, ok, tiles_x, num_tiles, pair_capacity,
                      footprint=proj.footprint if config.tile_cull else None, tile_size=config.tile_size,
-                     lowpass=config.coverage == "lowpass", billboard=config.coverage == "billboard")
+                     lowpass=config.coverage in ("lowpass", "object"),  # (object: within the low-pass's bounds)
+                     billboard=config.coverage in ("billboard", "texel-grid"))
 
 
 def pair_count(tx0, tx1, ty0, ty1, ok):

@@ -42,8 +42,12 @@ class Static(NamedTuple):
         return self.config.coverage == "prefilter"
 
     @property
-    def billboard(self):
-        return self.config.coverage == "billboard"
+    def billboard(self):  # (the texel-grid reading of Eq. 13 renders under the billboard square)
+        return self.config.coverage in ("billboard", "texel-grid")
+
+    @property
+    def object_space(self):
+        return self.config.coverage == "object"
 
     @property
     def need_footprint(self):

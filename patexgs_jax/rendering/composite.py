@@ -165,7 +165,7 @@ def _chunk_fwd(st: Static, ctx, packed, tb, k, x, y, log_t, done):
     gid (B, c)). The chunk's per-pair blocks are (c, B, P) (see :mod:`.chunks`)."""
     gid, valid = jax.vmap(lambda t: chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    G, z = chunk_geometry(pk, x, y, st.prefilter, st.billboard)
+    G, z = chunk_geometry(pk, x, y, st.prefilter, st.billboard, st.object_space)
     offs, a_tex = None, None
     if st.rgb or st.alpha:
         passes = texture_passes(st, ctx, pk, gid, valid, G, done)
@@ -271,7 +271,7 @@ def _chunk_bwd(st: Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, c
     paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""
     gid, valid = jax.vmap(lambda t: chunk_slots(st, ctx, t, k))(tb)
     pk = packed[gid]
-    geo = geometry_terms(pk, x, y, st.prefilter, st.billboard)
+    geo = geometry_terms(pk, x, y, st.prefilter, st.billboard, st.object_space)
     G, z = geo.G, geo.z
     textured = st.rgb or st.alpha
     passes, offs, a_tex = None, None, None

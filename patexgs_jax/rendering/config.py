@@ -10,9 +10,12 @@ import jax
 
 #: RenderConfig.mip: level 0 only, the paper's Eq. 11 level, or a blend of the two nearest levels.
 MIP_MODES = ("none", "nearest", "trilinear")
-#: RenderConfig.coverage: the 2DGS low-pass kernel, the prefiltered (EWA) kernel, or the billboard
-#: square (:mod:`.billboard`).
-COVERAGE_MODES = ("lowpass", "prefilter", "billboard")
+#: RenderConfig.coverage: the 2DGS low-pass kernel, the prefiltered (EWA) kernel, the billboard
+#: square (:mod:`.billboard`), and two readings of the paper's Eq. 13 (docs/zoom_out.md): Eq. 2's
+#: object-space Gaussian alone, and the Gaussian times the alpha texture on the texel grid.
+COVERAGE_MODES = ("lowpass", "prefilter", "billboard", "object", "texel-grid")
+#: The modes the Pallas kernel does not composite (the XLA compositor renders them).
+XLA_ONLY_COVERAGE = ("billboard", "object", "texel-grid")
 #: RenderConfig.compositor: the XLA compositor (:mod:`.composite`) or the Pallas GPU kernel
 #: (:mod:`.pallas_composite`); None picks per backend (:func:`resolve_compositor`).
 COMPOSITORS = ("xla", "pallas")
@@ -22,7 +25,8 @@ COMPOSITORS = ("xla", "pallas")
 #: (textured) faster); the CPU always takes "xla".
 GPU_DEFAULT_COMPOSITOR = "pallas"
 #: Eq. 11's lambda_mip per coverage mode when RenderConfig.lambda_mip is None (see RenderConfig).
-LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0, "billboard": 0.4 / 3.0}
+LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0, "billboard": 0.4 / 3.0, "object": 0.4,
+                      "texel-grid": 0.4}
 ALPHA_MAX = 0.99  # a pair's alpha is capped here
 ALPHA_MIN = 1.0 / 255.0  # pairs below this alpha are skipped (with the prefilter, times the coverage)
 T_MIN = 1e-4  # compositing stops before the first pair that would bring transmittance below this
@@ -45,7 +49,12 @@ class RenderConfig:
         the opacity scaled so that the splat's integrated coverage is kept: a splat smaller than a
         pixel fades instead of growing (the PATexGS methods' mode). "billboard": G = 1 on the
         square ``|u|, |v| <= 3`` of the splat plane (the textures' span) and 0 outside, so the alpha
-        texture alone shapes the splat (BBSplat's primitive, :mod:`.billboard`). For 3D Gaussians
+        texture alone shapes the splat (BBSplat's primitive, :mod:`.billboard`). "object": Eq. 13
+        with Eq. 2's ``G = exp(-0.5 rho3d)`` as written, no screen-space low-pass (a sub-pixel splat
+        is seen only by the pixel centres its plane ellipse holds). "texel-grid": the alpha
+        texture times Eq. 2's G at its texel positions, so that the alpha pyramid holds ``G x A``
+        and a coarse level the footprint's mean coverage, under the billboard square (2D splats,
+        XLA compositor; docs/zoom_out.md measures both). For 3D Gaussians
         (:mod:`.gaussian3d`): "lowpass" is 3DGS's 0.3 px^2 dilation, "prefilter" Mip-Splatting's
         2D Mip filter of variance ``pixel_var`` (``min_var`` does not apply).
       pixel_var: the prefilter's pixel filter variance in px^2 (a box pixel has 1/12).
@@ -56,10 +65,11 @@ class RenderConfig:
         splat's summed alpha varies from 0.6 to 1.1 times its coverage as it moves).
       mip: "none" (level 0 only), "nearest" (paper Eq. 11, default) or "trilinear".
       lambda_mip: the paper's lambda_mip in Eq. 11; None takes the coverage mode's value
-        (:data:`LAMBDA_MIP_DEFAULT`: 0.4 as the paper for "lowpass"; 1/6 for "prefilter", where
-        ``lambda n D`` is then the texels per pixel of a texture spanning 6 scale units; 0.4 / 3
-        for "billboard": the paper's 0.4 in BBSplat's units, whose textures span 2 of its scale
-        units, one of which is 3 of ours).
+        (:data:`LAMBDA_MIP_DEFAULT`). D is in the primitive's own scale units and the paper's 0.4 a
+        value in them (docs/zoom_out.md): 0.4 for "lowpass", "object" and "texel-grid"; 0.4 / 3 for
+        "billboard", the paper's 0.4 on BBSplat's D, whose scale unit is 3 of ours; 1/6 for
+        "prefilter", a calibration that makes ``lambda n D`` the texels per pixel of a texture
+        spanning 6 scale units.
       rgb_mip: use mipmaps for the RGB textures (False: level 0 always; paper Table 3 ablation).
       alpha_mip: use mipmaps for the alpha textures (paper Eq. 13).
       background: RGB colour behind everything.
@@ -128,9 +138,9 @@ class RenderConfig:
             raise ValueError(f"texture_pairs must be in (0, 1], got {self.texture_pairs}.")
         if self.compositor is not None and self.compositor not in COMPOSITORS:
             raise ValueError(f"RenderConfig.compositor must be one of {COMPOSITORS} or None, got {self.compositor!r}.")
-        if self.compositor == "pallas" and self.coverage == "billboard":
-            raise ValueError("compositor='pallas' composites the lowpass and prefilter kernels (2D splats and 3D "
-                             "Gaussians), not the billboard square; use compositor='xla' (or None) for billboards.")
+        if self.compositor == "pallas" and self.coverage in XLA_ONLY_COVERAGE:
+            raise ValueError(f"compositor='pallas' composites the lowpass and prefilter kernels (2D splats and 3D "
+                             f"Gaussians), not coverage {self.coverage!r}; use compositor='xla' (or None) for it.")
         if self.compositor == "pallas" and self.tile_size & (self.tile_size - 1):
             raise ValueError(f"compositor='pallas' needs a power-of-two tile_size (a tile's pixels are one "
                              f"power-of-two vector), got {self.tile_size}.")
@@ -142,7 +152,7 @@ def resolve_compositor(config: RenderConfig) -> str:
     composite: billboards, tiles whose side is not a power of two)."""
     if config.compositor is not None:
         return config.compositor
-    if config.coverage == "billboard" or config.tile_size & (config.tile_size - 1):
+    if config.coverage in XLA_ONLY_COVERAGE or config.tile_size & (config.tile_size - 1):
         return "xla"  # (what the kernel does not composite)
     return GPU_DEFAULT_COMPOSITOR if jax.default_backend() == "gpu" else "xla"
 

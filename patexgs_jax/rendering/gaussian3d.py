@@ -56,6 +56,9 @@ def kernel_config(config: RenderConfig, scene: Scene) -> RenderConfig:
     """The settings binning and the compositor run with: ``config`` for 2D splats; for 3D Gaussians
     coverage "prefilter" whatever their coverage mode (their packed columns are always those of the
     screen-space quadratic form, see the module docstring)."""
+    if scene.is_3d and config.coverage in ("object", "texel-grid"):
+        raise ValueError(f"coverage {config.coverage!r} is a reading of Eq. 13 for 2D splats; render 3D Gaussians "
+                         "with coverage 'lowpass' (3DGS's dilation) or 'prefilter' (Mip-Splatting's 2D filter).")
     if scene.is_3d and config.coverage != "prefilter":
         return dataclasses.replace(config, coverage="prefilter")
     return config

@@ -2,9 +2,9 @@
 
 Each pixel's ray meets a splat's plane at (u, v) (the homogeneous ray-plane map of
 :func:`projection.ray_planes`). The kernel G and the pair's depth z follow the coverage mode
-(conventions in :mod:`patexgs_jax.render`): the 2DGS ``exp(-0.5 min(rho3d, rho2d))``, or the
-prefiltered ``exp(-0.5 (p u^2 + 2 r u v + t v^2))`` cut outside its screen support, or the
-billboard's square (:mod:`.billboard`).
+(conventions in :mod:`patexgs_jax.render`): the 2DGS ``exp(-0.5 min(rho3d, rho2d))``, or Eq. 2's
+``exp(-0.5 rho3d)`` alone (coverage "object"), or the prefiltered ``exp(-0.5 (p u^2 + 2 r u v + t
+v^2))`` cut outside its screen support, or the billboard's square (:mod:`.billboard`).
 """
 
 from __future__ import annotations
@@ -45,10 +45,11 @@ class Geometry(NamedTuple):
     use3: jax.Array    # the 3D term wins (rho3d <= rho2d); prefilter: a hit in the support; billboard: in the square
 
 
-def geometry_terms(pk, x, y, prefilter: bool, billboard: bool = False) -> Geometry:
+def geometry_terms(pk, x, y, prefilter: bool, billboard: bool = False, object_space: bool = False) -> Geometry:
     """The :class:`Geometry` of pk (B, c, F) packed splats at pixel centres x, y (B, P); with
     ``prefilter`` the kernel is the prefiltered one (coverage "prefilter", columns ``COLS.conic``),
-    with ``billboard`` the square's indicator (coverage "billboard")."""
+    with ``billboard`` the square's indicator (coverage "billboard"), with ``object_space`` Eq. 2's
+    ``exp(-0.5 rho3d)`` without the low-pass (coverage "object")."""
     col = cols(pk)
     ia, ib, ic = COLS.a.start, COLS.b.start, COLS.c.start
     u, v, ok, inv = uv(*[x * col[ia + i] + y * col[ib + i] + col[ic + i] for i in range(3)])
@@ -63,7 +64,8 @@ def geometry_terms(pk, x, y, prefilter: bool, billboard: bool = False) -> Geomet
     else:
         rho3d = jnp.where(ok, u * u + v * v, 1e8)
         dx, dy = x - col[COLS.mu.start], y - col[COLS.mu.start + 1]
-        rho2d = 2.0 * (dx * dx + dy * dy)
+        # (object space: the low-pass never wins; a ray that misses the plane has G = 0 either way)
+        rho2d = jnp.full_like(rho3d, 1e8) if object_space else 2.0 * (dx * dx + dy * dy)
         use3 = rho3d <= rho2d
         G = jnp.exp(-0.5 * jnp.minimum(rho3d, rho2d))
     m = COLS.m2.start
@@ -71,13 +73,13 @@ def geometry_terms(pk, x, y, prefilter: bool, billboard: bool = False) -> Geomet
     return Geometry(G, z, u, v, ok, inv, use3)
 
 
-def chunk_geometry(pk, x, y, prefilter: bool = False, billboard: bool = False):
+def chunk_geometry(pk, x, y, prefilter: bool = False, billboard: bool = False, object_space: bool = False):
     """G, z (c, B, P) of a batch's chunk: pk (B, c, F) packed splats, x, y (B, P) pixel centres.
     G is the 2DGS kernel exp(-0.5 min(rho3d, rho2d)) and z the depth: at the ray-plane intersection
     where the 3D term wins, else the centre's. With ``prefilter``, G is the prefiltered kernel
     exp(-0.5 (p u^2 + 2 r u v + t v^2)) (0 where the ray misses the plane) and z the intersection's;
     with ``billboard``, G is 1 in the square |u|, |v| <= 3 and 0 outside, z the intersection's in it."""
-    t = geometry_terms(pk, x, y, prefilter, billboard)
+    t = geometry_terms(pk, x, y, prefilter, billboard, object_space)
     return t.G, t.z
 
 

@@ -253,7 +253,7 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
     if scene.filter3d is not None and not prefilter:
         # The 3D filter in the plane of an untextured splat under the 2DGS low-pass: the filtered
         # Gaussian is the splat with scales sqrt(s^2 + f) (the prefilter folds it into its kernel).
-        if config.coverage == "billboard" or scene.rgb is not None or scene.alpha is not None:
+        if config.coverage != "lowpass" or scene.rgb is not None or scene.alpha is not None:
             raise ValueError("render: the 3D smoothing filter (Scene.filter3d) of textured 2D splats or "
                              f"billboards needs coverage 'prefilter', got {config.coverage!r}; render with "
                              "RenderConfig(coverage='prefilter') or drop the filter (scene.replace(filter3d=None)).")
@@ -338,7 +338,7 @@ def project(scene: Scene, camera: Camera, config: RenderConfig, screen_offset, a
         ymax = jnp.minimum(jnp.where(bounded, cy + hy, big), mus[:, 1] + sy)
         radius = jnp.where(visible, jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, 0.0)
         support = lax.stop_gradient(inv_screen) / SUPPORT_Q
-    elif config.coverage == "billboard":  # the square's part beyond the near plane (billboard.square_bounds)
+    elif config.coverage in ("billboard", "texel-grid"):  # the square's part beyond the near plane
         (xmin, xmax, ymin, ymax), hit = square_bounds(Ms, config.near)
         visible = visible & hit
         radius = jnp.where(visible, jnp.maximum(xmax - xmin, ymax - ymin) * 0.5, 0.0)

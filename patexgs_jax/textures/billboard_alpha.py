@@ -20,7 +20,7 @@ import numpy as np
 from ..scene import Scene
 from .bank import TextureBank
 
-__all__ = ["gaussian_alpha", "with_gaussian_alpha"]
+__all__ = ["gaussian_alpha", "gaussian_weighted", "with_gaussian_alpha"]
 
 
 def gaussian_alpha(n: int) -> np.ndarray:
@@ -32,6 +32,27 @@ def gaussian_alpha(n: int) -> np.ndarray:
         return np.full((1, 1), mean, np.float32)
     x = np.linspace(-3.0, 3.0, n)
     return np.exp(-0.5 * (x[:, None] ** 2 + x[None, :] ** 2)).astype(np.float32)
+
+
+def gaussian_weighted(bank: TextureBank) -> TextureBank:
+    """``bank`` with every texture multiplied by :func:`gaussian_alpha` of its side (traceable: inside
+    jit, for ``RenderConfig(coverage="texel-grid")``): each slot's side is its Gaussian's, the
+    padding beyond it is multiplied by 0."""
+    mean = (math.sqrt(2.0 * math.pi) * math.erf(3.0 / math.sqrt(2.0)) / 6.0) ** 2
+    size = jnp.asarray(bank.size).astype(jnp.float32)
+    out = []
+    for b, data in enumerate(bank.buckets):
+        count, P = data.shape[0], data.shape[1]
+        at = jnp.where((jnp.asarray(bank.bucket) == b) & (size > 0), jnp.asarray(bank.slot).astype(jnp.int32),
+                       count)
+        n = jnp.zeros((count,), jnp.float32).at[at].set(size, mode="drop")[:, None]  # (count, 1)
+        a = jnp.arange(P, dtype=jnp.float32)[None, :]
+        x = -3.0 + 6.0 * a / jnp.maximum(n - 1.0, 1.0)
+        g = jnp.where(a < n, jnp.exp(-0.5 * x * x), 0.0)  # (count, P): the separable factor
+        g = jnp.where(n == 1.0, jnp.where(a < 1, math.sqrt(mean), 0.0), g)
+        out.append(data * (g[:, :, None] * g[:, None, :])[..., None])
+    return TextureBank(buckets=tuple(out), bucket=bank.bucket, slot=bank.slot, size=bank.size,
+                       channels=bank.channels)
 
 
 def with_gaussian_alpha(scene: Scene, active=None) -> Scene:

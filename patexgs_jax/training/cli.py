@@ -29,8 +29,10 @@ Gaussians), ``patexgs`` (adaptive + RGBA mipmaps), ``patexgs-no-mip``, ``patexgs
 ``patexgs-no-rgb-mip``, ``patexgs-no-adaptive`` (RGBA mipmaps with a fixed 8x8 texture per Gaussian:
 the mipmaps without the adaptive allocation), ``patexgs-fixed-N`` (N in 1..32: ``patexgs`` with N x
 N textures for every Gaussian at the allocation step and no growth, the fixed rows of the paper's
-Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly), ``patexgs-literal`` (the paper's
-Eqs. 11-13 read literally: the 2DGS screen-space low-pass and lambda_mip 0.4), ``patexgs+filter3d``
+Table 4), ``patexgs-trilinear`` (mip levels blended trilinearly), ``patexgs-literal`` (the paper
+read literally end to end, docs/paper.md: the 2DGS screen-space low-pass under Eq. 13, lambda_mip
+0.4, sigma H x W / 1e4, growth through the stage's end), ``patexgs-paper-sigma`` (``patexgs`` with
+the paper's sigma; ``--sigma paper|scene|VALUE`` sets Eq. 7's sigma of any method), ``patexgs+filter3d``
 (with Mip-Splatting's 3D smoothing filter in each splat's plane from the first step, its own stage
 1: for renders zoomed in beyond the training views), the baselines ``bbsplat`` (BBSplat's
 billboards, ``RenderConfig(coverage="billboard")``, with 16x16 RGBA textures), ``bbsplat+mip`` (and
@@ -74,6 +76,7 @@ import jax
 
 from .. import checkpoint as ckpt
 from .. import interrupt
+from ..adaptive import sigma_setting
 from .config import PRESETS, default_preset, equal_steps, preset_config
 from .run import train
 
@@ -112,6 +115,7 @@ def main(argv=None) -> int:
     ap.add_argument("--texture-budget-mb", type=float, default=None, metavar="MB",
                     help="texel budget of the texture stage in MiB of RGBA texels: Eq. 7's sigma is solved so that "
                     "the allocation and growth stay within it (default: no budget)")
+    add_sigma_argument(ap)
     ap.add_argument("--seed", type=int, default=0, help="seed of the data order and every random choice "
                     "(default 0); the same seed and data give the same run, resumed or not")
     ap.add_argument("--checkpoint-every", type=int, default=None, help="steps between checkpoints (default: the "
@@ -156,6 +160,21 @@ def add_plan_arguments(ap) -> None:
                     "(24e9, 24GB, 80GiB: a GPU's; cpu:24GB a CPU's); repeatable")
     ap.add_argument("--plan-steps", type=int, default=5, metavar="N",
                     help="with --plan: steps timed in each stage (default 5; 0: the memory plan alone, in seconds)")
+
+
+def add_sigma_argument(ap) -> None:
+    """The ``--sigma`` flag (train's and the study's command lines): Eq. 7's sigma (``TrainConfig.sigma``)."""
+    def setting(text):
+        try:
+            return sigma_setting(text)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+
+    ap.add_argument("--sigma", type=setting, default=None, metavar="paper|scene|VALUE",
+                    help="Eq. 7's sigma: paper (H x W / 1e4 of the training views, as the paper), scene (half "
+                    "the training pixels a Gaussian: the paper's value at its scale of 200 views and a million "
+                    "Gaussians) or a number (default: the method's own, scene; paper for patexgs-literal); "
+                    "the allocation line and --plan say which")
 
 
 def print_plans(plans, json_path) -> None:
@@ -241,7 +260,7 @@ def _config(args):
     args.preset = args.preset or default_preset(args.data)
     cfg = preset_config(args.preset, method=args.method, iters_2dgs=args.iters_2dgs,
                          iters_tex=args.iters_tex, max_gaussians=args.max_gaussians,
-                         texture_budget_mb=args.texture_budget_mb, seed=args.seed,
+                         texture_budget_mb=args.texture_budget_mb, sigma=args.sigma, seed=args.seed,
                          checkpoint_every=args.checkpoint_every, log_every=args.log_every,
                          checkpoint_on_stop=args.checkpoint_on_stop, batch_size=args.batch_size,
                          devices=args.devices, padding=args.padding)

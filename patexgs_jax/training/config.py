@@ -12,7 +12,7 @@ import dataclasses
 import json
 
 from .. import densify as dens
-from ..adaptive import DEFAULT_MAX_SIZE
+from ..adaptive import DEFAULT_MAX_SIZE, sigma_setting
 from ..optim import LearningRates
 from ..padding import PADDING_POLICIES
 from ..render import RenderConfig
@@ -60,6 +60,10 @@ class Method:
       filter3d: Mip-Splatting's 3D smoothing filter (:mod:`patexgs_jax.filter3d`).
       prune_opacity: the method's own densification prune threshold (3DGS's 0.005), or None for
         ``TrainConfig.densify``'s.
+      sigma: the method's Eq. 7 sigma setting where ``TrainConfig.sigma`` is None (``"scene"``;
+        ``"paper"`` for ``patexgs-literal`` and ``patexgs-paper-sigma``).
+      growth_to_end: Eqs. 8-10 grow up to the texture stage's last step (Eq. 9's t_final, "the ending
+        iteration", read literally: ``patexgs-literal``) instead of ``TrainConfig.growth_stop`` of it.
     """
 
     textures: str | None = "adaptive"
@@ -71,6 +75,8 @@ class Method:
     primitive: str = "2d"
     filter3d: bool = False
     prune_opacity: float | None = None
+    sigma: str = "scene"
+    growth_to_end: bool = False
 
     @property
     def stage1_name(self) -> str:
@@ -117,7 +123,10 @@ METHODS: dict[str, Method] = {
     "patexgs-no-rgb-mip": Method(rgb_mip=False),
     "patexgs-no-adaptive": Method(textures="fixed", size=8),
     "patexgs-trilinear": Method(mip="trilinear"),
-    "patexgs-literal": Method(coverage="lowpass"),
+    # The paper read literally end to end (docs/paper.md): the 2DGS low-pass under Eq. 13, lambda_mip
+    # 0.4 (the low-pass's default), sigma = H x W / 1e4 and growth through the stage's end.
+    "patexgs-literal": Method(coverage="lowpass", sigma="paper", growth_to_end=True),
+    "patexgs-paper-sigma": Method(sigma="paper"),
     # Baselines of the paper's Tables 1-2 (docs/baselines.md): BBSplat's billboards with its 16 x 16
     # RGBA textures, with our mipmaps, with our adaptive sizes; Textured Gaussians as textured-fixed-8.
     "bbsplat": Method(textures="fixed", size=16, mip="none", coverage="billboard"),
@@ -154,9 +163,11 @@ class TrainConfig:
       growth_interval: steps between Eq. 8-10 growth events.
       growth_stop: fraction of stage 2 after which textures stop growing (t_final).
       tau_preset: Eq. 9's initial threshold (NDC gradient units, as densification).
-      sigma: Eq. 7's sigma; None: :func:`patexgs_jax.adaptive.pixel_share_sigma` of the training views
-        and the Gaussians at the allocation (the paper's H * W / 1e4 at the paper's scale, the same
-        meaning at other scales).
+      sigma: Eq. 7's sigma (``--sigma``): ``"scene"``, :func:`patexgs_jax.adaptive.pixel_share_sigma` of
+        the training views and the Gaussians at the allocation (the paper's H * W / 1e4 at the paper's
+        scale, the same meaning at other scales); ``"paper"``, the paper's H * W / 1e4 of the training
+        views (:func:`patexgs_jax.adaptive.default_sigma`); or a positive number. None: the method's
+        own (:attr:`Method.sigma`: ``"scene"``, but ``"paper"`` for ``patexgs-literal``).
       texture_budget_mb: optional texel budget (MiB of RGBA texels): sigma is solved so that the Eq. 7
         allocation spends ``budget_eq7_share`` of it, and growth (Eqs. 8-10) may spend the rest; the
         total never exceeds it.
@@ -202,7 +213,7 @@ class TrainConfig:
     growth_interval: int = _field(100, stage2=True, texture_schedule=True)
     growth_stop: float = _field(0.5, stage2=True)
     tau_preset: float = _field(1e-5, stage2=True)
-    sigma: float | None = _field(None, stage2=True)
+    sigma: float | str | None = _field(None, stage2=True)
     texture_budget_mb: float | None = _field(None, stage2=True)
     budget_eq7_share: float = _field(0.8, stage2=True)
     max_texture_size: int = _field(32, stage2=True)
@@ -246,6 +257,8 @@ class TrainConfig:
         if not 0 < self.budget_eq7_share <= 1:
             raise ValueError(f"budget_eq7_share (the share of the texture budget Eq. 7 spends) must be in (0, 1], got "
                              f"{self.budget_eq7_share}.")
+        if self.sigma is not None:
+            object.__setattr__(self, "sigma", sigma_setting(self.sigma))
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}.")
         if self.growth_interval < 1 or self.warmup_tex < 0:
@@ -262,6 +275,11 @@ class TrainConfig:
     def spec(self) -> Method:
         """The :class:`Method` of ``method``."""
         return Method.from_name(self.method)
+
+    @property
+    def sigma_setting(self) -> str | float:
+        """Eq. 7's sigma setting of the run: ``sigma``, or the method's own where it is None."""
+        return self.spec.sigma if self.sigma is None else self.sigma
 
     @property
     def total_steps(self) -> int:
