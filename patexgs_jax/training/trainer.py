@@ -129,9 +129,8 @@ class Trainer:
         # The step's learning rates and loss weights, passed to it (not compiled into it).
         self.hp = jax.device_put(step_args(self.radius, config))
         # How the views are padded and the tile capacity sized (TrainConfig.padding; batches have one size).
-        # Only "one" reads the views' cameras (for the largest tile grid).
-        policy = padding.resolve_padding(config.padding if config.batch_size == 1 else "per-size")
-        self.pad = padding.TrainPadding(policy, [v.camera for v in self.train_views] if policy == "one" else [])
+        self.pad = padding.TrainPadding(config.padding if config.batch_size == 1 else "per-size",
+                                        [v.camera for v in self.train_views])
         self.capacity = None
         # The tile capacity before the scene last grew: a refit after densification never goes below
         # it (more Gaussians do not need fewer pairs; a smaller capacity would overflow and compile

@@ -8,6 +8,8 @@ Host-side and eager: no renderer compile.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -15,8 +17,8 @@ import numpy as np
 import optax
 import pytest
 
+from patexgs_jax import Camera, random_scene
 from patexgs_jax import checkpoint as ckpt
-from patexgs_jax import random_scene
 from patexgs_jax.densify import DensifyConfig, DensifyStats, densify_and_prune, prune_gaussians
 from patexgs_jax.optim import LearningRates, adam_moments, make_optimizer, step_rates
 from patexgs_jax.training.config import TrainConfig
@@ -179,7 +181,10 @@ class TinyData:
         rng = np.random.default_rng(0)
         self.points = rng.uniform(-1, 1, (300, 3)).astype(np.float32)
         self.colors = rng.uniform(0, 1, (300, 3)).astype(np.float32)
-        self.train_views = ("a view",)
+        # One view with a camera (the trainer reads the views' sizes for their padding); never rendered.
+        camera = Camera(K=np.array([[50.0, 0, 24], [0, 50.0, 16], [0, 0, 1]], np.float32),
+                        world_to_camera=np.eye(4, dtype=np.float32), width=48, height=32)
+        self.train_views = (SimpleNamespace(camera=camera),)
         self.test_views = ()
 
         class Norm:
