@@ -237,7 +237,8 @@ class CompileAhead:
                 if keep:
                     prep.capacity = minimum
                 else:  # (its own program: the main thread releases the shared jitted ones at will)
-                    needed, _ = count_pairs.lower(scene, cam, hw, config=render_cfg).compile()(scene, cam, hw)
+                    counter = count_pairs.lower(scene, cam, config=render_cfg, valid_hw=hw).compile()
+                    needed, _ = counter(scene, cam, valid_hw=hw)
                     prep.capacity = pad.capacity(needed, current=minimum)  # (as the run's refit)
                 done = shared_step(identity, (render_cfg, prep.capacity), layout, prep.padded)
                 prep.fn = done or single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dist > 0)

@@ -342,7 +342,9 @@ def test_zoom_ab_agrees_with_the_study(study, synthetic_scene_dir, tmp_path, cap
     path = tmp_path / "ab.json"
     assert zoom_ab.main(["--study", str(out), "--data", str(synthetic_scene_dir), "--variants", "lowpass,prefilter",
                          "--methods", "patexgs", "--json", str(path)]) == 0
-    figs = json.loads(path.read_text())[scene]
+    record = json.loads(path.read_text())
+    assert record["schema"] == 1 and record["study"] == str(out)  # a benchmark file: provenance, then figures
+    figs = record["results"][scene]
     assert set(figs) == {"patexgs"}
     own = data["results"][scene]["patexgs"]
     for s in ("1", "2", "4", "8"):

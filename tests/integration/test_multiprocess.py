@@ -208,7 +208,7 @@ def test_one_set_of_outputs(runs):
     out = runs["root"] / "killed" / "out"
     files = sorted(str(p.relative_to(out)) for p in out.rglob("*"))
     assert files == ["checkpoints", "checkpoints/ckpt_000000004.ckpt", "checkpoints/ckpt_000000006.ckpt",
-                     "log.jsonl", "scene.ply", "summary.json"], files
+                     "data.json", "log.jsonl", "scene.ply", "summary.json"], files
     # One writer: the killed run logged steps 1..k once each (k >= its last checkpoint, c), the
     # resumed run c+1..STEPS once each (two writers would log every step twice).
     c, before = runs["killed_ckpt_step"], runs["killed_log_steps"]
