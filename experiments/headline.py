@@ -107,6 +107,18 @@ def provenance_row(data: dict, label: str, file: str) -> str:
             f"{duration(data.get('elapsed_seconds'))} |")
 
 
+def _zoomed_entries(data: dict):
+    """(method, entry) of the record's first scene, in the study's order, for the methods evaluated at
+    1, 1/2, 1/4 and 1/8."""
+    per = next(iter(data["results"].values()))
+    return [(m, e) for m, e in per.items() if all(isinstance(e.get(str(s)), dict) for s in (1, 2, 4, 8))]
+
+
+def _psnr_cells(entry: dict) -> list[str]:
+    """The entry's PSNR at 1, 1/2, 1/4, 1/8, two decimals."""
+    return [f"{entry[str(s)]['psnr']:.2f}" for s in (1, 2, 4, 8)]
+
+
 #: The header of the README's results-at-a-glance table (:func:`glance_rows`).
 GLANCE_HEADER = "| scene | method | PSNR full | 1/2 | 1/4 | 1/8 | MB |"
 
@@ -115,14 +127,8 @@ def glance_rows(data: dict, scene_label: str) -> list[str]:
     """The README's results-at-a-glance rows (``| scene_label | method | PSNR full | 1/2 | 1/4 | 1/8 |
     MB |``) of a study's record, one per method evaluated at every zoom-out scale, in the study's
     order; the record's first scene."""
-    per = next(iter(data["results"].values()))
-    rows = []
-    for method, entry in per.items():
-        if not all(isinstance(entry.get(str(s)), dict) for s in (1, 2, 4, 8)):
-            continue
-        psnr = [f"{entry[str(s)]['psnr']:.2f}" for s in (1, 2, 4, 8)]
-        rows.append(f"| {scene_label} | `{method}` | " + " | ".join(psnr) + f" | {entry['storage_mb']:.2f} |")
-    return rows
+    return [f"| {scene_label} | `{method}` | " + " | ".join(_psnr_cells(entry)) + f" | {entry['storage_mb']:.2f} |"
+            for method, entry in _zoomed_entries(data)]
 
 
 def table(data: dict) -> str:
@@ -161,14 +167,10 @@ def zoom_rows(data: dict, scene_label: str) -> list[str]:
     alias 1/4 | alias 1/8 |``) of a study's record (its ``results.json`` or a benchmark file such as
     ``benchmarks/zoom_tiny.json``), one per method in the study's order; the record's first scene.
     Methods without a zoomed-out evaluation are left out."""
-    per = next(iter(data["results"].values()))
     rows = []
-    for method, entry in per.items():
-        if not all(isinstance(entry.get(str(s)), dict) for s in (1, 2, 4, 8)):
-            continue
-        psnr = [f"{entry[str(s)]['psnr']:.2f}" for s in (1, 2, 4, 8)]
+    for method, entry in _zoomed_entries(data):
         alias = [f"{entry[str(s)]['alias_psnr']:.2f}" for s in (2, 4, 8)]
-        rows.append(f"| {scene_label} | {method} | " + " | ".join(psnr + alias) + " |")
+        rows.append(f"| {scene_label} | {method} | " + " | ".join(_psnr_cells(entry) + alias) + " |")
     return rows
 
 

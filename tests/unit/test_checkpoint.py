@@ -222,6 +222,20 @@ def test_fields_added_since_take_their_defaults(tmp_path):
         load_checkpoint(rewrite(lambda f: f.update(gone={"t": "none"})))
 
 
+def _with_spec(path, spec: dict, bad):
+    """A copy of the checkpoint at ``path`` with its spec.json replaced by ``spec``, written to ``bad``."""
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(path) as z:
+        members = {n: z.read(n) for n in z.namelist()}
+    members["spec.json"] = json.dumps(spec).encode()
+    with zipfile.ZipFile(bad, "w", zipfile.ZIP_STORED) as z:
+        for n, data in members.items():
+            z.writestr(n, data)
+    return bad
+
+
 def test_repeated_values_are_stored_once(tmp_path, monkeypatch):
     """An array that is bitwise one value is stored as that value and read back bitwise (signed zeros
     and NaN payloads kept; an array that varies anywhere, even past the first elements compared, or
@@ -263,16 +277,9 @@ def test_repeated_values_are_stored_once(tmp_path, monkeypatch):
     assert all(np.asarray(old[k]).tobytes() == np.asarray(v).tobytes() for k, v in tree.items())
     monkeypatch.undo()
 
-    with zipfile.ZipFile(path) as z:
-        members = {n: z.read(n) for n in z.namelist()}
     spec["tree"]["v"][spec["tree"]["k"].index("zeros")]["shape"] = [50]
-    members["spec.json"] = json.dumps(spec).encode()
-    bad = tmp_path / "bad.ckpt"
-    with zipfile.ZipFile(bad, "w", zipfile.ZIP_STORED) as z:
-        for n, data in members.items():
-            z.writestr(n, data)
     with pytest.raises(CorruptCheckpointError, match="not a block"):
-        load_checkpoint(bad)
+        load_checkpoint(_with_spec(path, spec, tmp_path / "bad.ckpt"))
 
 
 def test_zero_rows_are_not_stored(tmp_path, monkeypatch):
@@ -308,13 +315,6 @@ def test_zero_rows_are_not_stored(tmp_path, monkeypatch):
         assert got.dtype == np.asarray(v).dtype and got.tobytes() == np.asarray(v).tobytes(), k
     assert isinstance(back["bucket"], jax.Array) and np.asarray(back["host"]).flags.writeable
 
-    with zipfile.ZipFile(path) as z:
-        members = {n: z.read(n) for n in z.namelist()}
     nodes["bucket"]["rows"] = nodes["ints"]["i"]  # another member as the mask: it does not fit
-    members["spec.json"] = json.dumps(spec).encode()
-    bad = tmp_path / "bad.ckpt"
-    with zipfile.ZipFile(bad, "w", zipfile.ZIP_STORED) as z:
-        for n, data in members.items():
-            z.writestr(n, data)
     with pytest.raises(CorruptCheckpointError, match="flagged rows"):
-        load_checkpoint(bad)
+        load_checkpoint(_with_spec(path, spec, tmp_path / "bad.ckpt"))
