@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import dataclasses
 
-from .plan_devices import H100_STEPS, h100_run_seconds
+from .plan_counts import mean_stage1_gaussians, planned_gaussians
+from .plan_devices import DEVICES, H100_STEPS, h100_run_seconds
+from .plan_memory import memory_plan, padded_pixels
+from .plan_steps import hms
 
 __all__ = ["ABSURD_SECONDS", "BUDGETS", "CAPS", "PRESETS_TRIED", "advice_lines", "best_options", "scaled_seconds"]
 
@@ -23,8 +26,8 @@ FACTOR_STEPS = (1, 2, 4, 8)
 MIN_SIDE = 128
 
 
-def scaled_seconds(measured: dict, config, *, points: int, pixel_scale: float, n_eval: int, compile_seconds: float,
-                   count, mean) -> float:
+def scaled_seconds(measured: dict, config, *, points: int, pixel_scale: float, n_eval: int,
+                   compile_seconds: float) -> float:
     """A run's seconds from the plan's timed steps, scaled linearly in the Gaussians and in the
     pixels (an estimate, smaller runs' fixed costs included at the same rate).
 
@@ -34,16 +37,14 @@ def scaled_seconds(measured: dict, config, *, points: int, pixel_scale: float, n
       config: the run's TrainConfig.
       points: the initial points; ``pixel_scale``: the run's pixels over the timed ones.
       n_eval: views evaluated; ``compile_seconds``: the plan's compile term (the same programs).
-      count, mean: :func:`patexgs_jax.plan.planned_gaussians` and
-        :func:`patexgs_jax.plan.mean_stage1_gaussians`.
     """
-    n = count(config, points)[0]
+    n = planned_gaussians(config, points)[0]
     m1 = max(int(measured.get("stage1_gaussians") or measured["gaussians"]), 1)
     m = max(int(measured["gaussians"]), 1)
     textured = config.spec.textures is not None
     steps1 = config.iters_2dgs + (0 if textured else config.continue_2dgs)
     steps2 = config.iters_tex if textured else 0
-    t1 = steps1 * measured["stage1"] * mean(config, points, n) / m1 * pixel_scale
+    t1 = steps1 * measured["stage1"] * mean_stage1_gaussians(config, points, n) / m1 * pixel_scale
     t2 = steps2 * (measured.get("texture") or 0.0) * n / m * pixel_scale
     ev = n_eval * measured["eval_view"] * n / m * pixel_scale + 2 * measured.get("eval_compile", 0.0)
     return float(t1 + t2 + ev + compile_seconds)
@@ -92,8 +93,6 @@ def advice_lines(dataset, config, measured, total, *, n, steps1, steps2, n_eval,
     """The lines of a plan whose run takes days on this CPU: that it belongs on a GPU, its time on an
     H100, and what trains here in an hour or a night (the figures as :func:`patexgs_jax.plan.make_plan`
     has them)."""
-    from .plan import DEVICES, _hms, mean_stage1_gaussians, memory_plan, padded_pixels, planned_gaussians
-
     points = len(dataset.points)
     px = max(v.camera.width * v.camera.height for v in dataset.train_views)
     lines = [f"this run takes {total / 86400:.1f} days on this CPU: it belongs on a GPU"]
@@ -101,8 +100,8 @@ def advice_lines(dataset, config, measured, total, *, n, steps1, steps2, n_eval,
                            gaussians=n, pixels=px, sizes=sizes)
     h100 = DEVICES["h100-80gb"]
     fit = memory_plan(dataset, config, n, texels, h100)
-    lines.append(f"on one {h100.name.split(' (')[0]} (NVIDIA H100): about {_hms(gpu['total'])} ({_hms(gpu['stage1'])} "
-                 f"2DGS + {_hms(gpu['texture'])} textures + {_hms(gpu['compile'])} compiling; from its measured "
+    lines.append(f"on one {h100.name.split(' (')[0]} (NVIDIA H100): about {hms(gpu['total'])} ({hms(gpu['stage1'])} "
+                 f"2DGS + {hms(gpu['texture'])} textures + {hms(gpu['compile'])} compiling; from its measured "
                  f"steps at 1M and 3M Gaussians, {H100_STEPS.source}), "
                  + ("fits in its memory" if fit["fits"] else "does NOT fit: pass " + "; or ".join(fit["fixes"])))
     m = measured.get("padded_size") or [1, 1]
@@ -116,12 +115,12 @@ def advice_lines(dataset, config, measured, total, *, n, steps1, steps2, n_eval,
         cfg = candidate_config(config, preset, cap)
         scale = padded_pixels(*size) / timed_px
         return scaled_seconds(measured, cfg, points=points, pixel_scale=scale, n_eval=n_eval,
-                              compile_seconds=compile_seconds, count=planned_gaussians, mean=mean_stage1_gaussians)
+                              compile_seconds=compile_seconds)
 
     options = best_options(estimate, factor)
     for o in options:
         lines.append(f"here {o['budget']}: --preset {o['preset']} --factor {o['factor']} --max-gaussians "
-                     f"{o['max_gaussians']} (about {_hms(o['seconds'])}, scaled from the steps timed above, linear "
+                     f"{o['max_gaussians']} (about {hms(o['seconds'])}, scaled from the steps timed above, linear "
                      "in Gaussians and pixels; --plan on that command line times it)")
     if not options:
         lines.append("here: no preset, factor and cap tried trains in a night (smaller images or a GPU)")

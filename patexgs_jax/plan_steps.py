@@ -15,7 +15,7 @@ import numpy as np
 from . import adaptive, interrupt
 from . import progress as bars
 
-__all__ = ["EQ6_SAMPLE_VIEWS", "Progress", "eq6_sample", "measure_steps", "sample_eq6_counts"]
+__all__ = ["EQ6_SAMPLE_VIEWS", "Progress", "eq6_sample", "hms", "measure_steps", "sample_eq6_counts", "short_seconds"]
 
 #: Training views the plan's Eq. 6 count renders (evenly spaced); Eq. 7's sums over all views are
 #: scaled from them (:func:`sample_eq6_counts`).
@@ -137,7 +137,8 @@ def sample_eq6_counts(schedule, views, sample) -> None:
 
 
 def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gaussians: int | None = None,
-                  eq6_views: int = EQ6_SAMPLE_VIEWS, quick: bool = False, progress: Progress | None = None) -> dict:
+                  eq6_views: int = EQ6_SAMPLE_VIEWS, quick: bool = False, progress: Progress | None = None,
+                  evaluate: bool = True) -> dict:
     """Times a few real training steps of each stage on this device: the 2DGS stage's at
     ``stage1_gaussians`` active Gaussians (default ``gaussians``; the others inactive, so no shape
     changes), the texture stage's at ``gaussians``.
@@ -152,7 +153,8 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     is measured (:class:`Progress`). The steps train on the
     views of one padded size (the most common one; ties: the largest): a run compiles its step once
     per padded size (:mod:`patexgs_jax.padding`), so on views of several sizes the timed steps would
-    be compiles (an undistorted capture has several: beer at full size six).
+    be compiles (an undistorted capture has several: beer at full size six). ``evaluate`` False
+    leaves the evaluation render untimed (``eval_view`` and ``eval_compile`` None).
 
     Returns:
       ``stage1``, ``texture``: median seconds of the last ``steps`` steps of each stage, which
@@ -168,7 +170,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
 
     from .ahead import AHEAD_ENV
     from .densify import DensifyConfig
-    from .evaluation import evaluate
+    from .evaluation import evaluate as evaluate_views
     from .training.trainer import Trainer
 
     t_all = time.perf_counter()
@@ -246,21 +248,23 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     med = {k: (statistics.median(v[-steps:]) if len(v) > steps else None) for k, v in spans.items()}
     comp = {k: max(0.0, sum(v[:-steps]) - (len(v) - steps) * (med[k] or 0.0)) if med[k] else 0.0
             for k, v in spans.items()}
+    out = dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
+               compile_texture=comp[2] if textured else 0.0, eval_view=None, eval_compile=None, steps=steps,
+               padded_size=list(size), padded_sizes=n_sizes, eq6_views=len(sample))
+    if not evaluate:
+        return dict(out, seconds=time.perf_counter() - t_all)
     # Evaluation: one compile per call, then a render per view: time 1 view and 3 views.
     view = (list(dataset.test_views) or list(dataset.train_views))[0]
     say.phase(f"timing an evaluation render ({view.camera.width}x{view.camera.height} px, compiling it first)")
     t = time.perf_counter()
-    evaluate(run.scene, [view], run.render_cfg)
+    evaluate_views(run.scene, [view], run.render_cfg)
     one = time.perf_counter() - t
     t = time.perf_counter()
-    evaluate(run.scene, [view] * 3, run.render_cfg)
+    evaluate_views(run.scene, [view] * 3, run.render_cfg)
     three = time.perf_counter() - t
     eval_view = max((three - one) / 2, 1e-4)
     eval_compile = max(one - eval_view, 0.0)
-    return dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
-                compile_texture=comp[2] if textured else 0.0, eval_view=eval_view, eval_compile=eval_compile,
-                steps=steps, padded_size=list(size), padded_sizes=n_sizes, eq6_views=len(sample),
-                seconds=time.perf_counter() - t_all)
+    return dict(out, eval_view=eval_view, eval_compile=eval_compile, seconds=time.perf_counter() - t_all)
 
 
 def _one_size(views, config):
@@ -291,3 +295,14 @@ def _points_for(points, colors, n: int, seed: int):
     return points[idx] + jitter, None if colors is None else np.asarray(colors)[idx]
 
 
+
+
+def hms(seconds: float) -> str:
+    """``seconds`` as ``"1h02m"`` (an hour or more) or ``"3m05s"``."""
+    s = int(round(seconds))
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+def short_seconds(x: float | None) -> str:
+    """A step's seconds as ``"120 ms"`` or ``"12.5 s"`` (``"-"`` for None)."""
+    return "-" if x is None else (f"{x * 1e3:.0f} ms" if x < 10 else f"{x:.1f} s")

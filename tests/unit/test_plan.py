@@ -14,6 +14,7 @@ import pytest
 import patexgs_jax.data as data
 from data_builders import make_colmap_scene  # noqa: E402
 from patexgs_jax import memory, plan
+from patexgs_jax.plan_steps import hms
 from patexgs_jax.training import cli
 from patexgs_jax.training.config import TrainConfig, preset_config
 from patexgs_jax.training.run import train
@@ -299,7 +300,7 @@ def test_a_plan_of_days_on_a_cpu_says_where_it_belongs_and_what_fits_here(ds, mo
     gpu = plan_devices.h100_run_seconds(steps1=30_000, steps2=30_000, gaussians=p.gaussians, pixels=64 * 48,
                                         stage1_gaussians=plan.mean_stage1_gaussians(preset_config("paper"),
                                                                                     len(ds.points), p.gaussians))
-    assert f"about {plan._hms(gpu['total'])}" in h100
+    assert f"about {hms(gpu['total'])}" in h100
     assert gpu["texture"] == pytest.approx(30_000 * (0.0889 + (0.2100 - 0.0889) / 2e6 * (p.gaussians - 1e6)))
     hour, night = [a for a in p.advice if a.startswith("here ")]
     assert hour.startswith("here in an hour: --preset ") and night.startswith("here in a night (10 h): --preset ")
@@ -311,10 +312,66 @@ def test_a_plan_of_days_on_a_cpu_says_where_it_belongs_and_what_fits_here(ds, mo
         secs = plan.plan_advice.scaled_seconds(
             dict(MEASURED, stage1=4.0, texture=8.0, gaussians=20_000, stage1_gaussians=12_000), cfg,
             points=len(ds.points), pixel_scale=plan.padded_pixels(round(64 / factor), round(48 / factor)) / (48 * 64),
-            n_eval=len(ds.test_views) + min(len(ds.train_views), 32), compile_seconds=p.time_terms["compile"],
-            count=plan.planned_gaussians, mean=plan.mean_stage1_gaussians)
-        assert secs <= budget and f"about {plan._hms(secs)}" in line
+            n_eval=len(ds.test_views) + min(len(ds.train_views), 32), compile_seconds=p.time_terms["compile"])
+        assert secs <= budget and f"about {hms(secs)}" in line
     assert p.to_json()["advice"] == p.advice
     # A plan of hours says nothing of the kind.
     short = _absurd(ds, stage1=0.0005, texture=0.001)
     assert short.total_seconds < 86400 and not short.advice
+
+
+def _stub_steps(stage1):
+    """A step timer that records its calls and times every step at ``stage1`` s (texture twice)."""
+    calls = []
+
+    def measure(ds, cfg, gaussians, *, steps, stage1_gaussians=None, quick=False, progress=None, evaluate=True,
+                **kw):
+        calls.append(dict(method=cfg.method, gaussians=gaussians, steps=steps, quick=quick, evaluate=evaluate))
+        textured = cfg.spec.textures is not None
+        return dict(stage1=stage1, texture=2 * stage1 if textured else None, stage1_gaussians=stage1_gaussians,
+                    compile_stage1=30.0, compile_texture=50.0 if textured else 0.0,
+                    eval_view=0.1 if evaluate else None, eval_compile=5.0 if evaluate else None, steps=steps,
+                    padded_size=[48, 64], padded_sizes=1, eq6_views=0, seconds=1.0)
+
+    return calls, measure
+
+
+def test_a_cpu_plan_of_days_times_the_2dgs_stage_alone_and_says_what_it_estimates(ds, monkeypatch):
+    monkeypatch.setattr(plan, "this_device", lambda: plan.Device("this CPU", "cpu", int(64e9)))
+    calls, measure = _stub_steps(4.0)  # 60,000 steps of 4 s: at least 2.8 days, unscaled
+    monkeypatch.setattr(plan, "measure_steps", measure)
+    p = plan.make_plan(ds, preset_config("paper", method="patexgs"), progress=False)
+    assert calls == [dict(method="2dgs", gaussians=plan.MEASURE_MAX_GAUSSIANS, steps=plan.EXTRAPOLATED_STEPS,
+                          quick=True, evaluate=False)]
+    sc = p.gaussians / plan.MEASURE_MAX_GAUSSIANS
+    assert p.step_seconds["stage1"] == pytest.approx(4.0 * sc)
+    assert p.step_seconds["texture"] == pytest.approx(plan.TEXTURE_STEP_RATIO * 4.0 * sc)
+    assert p.measured["eval_view"] == pytest.approx(plan.EVAL_STEP_SHARE * 4.0)
+    assert p.measured["compile_texture"] == pytest.approx(plan.TEXTURE_COMPILE_RATIO * 30.0)
+    f = p.to_json()["figures"]
+    assert f["step_seconds.stage1"]["how"] == "extrapolated" and f["step_seconds.texture"]["how"] == "estimated"
+    assert f["time_terms.eval"]["how"] == "estimated" and f["texels"]["how"] == "modelled"
+    text = p.text()
+    assert "texture (estimated)" in text and "  estimated: step_seconds.texture" in text
+    assert "  extrapolated: step_seconds.stage1" in text and "days on this CPU: it belongs on a GPU" in text
+
+
+def test_a_cpu_plan_of_less_than_days_goes_on_to_time_the_texture_stage(ds, monkeypatch):
+    monkeypatch.setattr(plan, "this_device", lambda: plan.Device("this CPU", "cpu", int(64e9)))
+    calls, measure = _stub_steps(0.01)  # 60,000 steps of 10 ms: 10 minutes at least
+    monkeypatch.setattr(plan, "measure_steps", measure)
+    p = plan.make_plan(ds, preset_config("paper", method="patexgs"), progress=False)
+    assert [(c["method"], c["evaluate"]) for c in calls] == [("2dgs", False), ("patexgs", True)]
+    f = p.to_json()["figures"]
+    assert f["step_seconds.texture"]["how"] == "extrapolated" and "texture_estimated" not in p.measured
+    # A plan at its own count (no extrapolation) times everything at once.
+    calls.clear()
+    p = plan.make_plan(ds, preset_config("tiny", method="patexgs", max_gaussians=500), progress=False)
+    assert [(c["method"], c["quick"], c["evaluate"]) for c in calls] == [("patexgs", False, True)]
+    assert p.to_json()["figures"]["step_seconds.stage1"]["how"] == "measured"
+
+
+@pytest.mark.parametrize("method, first", [("patexgs", "2dgs"), ("bbsplat", "2dgs"), ("2dgs", "2dgs"),
+                                           ("3dgs", "3dgs"), ("patexgs+filter3d", None)])
+def test_stage1_method(method, first):
+    assert plan.stage1_method(TrainConfig(method=method)) == first
