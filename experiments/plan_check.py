@@ -267,13 +267,16 @@ def main(argv=None) -> int:
     ap.add_argument("--partial", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--replan", default=None, metavar="FILE",
                     help="make FILE's plans again with the current code (each in a fresh process), keep its runs, "
-                    "and write the rows to --json (default: FILE)")
+                    "and write the rows to --json (default: FILE); with --cases, those cases' rows only")
     args = ap.parse_args(argv)
     if args.replan is not None:
         with open(args.replan) as f:
             doc = json.load(f)
+        only = None if args.cases == ",".join(CASES) else {c.strip() for c in args.cases.split(",")}
         rows = []
         for r in doc["results"]:
+            if only is not None and r.get("case") not in only:
+                continue
             rows.append(replan(r))
             print(table([rows[-1]]).split("\n", 2)[-1], flush=True)
         doc = dict(doc, results=rows, replanned=f"plans made again at {git_commit()}; runs from {doc.get('git')}")

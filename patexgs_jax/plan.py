@@ -2,14 +2,18 @@
 
 ``python -m patexgs_jax.train ... --plan`` (and ``python -m experiments.mipnerf360 ... --plan``)
 calls :func:`make_plan`: the views' padded sizes, the steps of each stage, the Gaussian count the
-run plans for, the texels Eq. 7 gives at that count, the peak memory of the 2DGS stage, the
-texture stage and evaluation (on this process's device and, when asked, on another:
-:func:`parse_device`), the time per step of each stage measured by a few real steps
-(:func:`measure_steps`, saying what it measures at least every 10 s), the whole run's time, what
-would not fit with the flag that makes it fit (:func:`fixes`), and, for a run of days on a CPU,
-its time on an H100 and what trains here in an hour or a night (:mod:`patexgs_jax.plan_advice`).
+run plans for and the texels Eq. 7 gives at that count (:mod:`patexgs_jax.plan_counts`), the peak
+memory of the 2DGS stage, the texture stage and evaluation (on this process's device and, when
+asked, on another: :func:`parse_device`; :mod:`patexgs_jax.plan_memory`), the time per step of
+each stage measured by a few real steps (:func:`measure_steps`, saying what it measures at least
+every 10 s; on a CPU, a run whose 2DGS steps alone take days times nothing else and estimates the
+rest from them), the whole run's time, what would not fit with the flag that makes it fit
+(:func:`fixes`), for a run of days on a CPU its time on an H100 and what trains here in an hour or
+a night (:mod:`patexgs_jax.plan_advice`), and which of these figures are measured, extrapolated,
+estimated or modelled (:attr:`Plan.figures`).
 
-The memory model (pure functions; docs/memory.md has its terms and its measured error):
+The memory model (:mod:`patexgs_jax.plan_memory`, pure functions; docs/memory.md has its terms and
+its measured error):
 
   peak = base + per-pixel bytes x padded pixels of the largest view + per-Gaussian bytes x
          Gaussians + texture bytes x RGBA texels (+ on a CPU, the images the dataset caches)

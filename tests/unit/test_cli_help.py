@@ -9,7 +9,8 @@ import pytest
 COMMANDS = [
     "patexgs_jax.training.cli", "patexgs_jax.viewer.server", "patexgs_jax.data.synthetic",
     "patexgs_jax.data.download", "patexgs_jax.prepare", "experiments.mipnerf360", "experiments.tradeoffs",
-    "experiments.zoom_ab", "experiments.headline", "experiments.plan_check", "experiments.bench_render",
+    "experiments.zoom_ab", "experiments.headline", "experiments.plan_check", "experiments.plan_time",
+    "experiments.bench_render",
     "experiments.bench_train", "experiments.bench_scale", "experiments.bench_viewer", "experiments.bench_mappings",
     "experiments.device_check", "patexgs_jax.render_cli", "patexgs_jax.evaluate",
 ]
