@@ -303,7 +303,8 @@ def _measure(dataset, config, n: int, fits: bool, here: Device, steps: int, all_
                          "and their compiles are estimated from the 2DGS step)")
             return dict(_estimated_rest(got, config), gaussians=m_n, scale=scale, note=note)
         if pr is not None:
-            pr.phase(f"the 2DGS stage alone takes at least {hms(floor)} here: timing the rest")
+            pr.phase(f"the run's {all_steps:,} steps take at least {hms(floor)} here (each at least a 2DGS step): "
+                     "timing the rest")
     got = measure_steps(dataset, config, m_n, steps=timed, stage1_gaussians=mean, quick=quick, progress=pr)
     return dict(got, gaussians=m_n, scale=scale, note=note)
 

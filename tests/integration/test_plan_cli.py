@@ -34,3 +34,8 @@ def test_plan_on_the_embedded_scene_times_real_steps_and_writes_only_its_json(tm
                  "timing an evaluation render"):
         assert any(line.startswith(f"plan: {what}") for line in said), (what, said)
     assert doc["measured"]["eq6_views"] == 0  # (fixed sizes: no Eq. 7 allocation)
+    # Every step time measured here, at the run's own count (nothing extrapolated or estimated).
+    kinds = {k: f["how"] for k, f in doc["figures"].items()}
+    assert kinds["step_seconds.stage1"] == kinds["step_seconds.texture"] == "measured", kinds
+    assert kinds["time_terms.eval"] == "measured" and kinds["peak_bytes"] == "modelled"
+    assert "  measured: step_seconds.stage1" in text and "  modelled: " in text
