@@ -202,7 +202,7 @@ TEXTURE_STEP_RATIO = 2.0
 TEXTURE_COMPILE_RATIO = 2.0
 #: an evaluation render (a forward pass of the textured scene) over a 2DGS step (0.11-0.29 there);
 EVAL_STEP_SHARE = 0.3
-#: and its compile over the 2DGS step's (0.45-0.6 cold there).
+#: and its compile over the 2DGS step's (0.43-0.59 cold there).
 EVAL_COMPILE_SHARE = 0.5
 
 
