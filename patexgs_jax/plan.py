@@ -192,17 +192,16 @@ MEASURE_MAX_PIXELS = 1 << 20
 #: allocation then runs at the texture stage's start (no warm-up step: one compile less).
 EXTRAPOLATED_STEPS = 2
 #: Where the 2DGS stage's timed steps alone put a CPU run beyond :data:`plan_advice.ABSURD_SECONDS`
-#: (every textured step at least a 2DGS one), the plan times nothing else and estimates the rest
-#: from that step (docs/memory.md, "The plan's own time", has the figures these come from):
-#: a textured step over a 2DGS step (1.3-3.1 on this project's CPU: ``experiments.plan_check``'s
-#: runs and the 300-view plans; 2.0-2.3 on one H100);
+#: (every textured step costs at least a 2DGS one), the plan times nothing else and estimates the
+#: rest from that stage, at ratios inside the spreads measured on this project's CPU (docs/memory.md,
+#: "The plan's own time"): a textured step over a 2DGS step;
 TEXTURE_STEP_RATIO = 2.0
-#: the texture stage's compiles (its start, Eq. 6's counter, the allocated layout's step, with the
-#: 8 counts) over the 2DGS stage's first step (1.7-3.9 cold on the 300-view plans);
+#: the texture stage's compiles (its start, Eq. 6's counter and counts, the allocated layout's
+#: step) over the 2DGS stage's;
 TEXTURE_COMPILE_RATIO = 2.0
-#: an evaluation render (a forward pass of the textured scene) over a 2DGS step (0.11-0.29 there);
+#: an evaluation render (a forward pass of the textured scene) over a 2DGS step;
 EVAL_STEP_SHARE = 0.3
-#: and its compile over the 2DGS step's (0.43-0.59 cold there).
+#: and its compile over the 2DGS step's.
 EVAL_COMPILE_SHARE = 0.5
 
 
