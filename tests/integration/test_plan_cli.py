@@ -39,3 +39,23 @@ def test_plan_on_the_embedded_scene_times_real_steps_and_writes_only_its_json(tm
     assert kinds["step_seconds.stage1"] == kinds["step_seconds.texture"] == "measured", kinds
     assert kinds["time_terms.eval"] == "measured" and kinds["peak_bytes"] == "modelled"
     assert "  measured: step_seconds.stage1" in text and "  modelled: " in text
+
+
+def test_a_plan_of_days_on_a_cpu_times_the_2dgs_stage_alone(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "plan.json"
+    # 30 million 2DGS steps: days here whatever a step costs (a millisecond or more), with real steps.
+    code = cli.main(["--method", "patexgs", "--preset", "paper", "--iters-2dgs", "30000000", "--factor", "3",
+                     "--plan", "--json", str(out)])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    doc = json.loads(out.read_text())
+    m = doc["measured"]
+    assert m["gaussians"] == 10_000 and m["steps"] == 2 and m["texture_estimated"] and m["eval_estimated"]
+    assert doc["step_seconds"]["texture"] == 2 * doc["step_seconds"]["stage1"] > 0
+    kinds = {k: f["how"] for k, f in doc["figures"].items()}
+    assert kinds["step_seconds.stage1"] == "extrapolated" and kinds["step_seconds.texture"] == "estimated"
+    said = [line for line in text.splitlines() if line.startswith("plan: ")]
+    assert any("nothing else is timed" in line for line in said), said
+    assert not any("texture stage" in line and line.startswith("plan: timing") for line in said), said
+    assert "it belongs on a GPU" in text and "  estimated: step_seconds.texture" in text
