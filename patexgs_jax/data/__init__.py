@@ -6,10 +6,10 @@
 
 Modules: :mod:`.dataset` (:class:`Dataset`, :class:`View`, :class:`SceneNormalization`, the split),
 :mod:`.images` (reading, resizing, the image cache), :mod:`.records` (the loaders' shared steps),
-:mod:`.cache` (cache folders), :mod:`.errors`; the formats :mod:`.colmap` (with :mod:`.colmap_model`),
-:mod:`.llff`, :mod:`.nerf`; the embedded scene :mod:`.synthetic` (with :mod:`.synthetic_scene`); the
-paper's datasets: :mod:`.benchmarks` (which one a scene is, its protocol) and :mod:`.download`
-(``python -m patexgs_jax.data.download``, the public archives).
+:mod:`.cache` (cache folders), :mod:`.errors`; the formats :mod:`.colmap` (with :mod:`.colmap_model`
+and :mod:`.colmap_records`), :mod:`.llff`, :mod:`.nerf`; the embedded scene :mod:`.synthetic` (with
+:mod:`.synthetic_scene`); the paper's datasets: :mod:`.benchmarks` (which one a scene is, its
+protocol) and :mod:`.download` (``python -m patexgs_jax.data.download``, the public archives).
 """
 
 from __future__ import annotations
