@@ -417,10 +417,10 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = _DEFAULT_CONFIG,
     raise RuntimeError("render: capacity did not converge; this is a bug, please report it.")
 
 
+if __name__ == "__main__":
+    # python -m patexgs_jax.render is the command line (frames and videos of a trained model). It runs
+    # by name, not by import: the command line imports the data sources and the trainer's method
+    # table, which import this module, so an import here would close a circle through them.
+    import runpy
 
-if __name__ == "__main__":  # python -m patexgs_jax.render: the command line (frames and videos of a trained model)
-    import sys
-
-    from .render_cli import main as _main
-
-    sys.exit(_main())
+    runpy.run_module("patexgs_jax.render_cli", run_name="__main__", alter_sys=True)
