@@ -94,7 +94,7 @@ from jax import lax
 from . import textures as tex
 from .camera import Camera
 from .rendering.binning import bin_projection, pair_count, tile_histogram, tile_ranges
-from .rendering.chunks import Static
+from .rendering.chunks import CompositeInputs, Static
 from .rendering.composite import composite_tiles
 from .rendering.config import (
     ALPHA_MAX,
@@ -311,13 +311,13 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     if alpha_const is not None:
         peak = jnp.where(alpha_const, 1.0, peak)  # the pass bound reads the folded opacity
     tex_has = rgb_has if alpha_has is None else (alpha_has if rgb_has is None else rgb_has | alpha_has)
-    ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
-               rgb_has=rgb_has, alpha_has=alpha_has,
-               tex_has=tex_has,
-               tex_meta=meta_table(rgb_atlas, alpha_atlas) if st.rgb or st.alpha else None,
-               rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
-               alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,
-               flag=binned[0] >= 0)  # a True XLA cannot prove (see chunks.barrier)
+    ctx = CompositeInputs(
+        ids_sorted=ids_sorted, tile_start=tile_start, binned=binned, peak=peak,
+        flag=binned[0] >= 0,  # a True XLA cannot prove (see chunks.barrier)
+        rgb_has=rgb_has, alpha_has=alpha_has, tex_has=tex_has,
+        tex_meta=meta_table(rgb_atlas, alpha_atlas) if st.rgb or st.alpha else None,
+        rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
+        alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels))
     composite = composite_tiles
     if resolve_compositor(config) == "pallas":  # one Pallas kernel, imported when used
         from .rendering import pallas_composite
