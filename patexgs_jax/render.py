@@ -136,7 +136,10 @@ __all__ = [
     "render_jit",
 ]
 
-#: How many times the jitted renderer has been traced, per configuration (tests assert on it).
+#: How many times the jitted renderer has been traced, per (config, capacity), in this process. Tests
+#: and benchmarks read it to assert that a view of known shapes does not retrace; nothing in the
+#: package reads it (whether a viewer frame compiled comes from JAX's compile events,
+#: :func:`patexgs_jax.compiled.xla_compiles`).
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
@@ -360,9 +363,6 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
 render_jit = jax.jit(_render, static_argnames=("config", "capacity"))
 
 
-_capacity_cache: dict = {}
-
-
 def _count(scene: Scene, camera: Camera, config: RenderConfig, valid_hw=None):
     _, _, pairs_needed, max_tile = _project_and_range(scene, camera, config, None, None, alpha_peak(scene),
                                                       valid_hw=valid_hw)
@@ -384,16 +384,16 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = _DEFAULT_CONFIG,
       scene: the splats (C slots).
       camera: the view (H = camera.height, W = camera.width).
       config: static options (:class:`RenderConfig`).
-      capacity: optional starting capacity; by default the last one that fitted this scene capacity
-        and image size, or the exact need counted for this view.
+      capacity: optional starting capacity; by default the exact need counted for this view (one
+        small jitted count, :data:`count_pairs`). A caller rendering many views of one size can pass
+        the capacity that fitted the last one instead (:meth:`Capacity.fit` of its ``pairs_needed``).
       active_sh_degree: optional int, SH bands above it are ignored.
     Returns:
       :class:`RenderOutput` with (H, W) images. If the capacity overflows it is grown to fit and the
       view rendered again (a warning says so, once per growth). Differentiable with ``jax.grad``
       (outside ``jax.jit``; under an outer jit use :data:`render_jit` and check ``overflow``).
     """
-    key = (scene.capacity, camera.width, camera.height, config.tile_size)
-    cap = capacity or _capacity_cache.get(key)
+    cap = capacity
     if cap is None:
         try:
             needed, max_tile = count_pairs(lax.stop_gradient(scene), camera, config)
@@ -408,7 +408,6 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = _DEFAULT_CONFIG,
         except jax.errors.ConcretizationTypeError:
             return out  # traced under an outer jit: the caller checks `overflow`
         if not overflowed:
-            _capacity_cache[key] = cap
             return out
         new = Capacity.fit(float(out.pairs_needed), minimum=cap)
         warnings.warn(f"render: capacity {cap} too small for this view (needs {int(out.pairs_needed)} "
