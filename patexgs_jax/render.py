@@ -67,8 +67,8 @@ Structure: one stage a module of :mod:`patexgs_jax.rendering`
   hand-written backward, ``jax.custom_vjp``, which re-walks the chunks and stores nothing per pair).
   ``RenderConfig(compositor="pallas")`` composites with one Pallas GPU kernel instead
   (:mod:`.rendering.pallas_composite`, :mod:`.rendering.pallas_texture`: one program per tile, the
-  same outputs and gradients; None, the default, is the XLA compositor until a GPU benchmark shows
-  the kernel faster).
+  same outputs and gradients); None, the default, picks per backend: the Pallas kernel on a GPU,
+  the XLA compositor elsewhere (:func:`.rendering.config.resolve_compositor`).
   This module: :func:`render`, :data:`render_jit`, :data:`count_pairs`, :data:`prepare_textures`
   and :func:`check_inputs`.
 
