@@ -354,8 +354,8 @@ def _quat_to_rotmat_np(q: np.ndarray) -> np.ndarray:
 
 
 def _row_max(a: np.ndarray) -> np.ndarray:
-    """``a.max(axis=1)`` of a (C, 2 or 3) array, column by column (15x faster than numpy's reduction
-    over a short axis; the same values)."""
+    """``a.max(axis=1)`` of a (C, 2 or 3) array, column by column: the same values, without numpy's
+    slow reduction over a short axis (docs/performance.md)."""
     return functools.reduce(np.maximum, [a[:, k] for k in range(a.shape[1])])
 
 

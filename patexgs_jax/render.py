@@ -67,8 +67,8 @@ Structure: one stage a module of :mod:`patexgs_jax.rendering`
   hand-written backward, ``jax.custom_vjp``, which re-walks the chunks and stores nothing per pair).
   ``RenderConfig(compositor="pallas")`` composites with one Pallas GPU kernel instead
   (:mod:`.rendering.pallas_composite`, :mod:`.rendering.pallas_texture`: one program per tile, the
-  same outputs and gradients; None, the default, is the XLA compositor until a GPU benchmark shows
-  the kernel faster).
+  same outputs and gradients); None, the default, picks per backend: the Pallas kernel on a GPU,
+  the XLA compositor elsewhere (:func:`.rendering.config.resolve_compositor`).
   This module: :func:`render`, :data:`render_jit`, :data:`count_pairs`, :data:`prepare_textures`
   and :func:`check_inputs`.
 
@@ -94,7 +94,7 @@ from jax import lax
 from . import textures as tex
 from .camera import Camera
 from .rendering.binning import bin_projection, pair_count, tile_histogram, tile_ranges
-from .rendering.chunks import Static
+from .rendering.chunks import CompositeInputs, Static
 from .rendering.composite import composite_tiles
 from .rendering.config import (
     ALPHA_MAX,
@@ -136,7 +136,10 @@ __all__ = [
     "render_jit",
 ]
 
-#: How many times the jitted renderer has been traced, per configuration (tests assert on it).
+#: How many times the jitted renderer has been traced, per (config, capacity), in this process. Tests
+#: and benchmarks read it to assert that a view of known shapes does not retrace; nothing in the
+#: package reads it (whether a viewer frame compiled comes from JAX's compile events,
+#: :func:`patexgs_jax.compiled.xla_compiles`).
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
@@ -311,13 +314,13 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
     if alpha_const is not None:
         peak = jnp.where(alpha_const, 1.0, peak)  # the pass bound reads the folded opacity
     tex_has = rgb_has if alpha_has is None else (alpha_has if rgb_has is None else rgb_has | alpha_has)
-    ctx = dict(ids_sorted=ids_sorted, tile_start=tile_start, binned=binned,
-               rgb_has=rgb_has, alpha_has=alpha_has,
-               tex_has=tex_has,
-               tex_meta=meta_table(rgb_atlas, alpha_atlas) if st.rgb or st.alpha else None,
-               rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
-               alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels), peak=peak,
-               flag=binned[0] >= 0)  # a True XLA cannot prove (see chunks.barrier)
+    ctx = CompositeInputs(
+        ids_sorted=ids_sorted, tile_start=tile_start, binned=binned, peak=peak,
+        flag=binned[0] >= 0,  # a True XLA cannot prove (see chunks.barrier)
+        rgb_has=rgb_has, alpha_has=alpha_has, tex_has=tex_has,
+        tex_meta=meta_table(rgb_atlas, alpha_atlas) if st.rgb or st.alpha else None,
+        rgb_texels=None if rgb_atlas is None else lax.stop_gradient(rgb_atlas.texels),
+        alpha_texels=None if alpha_atlas is None else lax.stop_gradient(alpha_atlas.texels))
     composite = composite_tiles
     if resolve_compositor(config) == "pallas":  # one Pallas kernel, imported when used
         from .rendering import pallas_composite
@@ -360,9 +363,6 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
 render_jit = jax.jit(_render, static_argnames=("config", "capacity"))
 
 
-_capacity_cache: dict = {}
-
-
 def _count(scene: Scene, camera: Camera, config: RenderConfig, valid_hw=None):
     _, _, pairs_needed, max_tile = _project_and_range(scene, camera, config, None, None, alpha_peak(scene),
                                                       valid_hw=valid_hw)
@@ -384,16 +384,16 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = _DEFAULT_CONFIG,
       scene: the splats (C slots).
       camera: the view (H = camera.height, W = camera.width).
       config: static options (:class:`RenderConfig`).
-      capacity: optional starting capacity; by default the last one that fitted this scene capacity
-        and image size, or the exact need counted for this view.
+      capacity: optional starting capacity; by default the exact need counted for this view (one
+        small jitted count, :data:`count_pairs`). A caller rendering many views of one size can pass
+        the capacity that fitted the last one instead (:meth:`Capacity.fit` of its ``pairs_needed``).
       active_sh_degree: optional int, SH bands above it are ignored.
     Returns:
       :class:`RenderOutput` with (H, W) images. If the capacity overflows it is grown to fit and the
       view rendered again (a warning says so, once per growth). Differentiable with ``jax.grad``
       (outside ``jax.jit``; under an outer jit use :data:`render_jit` and check ``overflow``).
     """
-    key = (scene.capacity, camera.width, camera.height, config.tile_size)
-    cap = capacity or _capacity_cache.get(key)
+    cap = capacity
     if cap is None:
         try:
             needed, max_tile = count_pairs(lax.stop_gradient(scene), camera, config)
@@ -408,7 +408,6 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = _DEFAULT_CONFIG,
         except jax.errors.ConcretizationTypeError:
             return out  # traced under an outer jit: the caller checks `overflow`
         if not overflowed:
-            _capacity_cache[key] = cap
             return out
         new = Capacity.fit(float(out.pairs_needed), minimum=cap)
         warnings.warn(f"render: capacity {cap} too small for this view (needs {int(out.pairs_needed)} "
@@ -417,10 +416,10 @@ def render(scene: Scene, camera: Camera, config: RenderConfig = _DEFAULT_CONFIG,
     raise RuntimeError("render: capacity did not converge; this is a bug, please report it.")
 
 
+if __name__ == "__main__":
+    # python -m patexgs_jax.render is the command line (frames and videos of a trained model). It runs
+    # by name, not by import: the command line imports the data sources and the trainer's method
+    # table, which import this module, so an import here would close a circle through them.
+    import runpy
 
-if __name__ == "__main__":  # python -m patexgs_jax.render: the command line (frames and videos of a trained model)
-    import sys
-
-    from .render_cli import main as _main
-
-    sys.exit(_main())
+    runpy.run_module("patexgs_jax.render_cli", run_name="__main__", alter_sys=True)

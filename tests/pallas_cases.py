@@ -18,7 +18,7 @@ import numpy as np
 
 from patexgs_jax import render_jit
 from patexgs_jax.rendering import binning, composite, pallas_composite, projection
-from patexgs_jax.rendering.chunks import Static
+from patexgs_jax.rendering.chunks import CompositeInputs, Static
 
 FIELDS = ("rgb", "alpha", "depth", "normal", "distortion")
 #: Per-output tolerance, times the output's largest magnitude where above 1 (depth: camera z;
@@ -66,9 +66,8 @@ def composite_grad(scene, cam, config, capacity, compositor):
     ranges = binning.tile_ranges(proj.bounds, proj.visible, ts, tiles_x, tiles_y)
     ids, start, binned = binning.bin_projection(proj, ranges, tiles_x, tiles_x * tiles_y, capacity.pairs, config)
     st = Static(config=config, tiles_x=tiles_x, num_tiles=tiles_x * tiles_y, rgb=False, alpha=False)
-    ctx = dict(ids_sorted=ids, tile_start=start, binned=binned, rgb_has=None, alpha_has=None, tex_has=None,
-               tex_meta=None, rgb_texels=None, alpha_texels=None, peak=projection.alpha_peak(scene),
-               flag=binned[0] >= 0)
+    ctx = CompositeInputs(ids_sorted=ids, tile_start=start, binned=binned, peak=projection.alpha_peak(scene),
+                          flag=binned[0] >= 0)
     fn = pallas_composite.composite_tiles if compositor == "pallas" else composite.composite_tiles
 
     def loss(packed):

@@ -6,10 +6,10 @@
 
 Modules: :mod:`.dataset` (:class:`Dataset`, :class:`View`, :class:`SceneNormalization`, the split),
 :mod:`.images` (reading, resizing, the image cache), :mod:`.records` (the loaders' shared steps),
-:mod:`.cache` (cache folders), :mod:`.errors`; the formats :mod:`.colmap` (with :mod:`.colmap_model`),
-:mod:`.llff`, :mod:`.nerf`; the embedded scene :mod:`.synthetic` (with :mod:`.synthetic_scene`); the
-paper's datasets: :mod:`.benchmarks` (which one a scene is, its protocol) and :mod:`.download`
-(``python -m patexgs_jax.data.download``, the public archives).
+:mod:`.cache` (cache folders), :mod:`.errors`; the formats :mod:`.colmap` (with :mod:`.colmap_model`
+and :mod:`.colmap_records`), :mod:`.llff`, :mod:`.nerf`; the embedded scene :mod:`.synthetic` (with
+:mod:`.synthetic_scene`); the paper's datasets: :mod:`.benchmarks` (which one a scene is, its
+protocol) and :mod:`.download` (``python -m patexgs_jax.data.download``, the public archives).
 """
 
 from __future__ import annotations
@@ -76,14 +76,14 @@ _LOADERS = {"colmap": load_colmap, "llff": load_llff, "nerf": load_nerf}
 
 def photos_without_poses_hint(path) -> str | None:
     """What to do with a folder of photos that has no camera model (the photos directly in ``path``
-    or in ``path/images``): run :mod:`patexgs_jax.prepare`; None when it holds no photos."""
+    or in ``path/images``): run :mod:`patexgs_jax.sfm`; None when it holds no photos."""
     p = Path(path)
     for folder in (p / "images", p):
         n = sum(1 for f in folder.glob("*") if f.suffix.lower() in (".jpg", ".jpeg", ".png")) if folder.is_dir() else 0
         if n:
             out = p.resolve().with_name(p.resolve().name + "_colmap")
             return (f"It holds {n} photo(s) in {folder} but no camera poses: estimate them with "
-                    f"`python -m patexgs_jax.prepare {folder} {out}` (COLMAP through pycolmap), "
+                    f"`python -m patexgs_jax.sfm {folder} {out}` (COLMAP through pycolmap), "
                     f"then pass {out}.")
     return None
 

@@ -1,6 +1,6 @@
 """COLMAP's binary model files (``cameras.bin``, ``images.bin``, ``points3D.bin``, and ``rigs.bin`` /
 ``frames.bin`` from COLMAP 3.12): read record by record and checked as they are read (see
-:mod:`.colmap_model`), and written (the three-file layout every COLMAP version reads).
+:mod:`.colmap_records`), and written (the three-file layout every COLMAP version reads).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import NoReturn
 
 import numpy as np
 
-from .colmap_model import (
+from .colmap_records import (
     _CAMERA,
     _ID_LIMIT,
     _POINT2D,

@@ -1,6 +1,6 @@
 """COLMAP's text model files (``cameras.txt``, ``images.txt``, ``points3D.txt``, and ``rigs.txt`` /
 ``frames.txt`` from COLMAP 3.12): read line by line and checked as they are read (see
-:mod:`.colmap_model`); a header's declared count catches a file truncated at a line boundary.
+:mod:`.colmap_records`); a header's declared count catches a file truncated at a line boundary.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from typing import NoReturn
 
 import numpy as np
 
-from . import colmap_model as cm
-from .colmap_model import (
+from . import colmap_records as cm
+from .colmap_records import (
     _CAMERA,
     _ID_LIMIT,
     _POINT2D,

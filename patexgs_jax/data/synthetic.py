@@ -7,7 +7,7 @@ layout::
       images/img_0000.png ...      anti-aliased renders (supersampled), uint8 RGB
       images_2/img_0000.png ...    the same, box-downsampled by 2
       sparse/0/{cameras,images,points3D}.bin   one PINHOLE camera, poses, SfM-like 3D points with
-                                               colours and tracks (written by .colmap_model)
+                                               colours and tracks (written by .colmap_binary)
       synthetic.json               generation parameters and format version (written last)
 
 The scene is :mod:`.synthetic_scene`'s analytic one (a tiled ground with a text-covered cube, a
@@ -35,7 +35,7 @@ import numpy as np
 
 from ..camera import Camera, look_at
 from .colmap_binary import write_binary_model
-from .colmap_model import (
+from .colmap_records import (
     CAMERA_MODELS_BY_NAME,
     ColmapCamera,
     ColmapImage,

@@ -65,6 +65,53 @@ class Static(NamedTuple):
         return -(-self.num_tiles // nb)
 
 
+class CompositeInputs(NamedTuple):
+    """What the compositor reads besides the splats' packed columns and the texels it differentiates:
+    a view's tile lists and, per splat, its texture addressing; nothing here carries a gradient. C is
+    the scene's splat count, T the image's tiles, K the pair capacity (``Capacity.pairs``), M and M'
+    the rows of the RGB and alpha atlases (:class:`patexgs_jax.textures.Atlas`). Both compositors (XLA,
+    :mod:`.composite`; Pallas, :mod:`.pallas_composite`) take it; as a NamedTuple it is a pytree, so
+    it passes through jit, ``custom_vjp`` and ``lax.map`` as its arrays.
+
+    ids_sorted: (K,) int32, the splat ids of the (splat, tile) pairs, tile by tile, front to back
+      (:func:`.binning.bin_pairs`).
+    tile_start: (T,) int32, each tile's first pair in ``ids_sorted``.
+    binned: (T,) int32, each tile's number of pairs.
+    peak: (C,) float32, each splat's largest alpha-texture value (1 where its alpha texture is one
+      texel, folded into the opacity): the bound a pass compares with the alpha threshold.
+    flag: () bool, a traced True that XLA cannot prove (see :func:`barrier`).
+    rgb_has, alpha_has: (C,) bool per bank, the splats with a texture to look up (not the one-texel
+      ones, folded into ``packed``); None without that bank.
+    tex_has: (C,) bool, the splats with either; None without textures.
+    tex_meta: (C, 4 x banks) int32, the texture addressing (:func:`.texture_lookup.meta_table`); None
+      without textures.
+    rgb_texels: (M, 3) float32, alpha_texels: (M', 1) float32, the atlases' texels as the lookups read
+      them (gradient stopped: the compositor's backward returns the texels' gradient itself); None
+      without that bank.
+    """
+
+    ids_sorted: jax.Array
+    tile_start: jax.Array
+    binned: jax.Array
+    peak: jax.Array
+    flag: jax.Array
+    rgb_has: jax.Array | None = None
+    alpha_has: jax.Array | None = None
+    tex_has: jax.Array | None = None
+    tex_meta: jax.Array | None = None
+    rgb_texels: jax.Array | None = None
+    alpha_texels: jax.Array | None = None
+
+    def need(self, name: str) -> jax.Array:
+        """The field ``name``, which the static settings read (``rgb_has`` under ``Static.rgb``,
+        ``tex_meta`` and ``tex_has`` with textures); an error at trace time where it was left None."""
+        value = getattr(self, name)
+        if value is None:
+            raise ValueError(f"CompositeInputs.{name} is None, but the compositor's static settings read it "
+                             "(a textured bank): build the inputs with it set, as render does.")
+        return value
+
+
 def pixel_coords(st: Static, t, dtype):
     """x, y (P,): the pixel centres of tile t, row by row."""
     ts = st.config.tile_size
@@ -74,33 +121,33 @@ def pixel_coords(st: Static, t, dtype):
     return x, y
 
 
-def chunk_slots(st: Static, ctx, t, k):
+def chunk_slots(st: Static, ctx: CompositeInputs, t, k):
     """Splat ids (c,) and validity of chunk k of tile t."""
     c = st.config.chunk
     slots = k * c + jnp.arange(c, dtype=jnp.int32)
-    valid = slots < ctx["binned"][t]
-    ids = ctx["ids_sorted"]
-    gid = jnp.where(valid, ids[jnp.clip(ctx["tile_start"][t] + slots, 0, ids.shape[0] - 1)], 0)
+    valid = slots < ctx.binned[t]
+    ids = ctx.ids_sorted
+    gid = jnp.where(valid, ids[jnp.clip(ctx.tile_start[t] + slots, 0, ids.shape[0] - 1)], 0)
     return gid, valid
 
 
-def _num_chunks(st: Static, ctx, t):
+def _num_chunks(st: Static, ctx: CompositeInputs, t):
     """How many chunks tile t's list fills."""
-    return (ctx["binned"][t] + st.config.chunk - 1) // st.config.chunk
+    return (ctx.binned[t] + st.config.chunk - 1) // st.config.chunk
 
 
-def tile_batches(st: Static, ctx):
+def tile_batches(st: Static, ctx: CompositeInputs):
     """(num_batches, B) tile ids, longest lists first so a batch's tiles need similar numbers of
     chunks (a batch loops until its slowest tile is done). Padding (fewer than num_batches
     entries, see :attr:`Static.batch`) repeats the last tile."""
     B = st.batch
     nb = -(-st.num_tiles // B)
-    order = jnp.argsort(-ctx["binned"], stable=True).astype(jnp.int32)
+    order = jnp.argsort(-ctx.binned, stable=True).astype(jnp.int32)
     order = jnp.concatenate([order, jnp.full((nb * B - st.num_tiles,), order[-1], jnp.int32)])
     return order.reshape(nb, B)
 
 
-def batch_state(st: Static, ctx, tb, dt):
+def batch_state(st: Static, ctx: CompositeInputs, tb, dt):
     """The pixel centres ((B, P), (B, P)) and the chunk counts (B,) of the batch of tiles tb (B,)."""
     xy = jax.vmap(lambda t: pixel_coords(st, t, dt))(tb)
     return xy, jax.vmap(lambda t: _num_chunks(st, ctx, t))(tb)

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from .chunks import Static, batch_state, chunk_slots, cols, per_slot, prefix_sum_slots, tile_batches
+from .chunks import CompositeInputs, Static, batch_state, chunk_slots, cols, per_slot, prefix_sum_slots, tile_batches
 from .config import ALPHA_MAX, T_MIN
 from .kernel import alpha_min, chunk_geometry, chunk_geometry_bwd, geometry_terms
 from .projection import COLS
@@ -48,12 +48,12 @@ class _Terms(NamedTuple):
     m: jax.Array         # the NDC depth of the distortion loss
 
 
-def _contrib_terms(st: Static, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done_in) -> _Terms:
+def _contrib_terms(st: Static, ctx: CompositeInputs, pk, G, z, a_tex, gid, valid, log_t_in, done_in) -> _Terms:
     """The :class:`_Terms` of a batch's chunk; arguments as :func:`_chunk_contrib`'s."""
     cfg = st.config
     a_raw = cols(pk)[COLS.opacity] * G
     if st.alpha:
-        a_tex = jnp.where(per_slot(ctx["alpha_has"][gid]), a_tex, 1.0)
+        a_tex = jnp.where(per_slot(ctx.need("alpha_has")[gid]), a_tex, 1.0)
         a_raw = a_raw * a_tex
     a = jnp.clip(a_raw, 0.0, ALPHA_MAX)
     keep = per_slot(valid) & (a >= alpha_min(st, pk)) & (z > cfg.near)
@@ -67,7 +67,7 @@ def _contrib_terms(st: Static, ctx, pk, G, z, a_tex, gid, valid, log_t_in, done_
     return _Terms(a_raw, a_tex if st.alpha else None, keep, a, log1m, cum, include, trans, a * trans, zs, m)
 
 
-def _chunk_contrib(st: Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in):
+def _chunk_contrib(st: Static, ctx: CompositeInputs, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in):
     """A batch's chunk contribution.
 
     Args:
@@ -84,7 +84,7 @@ def _chunk_contrib(st: Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in,
                     precision=lax.Precision.HIGHEST)
     rgb = cn[..., :3]
     if st.rgb:
-        has = per_slot(ctx["rgb_has"][gid])
+        has = per_slot(ctx.need("rgb_has")[gid])
         rgb = rgb + jnp.stack([jnp.sum(jnp.where(has, w * o, 0.0), axis=0) for o in offs], axis=-1)
     wm = w * t.m
     dacc = jnp.concatenate([rgb, jnp.sum(w * z, axis=0)[..., None], cn[..., 3:],
@@ -99,7 +99,7 @@ def _contrib_state(t: _Terms, log_t_in, done_in):
             done_in | (log_t_in + t.cum[-1] < _LOG_T_MIN))
 
 
-def _chunk_contrib_bwd(st: Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in,
+def _chunk_contrib_bwd(st: Static, ctx: CompositeInputs, pk, G, z, offs, a_tex, gid, valid, log_t_in, done_in,
                        ct_acc, dot_in, base_term):
     """The backward of :func:`_chunk_contrib`, derived by hand (fewer passes over the (c, B, P)
     block than autodiff's, which would also recompute the accumulators to form ``ct_acc . acc``),
@@ -128,7 +128,7 @@ def _chunk_contrib_bwd(st: Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t
            + (ct_m + ct_m2 * t.m) * t.m)
     g_offs = None
     if st.rgb:
-        has = per_slot(ctx["rgb_has"][gid])
+        has = per_slot(ctx.need("rgb_has")[gid])
         g_w = g_w + sum(jnp.where(has, ct_rgb[..., i] * o, 0.0) for i, o in enumerate(offs))
         g_offs = [jnp.where(has, w * ct_rgb[..., i], 0.0) for i in range(3)]
     wf = g_w * w                                                                # w_i (ct . f_i)
@@ -147,7 +147,7 @@ def _chunk_contrib_bwd(st: Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t
         assert a_tex is not None  # _contrib_terms sets it when st.alpha
         g_G = g_a * op * a_tex
         g_op = jnp.sum(g_a * G * a_tex, axis=-1)
-        g_atex = jnp.where(per_slot(ctx["alpha_has"][gid]), g_a * op * G, 0.0)
+        g_atex = jnp.where(per_slot(ctx.need("alpha_has")[gid]), g_a * op * G, 0.0)
     else:
         g_G = g_a * op
         g_op = jnp.sum(g_a * G, axis=-1)
@@ -159,7 +159,7 @@ def _chunk_contrib_bwd(st: Static, ctx, pk, G, z, offs, a_tex, gid, valid, log_t
     return (log_t_out, done_out, dot_out), (g_pk, g_G, g_z, (g_offs, g_atex))
 
 
-def _chunk_fwd(st: Static, ctx, packed, tb, k, x, y, log_t, done):
+def _chunk_fwd(st: Static, ctx: CompositeInputs, packed, tb, k, x, y, log_t, done):
     """Chunk k of a batch of tiles ``tb`` (B,), forward: x, y (B, P) pixel centres, log_t, done
     (B, P) the state before it. Returns ((dacc (B, P, 9), log_t (B, P)), (done (B, P), w (c, B, P)),
     gid (B, c)). The chunk's per-pair blocks are (c, B, P) (see :mod:`.chunks`)."""
@@ -174,7 +174,7 @@ def _chunk_fwd(st: Static, ctx, packed, tb, k, x, y, log_t, done):
     return out, gid
 
 
-def _composite_fwd_impl(st: Static, packed, rgb_texels, alpha_texels, ctx):
+def _composite_fwd_impl(st: Static, packed, rgb_texels, alpha_texels, ctx: CompositeInputs):
     npx = st.config.tile_size ** 2
     dt = packed.dtype
     B = st.batch
@@ -210,7 +210,7 @@ def _composite_fwd_impl(st: Static, packed, rgb_texels, alpha_texels, ctx):
     return unsort(acc), unsort(t_final), unsort(best)
 
 
-def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx):
+def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx: CompositeInputs):
     """All tiles, front to back in chunks of ``config.chunk`` splats, stopping each tile once every
     pixel's transmittance fell below 1e-4 or its list is exhausted; ``config.tile_batch`` tiles
     (of similar list lengths) advance together.
@@ -220,13 +220,8 @@ def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx):
       packed: (C, F) per-splat quantities (differentiable).
       rgb_texels, alpha_texels: (M, 3) / (M, 1) flat atlases (:class:`textures.Atlas`) or None
         (differentiable).
-      ctx: dict of arrays without gradient: the tile lists (``ids_sorted``, ``tile_start``,
-        ``binned``, from :func:`binning.bin_pairs`); per bank, which splats have a texture to look
-        up (``rgb_has``, ``alpha_has``: not the one-texel ones, folded into ``packed``) and the
-        texels to read (``rgb_texels``, ``alpha_texels``), or None; which splats have either
-        (``tex_has``); the texture addressing (``tex_meta``, :func:`texture_lookup.meta_table`);
-        the splats' largest alpha-texture values (``peak``; 1 where it is folded into the
-        opacity); and ``flag``, a traced True (see :func:`chunks.barrier`).
+      ctx: the tile lists and texture addressing, without gradient (:class:`.chunks.CompositeInputs`,
+        every field's shape and dtype there).
     Returns:
       acc (T, P, 9) accumulators, t_final (T, P), best (T, P) int32 id of the largest-weight splat.
 
@@ -250,13 +245,13 @@ def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx):
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _with_backward(st: Static, packed, rgb_texels, alpha_texels, ctx, acc, t_final):
+def _with_backward(st: Static, packed, rgb_texels, alpha_texels, ctx: CompositeInputs, acc, t_final):
     """``(acc, t_final)`` unchanged (the forward's outputs for these inputs), with the compositor's
     backward as their derivative in packed, rgb_texels and alpha_texels."""
     return acc, t_final
 
 
-def _with_backward_fwd(st, packed, rgb_texels, alpha_texels, ctx, acc, t_final):
+def _with_backward_fwd(st, packed, rgb_texels, alpha_texels, ctx: CompositeInputs, acc, t_final):
     return (acc, t_final), (packed, rgb_texels, alpha_texels, ctx, acc, t_final)
 
 
@@ -265,7 +260,8 @@ def _with_backward_bwd(st, res, cts):
     return _composite_bwd(st, res, cts) + (None, None)
 
 
-def _chunk_bwd(st: Static, ctx, packed, tb, k, x, y, log_t, done, dot_through, ct_acc, base_term, g_rt, g_at):
+def _chunk_bwd(st: Static, ctx: CompositeInputs, packed, tb, k, x, y, log_t, done, dot_through, ct_acc, base_term,
+               g_rt, g_at):
     """Chunk k of a batch of tiles, backward: its cotangents for the packed splats (returned per
     chunk slot, (B, c, F), with the slots' ids gid (B, c)) and for the texels it read (added to the
     paired accumulators g_rt, g_at), and the state after it (log_t, done, dot_through, (B, P))."""

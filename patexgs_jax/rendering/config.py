@@ -19,10 +19,9 @@ XLA_ONLY_COVERAGE = ("billboard", "object", "texel-grid")
 #: RenderConfig.compositor: the XLA compositor (:mod:`.composite`) or the Pallas GPU kernel
 #: (:mod:`.pallas_composite`); None picks per backend (:func:`resolve_compositor`).
 COMPOSITORS = ("xla", "pallas")
-#: What ``RenderConfig(compositor=None)`` picks on a GPU: the Pallas kernel, faster than the XLA
-#: compositor in every configuration measured on a GPU (benchmarks/render_compositors_h200_*.json,
-#: train_compositors_h200.json: 1M Gaussians at 1920x1080 forward+backward 3.4x (2DGS) and 3.6x
-#: (textured) faster); the CPU always takes "xla".
+#: What ``RenderConfig(compositor=None)`` picks on a GPU: the Pallas kernel, which is faster than the
+#: XLA compositor on a GPU in every configuration benchmarked (docs/benchmarks.md, the compositor as one
+#: Pallas kernel); the CPU always takes "xla" (the kernel runs there only in Pallas's interpreter).
 GPU_DEFAULT_COMPOSITOR = "pallas"
 #: Eq. 11's lambda_mip per coverage mode when RenderConfig.lambda_mip is None (see RenderConfig).
 LAMBDA_MIP_DEFAULT = {"lowpass": 0.4, "prefilter": 1.0 / 6.0, "billboard": 0.4 / 3.0, "object": 0.4,
@@ -93,8 +92,8 @@ class RenderConfig:
         float32 rounding), less compositing where footprints are large or unbounded on screen.
       compositor: "xla" (the chunked XLA compositor), "pallas" (one Pallas kernel per image, one
         program per tile: :mod:`.pallas_composite`; interpreted off a GPU; needs a power-of-two
-        ``tile_size``) or None (default): "xla", until a GPU benchmark in benchmarks/ shows the
-        kernel faster on GPUs (:func:`resolve_compositor`).
+        ``tile_size``) or None (default): per backend, "pallas" on a GPU (:data:`GPU_DEFAULT_COMPOSITOR`)
+        and "xla" elsewhere (:func:`resolve_compositor`).
     """
 
     mip: str = "nearest"

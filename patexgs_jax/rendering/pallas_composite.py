@@ -50,7 +50,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plgpu
 
 from . import pallas_texture as ptex
-from .chunks import Static
+from .chunks import CompositeInputs, Static
 from .config import ALPHA_MAX, ALPHA_MIN, T_MIN
 from .kernel import UV_LIMIT
 from .projection import COLS
@@ -484,7 +484,7 @@ def _with_backward_bwd(st, interpret, res, cts):
 _with_backward.defvjp(_with_backward_fwd, _with_backward_bwd)
 
 
-def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx, interpret: bool | None = None):
+def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx: CompositeInputs, interpret: bool | None = None):
     """:func:`.composite.composite_tiles` as one Pallas kernel: the same arguments and outputs
     (acc (T, P, 9), t_final (T, P), best (T, P) int32), differentiable in ``packed`` and the
     atlases' texels.
@@ -495,11 +495,11 @@ def composite_tiles(st: Static, packed, rgb_texels, alpha_texels, ctx, interpret
     if interpret is None:
         interpret = _interpret()
 
-    def has(name):
-        return None if ctx.get(name) is None else ctx[name].astype(jnp.int32)
+    def as_int(has):
+        return None if has is None else has.astype(jnp.int32)
 
     textured = st.rgb or st.alpha
-    lists = (ctx["tile_start"], ctx["binned"], ctx["ids_sorted"], ctx.get("tex_meta"),
-             ctx["peak"].astype(packed.dtype) if textured else None, has("rgb_has"), has("alpha_has"))
+    lists = (ctx.tile_start, ctx.binned, ctx.ids_sorted, ctx.tex_meta,
+             ctx.peak.astype(packed.dtype) if textured else None, as_int(ctx.rgb_has), as_int(ctx.alpha_has))
     return _composite(st, interpret, packed, rgb_texels if st.rgb else None, alpha_texels if st.alpha else None,
                       lists)

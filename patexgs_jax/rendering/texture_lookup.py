@@ -23,7 +23,7 @@ from jax import lax
 
 from .. import textures as tex
 from ..math import safe_log2
-from .chunks import Static, barrier, cols, per_slot, prefix_sum
+from .chunks import CompositeInputs, Static, barrier, cols, per_slot, prefix_sum
 from .config import RenderConfig
 from .kernel import UV_LIMIT, alpha_min, uv
 from .projection import COLS
@@ -204,7 +204,7 @@ def _nth_bit(bits, n):
     return pos.astype(jnp.int32)
 
 
-def texture_passes(st: Static, ctx, pk, gid, valid, G, done):
+def texture_passes(st: Static, ctx: CompositeInputs, pk, gid, valid, G, done):
     """The :class:`_Passes` of a batch's chunk, or None when every pair is looked up
     (``config.texture_pairs`` 1).
 
@@ -223,8 +223,8 @@ def texture_passes(st: Static, ctx, pk, gid, valid, G, done):
     K = min(N, max(1, math.ceil(st.config.texture_pairs * N)))
     if K >= N:
         return None
-    bound = cols(pk)[COLS.opacity] * per_slot(ctx["peak"][gid]) * G
-    take = per_slot(valid & ctx["tex_has"][gid]) & ~done & (bound >= alpha_min(st, pk) * (1.0 - 1e-3))
+    bound = cols(pk)[COLS.opacity] * per_slot(ctx.peak[gid]) * G
+    take = per_slot(valid & ctx.need("tex_has")[gid]) & ~done & (bound >= alpha_min(st, pk) * (1.0 - 1e-3))
     return _mark_passes(take, K)
 
 
@@ -300,7 +300,7 @@ def _select(pk, gid, x, y, sel):
     return pk.reshape(B * c, F)[splat], gid.reshape(-1)[splat], x.reshape(-1)[pixel], y.reshape(-1)[pixel]
 
 
-def _pair_rows(ctx, passes: _Passes, j):
+def _pair_rows(ctx: CompositeInputs, passes: _Passes, j):
     """(idx, splat, pixel), each (K,) int32: the pairs of pass j (:func:`_pass_pairs`, flat into
     ``passes.shape`` = (c, B, P), N for none), and the rows of their splats in the (B c) chunk slots
     and of their pixels in the (B P) pixels. Through :func:`barrier`, so that the pass's pair
@@ -310,10 +310,10 @@ def _pair_rows(ctx, passes: _Passes, j):
     idx = _pass_pairs(passes, j)
     i = jnp.minimum(idx, c * B * P - 1)
     k, r = i // (B * P), i % (B * P)
-    return barrier((idx, (r // P) * c + k, r), ctx["flag"])
+    return barrier((idx, (r // P) * c + k, r), ctx.flag)
 
 
-def _lookups(st: Static, ctx, pk, gid, x, y, sel):
+def _lookups(st: Static, ctx: CompositeInputs, pk, gid, x, y, sel):
     """Texture lookups of a batch's chunk (all pairs, ``sel`` None) or of the pairs ``sel``
     (:func:`_pair_rows`).
 
@@ -329,11 +329,11 @@ def _lookups(st: Static, ctx, pk, gid, x, y, sel):
     # Each per-lookup quantity is computed once (see barrier): (u, v), the footprint and the splats'
     # texture addressing (one row gathered per lookup), which every lookup reads, then the lookups'
     # rows and weights, which the gathers and products read per texel.
-    u, v, fp, m = barrier((u, v, fp, ctx["tex_meta"][gid]), ctx["flag"])
+    u, v, fp, m = barrier((u, v, fp, ctx.need("tex_meta")[gid]), ctx.flag)
     cfg = st.config
     lr = _tex_lookups(m[..., :_META], u, v, fp, cfg, st.rgb_mip) if st.rgb else None
     la = _tex_lookups(m[..., -_META:], u, v, fp, cfg, st.alpha_mip) if st.alpha else None
-    lr, la = barrier((lr, la), ctx["flag"])
+    lr, la = barrier((lr, la), ctx.flag)
     def weights(lk):
         return None if lk is None else (lk.fa, lk.fb, lk.lw)
 
@@ -343,14 +343,14 @@ def _lookups(st: Static, ctx, pk, gid, x, y, sel):
     return (weights(lr), weights(la)), (rows(lr), rows(la))
 
 
-def _values(ctx, weights, vals):
+def _values(ctx: CompositeInputs, weights, vals):
     """Texture values of lookups: (RGB offsets, a list of 3, or None; alpha or None), each of the
     lookups' shape, from their weights (:func:`_lookups`) and gathered texels ``vals`` (per bank None
     or :func:`_gather`'s). Through :func:`barrier`, so their cotangents are computed once, not
     per texel."""
     (wr, wa), (vr, va) = weights, vals
     return barrier((None if wr is None else _tex_value(vr, *wr),
-                    None if wa is None else _tex_value(va, *wa)[0]), ctx["flag"])
+                    None if wa is None else _tex_value(va, *wa)[0]), ctx.flag)
 
 
 def _pick(dense, idx):
@@ -358,12 +358,12 @@ def _pick(dense, idx):
     return jax.tree.map(lambda q: q.reshape(-1).at[idx].get(mode="fill", fill_value=0), dense)
 
 
-def texture_fwd(st: Static, ctx, pk, gid, x, y, passes: _Passes | None, shape):
+def texture_fwd(st: Static, ctx: CompositeInputs, pk, gid, x, y, passes: _Passes | None, shape):
     """Texture values (RGB offsets list of 3 or None, alpha or None), each (c, B, P), of a batch's
     chunk: every pair (``passes`` None) or the pairs of :func:`texture_passes`, zero elsewhere."""
     def look(sel):
         w, rows = _lookups(st, ctx, pk, gid, x, y, sel)
-        return _values(ctx, w, (_gather(ctx["rgb_texels"], rows[0]), _gather(ctx["alpha_texels"], rows[1])))
+        return _values(ctx, w, (_gather(ctx.rgb_texels, rows[0]), _gather(ctx.alpha_texels, rows[1])))
 
     if passes is None:
         return look(None)
@@ -382,7 +382,7 @@ def texture_fwd(st: Static, ctx, pk, gid, x, y, passes: _Passes | None, shape):
     return jax.tree.map(lambda d: d.reshape(shape), dense)
 
 
-def texture_bwd(st: Static, ctx, pk, gid, x, y, passes: _Passes | None, shape, ct, g_rt, g_at):
+def texture_bwd(st: Static, ctx: CompositeInputs, pk, gid, x, y, passes: _Passes | None, shape, ct, g_rt, g_at):
     """The backward of :func:`texture_fwd` for cotangents ``ct`` of its output. Each pass's lookups
     are computed again here, under ``jax.vjp``, rather than kept from the :func:`texture_fwd` call
     of :func:`composite._chunk_bwd` that produced the values: the number of passes is known only at
@@ -394,7 +394,7 @@ def texture_bwd(st: Static, ctx, pk, gid, x, y, passes: _Passes | None, shape, c
     """
     def one(sel, ct_vals, g_rt, g_at):
         w, vjp_lk, rows = jax.vjp(lambda p: _lookups(st, ctx, p, gid, x, y, sel), pk, has_aux=True)
-        vals = (_gather(ctx["rgb_texels"], rows[0]), _gather(ctx["alpha_texels"], rows[1]))
+        vals = (_gather(ctx.rgb_texels, rows[0]), _gather(ctx.alpha_texels, rows[1]))
         _, vjp_v = jax.vjp(lambda w_, v_: _values(ctx, w_, v_), w, vals)
         g_w, (g_vr, g_va) = vjp_v(ct_vals)
         if rows[0] is not None:

@@ -414,14 +414,13 @@ class FrameRenderer:
         release_programs(dominant_mip_level)
 
 
-def _programs() -> tuple:
-    """Traces of the renderer and programs of the pair counter, the texture preparer and the mip-level
-    function: a frame that changes them compiled something."""
+def _programs() -> int:
+    """XLA programs this process has compiled (or loaded from the persistent cache) so far, from JAX's
+    compile events: a frame that changes the count compiled something (the renderer, the pair
+    counter, the texture preparer, the mip-level function or an eager op)."""
     from .. import compiled
-    from ..render import TRACE_COUNTS, count_pairs, prepare_textures
 
-    return (sum(TRACE_COUNTS.values()), compiled.program_count(count_pairs),
-            compiled.program_count(prepare_textures), compiled.program_count(dominant_mip_level))
+    return compiled.xla_compiles()[0]
 
 
 def scene_stats(scene) -> dict:

@@ -60,7 +60,7 @@ def test_pycolmap_import_keeps_fatal_signal_handlers():
     r = _python(_HANDLER + "import pycolmap\nprint(handler() == before)\n")
     assert r.returncode == 0 and r.stdout.strip() == "False", (r.stdout, r.stderr[-2000:])
     # ... the package's import keeps it.
-    r = _python(_HANDLER + "import patexgs_jax.data.colmap, patexgs_jax.prepare\nprint(handler() == before)\n")
+    r = _python(_HANDLER + "import patexgs_jax.data.colmap, patexgs_jax.sfm\nprint(handler() == before)\n")
     assert r.returncode == 0 and r.stdout.strip() == "True", (r.stdout, r.stderr[-2000:])
     # SIGTERM too: glog's handler prints a native stack dump for a plain `kill` (the control first).
     r = _python(_HANDLER + "import pycolmap\nprint(handler(signal.SIGTERM) == before_term)\n")

@@ -327,7 +327,7 @@ def test_arguments_are_checked(tmp_path):
     photos.mkdir(parents=True)
     for i in range(3):
         (photos / f"img{i}.JPG").write_bytes(b"")
-    with pytest.raises(mn.StudyError, match=r"3 photo\(s\).*python -m patexgs_jax\.prepare"):
+    with pytest.raises(mn.StudyError, match=r"3 photo\(s\).*python -m patexgs_jax\.sfm"):
         mn.find_scenes(tmp_path / "capture")
 
 

@@ -1,14 +1,14 @@
 """Every command line meets bad input with one ``error:`` line that names the problem and the fix,
 a non-zero exit and no traceback, before any scene is made or any code compiled: a missing scene
 folder, an unknown method (or knob), an output folder that cannot be written, and a folder of photos
-without camera poses (pointed to ``python -m patexgs_jax.prepare``)."""
+without camera poses (pointed to ``python -m patexgs_jax.sfm``)."""
 
 from __future__ import annotations
 
 import pytest
 
 from experiments import mipnerf360, tradeoffs
-from patexgs_jax import prepare
+from patexgs_jax import sfm
 from patexgs_jax.training import cli as train_cli
 from patexgs_jax.viewer import server as view
 
@@ -19,7 +19,7 @@ def bad(tmp_path):
     photos without poses (as a scene folder's images/ and as a bare folder)."""
     photos = tmp_path / "capture" / "images"
     photos.mkdir(parents=True)
-    for i in range(prepare.MIN_IMAGES):
+    for i in range(sfm.MIN_IMAGES):
         (photos / f"{i:04d}.jpg").write_bytes(b"")
     blocker = tmp_path / "a_file"
     blocker.write_text("")
@@ -42,8 +42,8 @@ def _cases(bad):
         (["--data", bad["missing"], "--out", bad["out"]], ("does not exist", "pass a scene folder")),
         (["--data", bad["missing"], "--out", bad["unwritable"]], ("cannot write to --out", "Not a directory",
                                                                    "pass --out a folder you can write to")),
-        (["--data", bad["scene"], "--out", bad["out"]], ("no camera poses", "python -m patexgs_jax.prepare")),
-        (["--data", bad["photos"], "--out", bad["out"]], ("no camera poses", "python -m patexgs_jax.prepare")),
+        (["--data", bad["scene"], "--out", bad["out"]], ("no camera poses", "python -m patexgs_jax.sfm")),
+        (["--data", bad["photos"], "--out", bad["out"]], ("no camera poses", "python -m patexgs_jax.sfm")),
     ]
 
 
@@ -70,10 +70,10 @@ def test_tradeoffs_cli_bad_input(bad, capsys):
     _one_error_line(capsys, code, "--run", "python -m patexgs_jax.train --out")
 
 
-def test_prepare_cli_bad_input(bad, capsys):
-    code = prepare.main([bad["missing"], bad["out"], "--quiet"])
+def test_sfm_cli_bad_input(bad, capsys):
+    code = sfm.main([bad["missing"], bad["out"], "--quiet"])
     _one_error_line(capsys, code, "does not exist", "pass the folder that holds your photos")
-    code = prepare.main([bad["photos"], bad["unwritable"], "--quiet"])
+    code = sfm.main([bad["photos"], bad["unwritable"], "--quiet"])
     _one_error_line(capsys, code, "cannot write to OUT_DIR", "pass OUT_DIR a folder you can write to")
 
 

@@ -8,7 +8,7 @@ import pytest
 #: The command lines a user runs (``python -m MODULE``), and the function that builds each parser.
 COMMANDS = [
     "patexgs_jax.training.cli", "patexgs_jax.viewer.server", "patexgs_jax.data.synthetic",
-    "patexgs_jax.data.download", "patexgs_jax.prepare", "experiments.mipnerf360", "experiments.tradeoffs",
+    "patexgs_jax.data.download", "patexgs_jax.sfm", "experiments.mipnerf360", "experiments.tradeoffs",
     "experiments.zoom_ab", "experiments.headline", "experiments.plan_check", "experiments.plan_time",
     "experiments.bench_render",
     "experiments.bench_train", "experiments.bench_scale", "experiments.bench_viewer", "experiments.bench_mappings",

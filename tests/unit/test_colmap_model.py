@@ -308,7 +308,7 @@ def test_loading_without_pycolmap(tmp_path):
     assert out[1:3] == [f"pinhole 3 {len(pinhole_bin['points'])}", f"pinhole 2 {len(pinhole_txt['points'])}"]
     assert out[3].startswith("distorted: Undistorting a COLMAP scene's images needs pycolmap")
     assert "pip install 'pycolmap" in out[3]
-    assert out[4] == "needs pycolmap: patexgs_jax._pycolmap patexgs_jax.prepare"
+    assert out[4] == "needs pycolmap: patexgs_jax._pycolmap patexgs_jax.sfm"
 
 
 @pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])

@@ -13,7 +13,7 @@ import pytest
 from pallas_cases import compare
 from patexgs_jax import RenderConfig
 from patexgs_jax.rendering import pallas_composite
-from patexgs_jax.rendering.chunks import Static
+from patexgs_jax.rendering.chunks import CompositeInputs, Static
 from patexgs_jax.rendering.config import resolve_compositor
 from patexgs_jax.rendering.projection import COLS
 from render_cases import CAP, CONFIGS, camera, scene
@@ -50,11 +50,12 @@ def test_lowers_for_cuda(coverage, textured, mip):
     st = Static(config=cfg, tiles_x=3, num_tiles=6, rgb=textured, alpha=textured)
     width = COLS.width_prefilter if st.prefilter else COLS.width
     sd = jax.ShapeDtypeStruct
-    ctx = {k: sd((n,), jnp.int32) for k, n in (("tile_start", 6), ("binned", 6), ("ids_sorted", 1024))}
+    ctx = CompositeInputs(ids_sorted=sd((1024,), jnp.int32), tile_start=sd((6,), jnp.int32),
+                          binned=sd((6,), jnp.int32), peak=sd((48,), jnp.float32), flag=sd((), jnp.bool_))
     texels = (None, None)
     if textured:
-        ctx.update(tex_meta=sd((48, 8), jnp.int32), peak=sd((48,), jnp.float32), rgb_has=sd((48,), jnp.bool_),
-                   alpha_has=sd((48,), jnp.bool_))
+        ctx = ctx._replace(tex_meta=sd((48, 8), jnp.int32), rgb_has=sd((48,), jnp.bool_),
+                           alpha_has=sd((48,), jnp.bool_))
         texels = (sd((4000, 3), jnp.float32), sd((3000, 1), jnp.float32))
 
     def loss(packed, texels, ctx):

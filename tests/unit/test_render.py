@@ -155,7 +155,9 @@ def test_tile_batches_do_not_repeat_tiles_needlessly(num_tiles, tile_batch, batc
     assert st_.batch == batch
     num_batches = -(-num_tiles // tile_batch)
     assert num_batches * st_.batch - num_tiles < num_batches  # less than one padding lane per batch
-    ctx = dict(binned=jnp.arange(num_tiles, dtype=jnp.int32))
+    binned = jnp.arange(num_tiles, dtype=jnp.int32)  # (the batches read the tile lists' lengths only)
+    ctx = chunks.CompositeInputs(ids_sorted=binned, tile_start=binned, binned=binned, peak=jnp.ones(1),
+                                 flag=jnp.array(True))
     tiles = np.asarray(chunks.tile_batches(st_, ctx))
     assert tiles.shape == (num_batches, batch)
     assert set(tiles.reshape(-1).tolist()) == set(range(num_tiles))

@@ -10,7 +10,7 @@ import pytest
 from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 from patexgs_jax.camera import Camera
 from patexgs_jax.data import synthetic
-from patexgs_jax.prepare import box_downsample
+from patexgs_jax.sfm import box_downsample
 
 SMALL = dict(num_views=4, width=64, height=48, supersample=2, num_points=300)
 

@@ -1,6 +1,6 @@
 """Turn a folder of photos into a Mip-NeRF 360 style COLMAP dataset with pycolmap.
 
-``python -m patexgs_jax.prepare IMAGES_DIR OUT_DIR [--matcher auto|exhaustive|sequential]``
+``python -m patexgs_jax.sfm IMAGES_DIR OUT_DIR [--matcher auto|exhaustive|sequential]``
 
 Stages: SIFT feature extraction (CPU) -> matching (exhaustive for <= 50 images, sequential
 otherwise) -> incremental mapping (largest model kept) -> undistortion to PINHOLE -> layout::
@@ -33,8 +33,8 @@ MIN_IMAGES = 3
 EXHAUSTIVE_MAX_IMAGES = 50
 
 
-class PrepareError(RuntimeError):
-    """A user-facing failure of :func:`prepare` (bad input or reconstruction failure)."""
+class SfmError(RuntimeError):
+    """A user-facing failure of :func:`reconstruct` (bad input or reconstruction failure)."""
 
 
 def box_downsample(image: np.ndarray, factor: int) -> np.ndarray:
@@ -69,7 +69,7 @@ def _log(verbose: bool, msg: str) -> None:
         print(msg, flush=True)
 
 
-def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIMPLE_RADIAL",
+def reconstruct(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIMPLE_RADIAL",
             single_camera: bool = True, verbose: bool = True, keep_work: bool = False,
             num_threads: int = -1, colmap_log: bool = False) -> Path:
     """Structure-from-motion on a folder of images, written in the Mip-NeRF 360 layout.
@@ -89,7 +89,7 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
     Returns:
       ``out_dir`` as a :class:`pathlib.Path`.
     Raises:
-      PrepareError: missing/empty folder, too few images, or a failed reconstruction (with hints).
+      SfmError: missing/empty folder, too few images, or a failed reconstruction (with hints).
     """
     if matcher not in ("auto", "exhaustive", "sequential"):
         raise ValueError(f"matcher must be 'auto', 'exhaustive' or 'sequential', got {matcher!r}.")
@@ -98,26 +98,26 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
     images_dir = Path(images_dir).expanduser().absolute()
     out_dir = Path(out_dir).expanduser().absolute()
     if not images_dir.is_dir():
-        raise PrepareError(f"Image folder {images_dir} does not exist (or is not a folder): pass the folder "
+        raise SfmError(f"Image folder {images_dir} does not exist (or is not a folder): pass the folder "
                            "that holds your photos.")
     names = _list_images(images_dir)
     if not names:
-        raise PrepareError(f"No images ({', '.join(sorted({e.lower() for e in IMAGE_EXTENSIONS}))}) "
+        raise SfmError(f"No images ({', '.join(sorted({e.lower() for e in IMAGE_EXTENSIONS}))}) "
                            f"found in {images_dir}.")
     if len(names) < MIN_IMAGES:
-        raise PrepareError(f"Only {len(names)} image(s) in {images_dir}; structure-from-motion needs at least "
+        raise SfmError(f"Only {len(names)} image(s) in {images_dir}; structure-from-motion needs at least "
                            f"{MIN_IMAGES} overlapping views (20-200 is typical).")
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
     if out_dir == images_dir or out_dir / "images" == images_dir:
-        raise PrepareError("OUT_DIR must differ from IMAGES_DIR and not contain it as OUT_DIR/images.")
+        raise SfmError("OUT_DIR must differ from IMAGES_DIR and not contain it as OUT_DIR/images.")
 
     from .checkpoint import CheckpointError, check_output_dir
 
     try:
         check_output_dir(out_dir, "OUT_DIR")
     except CheckpointError as e:
-        raise PrepareError(str(e)) from None
+        raise SfmError(str(e)) from None
     old_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 0 if colmap_log else 2  # 0 INFO, 1 WARNING, 2 ERROR
     work = out_dir / ".work"
@@ -126,10 +126,10 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
     t_start = time.perf_counter()
     try:
         database = work / "database.db"
-        _log(verbose, f"[prepare] {len(names)} images in {images_dir}")
+        _log(verbose, f"[sfm] {len(names)} images in {images_dir}")
 
         t0 = time.perf_counter()
-        _log(verbose, "[prepare] 1/5 feature extraction (SIFT, CPU)")
+        _log(verbose, "[sfm] 1/5 feature extraction (SIFT, CPU)")
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = camera_model
         extraction = pycolmap.FeatureExtractionOptions()
@@ -144,14 +144,14 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
             num_keypoints = db.num_keypoints()
         finally:
             db.close()
-        _log(verbose, f"[prepare]     {num_db_images} images, {num_keypoints} keypoints "
+        _log(verbose, f"[sfm]     {num_db_images} images, {num_keypoints} keypoints "
                       f"({time.perf_counter() - t0:.1f}s)")
         if num_keypoints == 0:
-            raise PrepareError("No features were found in the images: are they blank, or too small? "
+            raise SfmError("No features were found in the images: are they blank, or too small? "
                                "Structure-from-motion needs textured, overlapping photos.")
 
         t0 = time.perf_counter()
-        _log(verbose, f"[prepare] 2/5 {matcher} matching")
+        _log(verbose, f"[sfm] 2/5 {matcher} matching")
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = num_threads
         matching.use_gpu = False
@@ -165,45 +165,45 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
         finally:
             db.close()
         num_pairs = sum(1 for n in inliers if n > 0)
-        _log(verbose, f"[prepare]     {num_pairs} geometrically verified pairs, {sum(inliers)} inlier matches "
+        _log(verbose, f"[sfm]     {num_pairs} geometrically verified pairs, {sum(inliers)} inlier matches "
                       f"({time.perf_counter() - t0:.1f}s)")
         if num_pairs == 0:
-            raise PrepareError(
+            raise SfmError(
                 "No image pairs could be matched. The photos need overlapping, textured content; "
                 + ("try --matcher exhaustive if the images are not an ordered sequence."
                    if matcher == "sequential" else "check that they show the same scene."))
 
         t0 = time.perf_counter()
-        _log(verbose, "[prepare] 3/5 incremental mapping")
+        _log(verbose, "[sfm] 3/5 incremental mapping")
         sparse = work / "sparse"
         sparse.mkdir()
         options = pycolmap.IncrementalPipelineOptions()
         options.num_threads = num_threads
         reconstructions = pycolmap.incremental_mapping(database, images_dir, sparse, options=options)
         if not reconstructions:
-            raise PrepareError(
+            raise SfmError(
                 "Mapping failed: no initial image pair could be reconstructed. Try photos with more overlap "
                 "(consecutive views sharing ~60% of their content) and more parallax (move the camera, do not "
                 "only rotate it)" + (", or --matcher exhaustive." if matcher == "sequential" else "."))
         best = max(reconstructions.values(), key=lambda r: r.num_reg_images())
         num_reg = best.num_reg_images()
-        _log(verbose, f"[prepare]     {len(reconstructions)} model(s); largest registers {num_reg}/{len(names)} "
+        _log(verbose, f"[sfm]     {len(reconstructions)} model(s); largest registers {num_reg}/{len(names)} "
                       f"images, {best.num_points3D()} points ({time.perf_counter() - t0:.1f}s)")
         if num_reg < max(MIN_IMAGES, int(np.ceil(0.2 * len(names)))):
-            raise PrepareError(
+            raise SfmError(
                 f"Mapping registered only {num_reg} of {len(names)} images. Try more overlap between views, "
                 "more texture, fewer motion-blurred photos, "
                 + ("--matcher exhaustive (sequential matching assumes an ordered capture)."
                    if matcher == "sequential" else "or --matcher sequential for an ordered video-like capture."))
         if num_reg < len(names):
-            _log(verbose, f"[prepare]     warning: {len(names) - num_reg} image(s) could not be registered "
+            _log(verbose, f"[sfm]     warning: {len(names) - num_reg} image(s) could not be registered "
                           "and are left out.")
         model = work / "model"
         model.mkdir()
         best.write(model)
 
         t0 = time.perf_counter()
-        _log(verbose, "[prepare] 4/5 undistortion to PINHOLE")
+        _log(verbose, "[sfm] 4/5 undistortion to PINHOLE")
         undistorted = work / "undistorted"
         pycolmap.undistort_images(undistorted, model, images_dir, output_type="COLMAP", num_threads=num_threads)
         for name in ("images", "sparse", *(f"images_{f}" for f in DOWNSAMPLE_FACTORS)):
@@ -219,23 +219,23 @@ def prepare(images_dir, out_dir, matcher: str = "auto", camera_model: str = "SIM
             shutil.move(f, out_dir / "sparse/0" / f.name)
         rec = pycolmap.Reconstruction(out_dir / "sparse/0")
         models = {c.model_name for c in rec.cameras.values()}
-        _log(verbose, f"[prepare]     {rec.num_reg_images()} images, cameras {sorted(models)} "
+        _log(verbose, f"[sfm]     {rec.num_reg_images()} images, cameras {sorted(models)} "
                       f"({time.perf_counter() - t0:.1f}s)")
 
         t0 = time.perf_counter()
-        _log(verbose, f"[prepare] 5/5 downsampling x{', x'.join(map(str, DOWNSAMPLE_FACTORS))}")
+        _log(verbose, f"[sfm] 5/5 downsampling x{', x'.join(map(str, DOWNSAMPLE_FACTORS))}")
         write_downsampled(out_dir / "images", out_dir)
-        _log(verbose, f"[prepare]     done ({time.perf_counter() - t0:.1f}s)")
+        _log(verbose, f"[sfm]     done ({time.perf_counter() - t0:.1f}s)")
     finally:
         pycolmap.logging.minloglevel = old_level
         if not keep_work:
             shutil.rmtree(work, ignore_errors=True)
-    _log(verbose, f"[prepare] wrote {out_dir} in {time.perf_counter() - t_start:.1f}s")
+    _log(verbose, f"[sfm] wrote {out_dir} in {time.perf_counter() - t_start:.1f}s")
     return out_dir
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m patexgs_jax.prepare",
+    ap = argparse.ArgumentParser(prog="python -m patexgs_jax.sfm",
                                  description="Structure-from-motion (pycolmap) on a folder of photos, "
                                              "written in the Mip-NeRF 360 layout.")
     ap.add_argument("images_dir", type=Path, help="folder of the photos (JPEG or PNG)")
@@ -252,10 +252,10 @@ def main(argv=None) -> int:
     ap.add_argument("--quiet", action="store_true", help="print only errors")
     a = ap.parse_args(argv)
     try:
-        prepare(a.images_dir, a.out_dir, matcher=a.matcher, camera_model=a.camera_model,
+        reconstruct(a.images_dir, a.out_dir, matcher=a.matcher, camera_model=a.camera_model,
                 single_camera=not a.multiple_cameras, verbose=not a.quiet, keep_work=a.keep_work,
                 colmap_log=a.colmap_log)
-    except (PrepareError, ValueError) as e:
+    except (SfmError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     return 0

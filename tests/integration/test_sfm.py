@@ -1,11 +1,11 @@
-"""Tests of ``patexgs_jax.prepare`` (pycolmap SfM to the Mip-NeRF 360 layout)."""
+"""Tests of ``patexgs_jax.sfm`` (pycolmap SfM to the Mip-NeRF 360 layout)."""
 
 
 import numpy as np
 import PIL.Image
 import pytest
 
-from patexgs_jax import prepare as prep
+from patexgs_jax import sfm
 from patexgs_jax._pycolmap import pycolmap  # (keeps the fatal-signal handlers, see there)
 from patexgs_jax.data import synthetic
 
@@ -34,9 +34,9 @@ def _angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-def test_prepare_recovers_synthetic_poses(tmp_path, capsys):
+def test_sfm_recovers_synthetic_poses(tmp_path, capsys):
     scene = synthetic.generate(tmp_path / "scene", **SCENE)
-    out = prep.prepare(scene / "images", tmp_path / "out", verbose=True)
+    out = sfm.reconstruct(scene / "images", tmp_path / "out", verbose=True)
     log = capsys.readouterr().out
     for stage in ("feature extraction", "matching", "incremental mapping", "undistortion", "downsampling"):
         assert stage in log
@@ -56,7 +56,7 @@ def test_prepare_recovers_synthetic_poses(tmp_path, capsys):
         with PIL.Image.open(out / f"images_{f}" / names[-1]) as im:
             assert im.size == (W // f, H // f)
     with PIL.Image.open(out / "images" / names[3]) as full, PIL.Image.open(out / "images_2" / names[3]) as half:
-        np.testing.assert_array_equal(np.asarray(half), prep.box_downsample(np.asarray(full.convert("RGB")), 2))
+        np.testing.assert_array_equal(np.asarray(half), sfm.box_downsample(np.asarray(full.convert("RGB")), 2))
 
     # Recovered poses agree with the ground truth up to a similarity transform.
     truth = {f"img_{k:04d}.png": c for k, c in enumerate(synthetic.make_cameras(
@@ -80,37 +80,37 @@ def test_prepare_recovers_synthetic_poses(tmp_path, capsys):
 
 
 def test_errors(tmp_path, capsys):
-    with pytest.raises(prep.PrepareError, match="does not exist"):
-        prep.prepare(tmp_path / "missing", tmp_path / "out", verbose=False)
+    with pytest.raises(sfm.SfmError, match="does not exist"):
+        sfm.reconstruct(tmp_path / "missing", tmp_path / "out", verbose=False)
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "notes.txt").write_text("not an image")
-    with pytest.raises(prep.PrepareError, match="No images"):
-        prep.prepare(empty, tmp_path / "out", verbose=False)
+    with pytest.raises(sfm.SfmError, match="No images"):
+        sfm.reconstruct(empty, tmp_path / "out", verbose=False)
     few = tmp_path / "few"
     few.mkdir()
     for k in range(2):
         PIL.Image.fromarray(np.full((48, 64, 3), 40 * k, np.uint8)).save(few / f"{k}.png")
-    with pytest.raises(prep.PrepareError, match="at least 3"):
-        prep.prepare(few, tmp_path / "out", verbose=False)
+    with pytest.raises(sfm.SfmError, match="at least 3"):
+        sfm.reconstruct(few, tmp_path / "out", verbose=False)
     with pytest.raises(ValueError, match="matcher"):
-        prep.prepare(few, tmp_path / "out", matcher="vocab")
+        sfm.reconstruct(few, tmp_path / "out", matcher="vocab")
     # Blank images: a clear error instead of a failed mapping deep inside COLMAP.
     PIL.Image.fromarray(np.full((48, 64, 3), 200, np.uint8)).save(few / "2.png")
-    with pytest.raises(prep.PrepareError, match="No features"):
-        prep.prepare(few, tmp_path / "out", verbose=False)
+    with pytest.raises(sfm.SfmError, match="No features"):
+        sfm.reconstruct(few, tmp_path / "out", verbose=False)
     assert not (tmp_path / "out" / ".work").exists()
     # The command line reports errors without a traceback.
-    assert prep.main([str(tmp_path / "missing"), str(tmp_path / "out2"), "--quiet"]) == 1
+    assert sfm.main([str(tmp_path / "missing"), str(tmp_path / "out2"), "--quiet"]) == 1
     assert "does not exist" in capsys.readouterr().err
 
 
 def test_box_downsample():
     img = np.arange(5 * 7 * 3, dtype=np.uint8).reshape(5, 7, 3)
-    out = prep.box_downsample(img, 2)
+    out = sfm.box_downsample(img, 2)
     assert out.shape == (2, 3, 3) and out.dtype == np.uint8
     np.testing.assert_array_equal(out[0, 0], np.round(img[:2, :2].reshape(4, 3).mean(0)))
-    f = prep.box_downsample(img.astype(np.float32), 2)
+    f = sfm.box_downsample(img.astype(np.float32), 2)
     assert f.dtype == np.float32 and f[1, 2, 1] == pytest.approx(img[2:4, 4:6, 1].mean())
     with pytest.raises(ValueError):
-        prep.box_downsample(img, 8)
+        sfm.box_downsample(img, 8)
