@@ -324,9 +324,8 @@ def pad_pow8(x: np.ndarray, fill, floor: int = 64, limit: int | None = None) -> 
 
 @dataclasses.dataclass(frozen=True)
 class _Moves:
-    """What a resize reads and writes on the device, the same for every tree of the bank (parameters
-    and moments): only the textures whose side changes are resampled, and, where a bucket shrinks,
-    the textures past its new capacity are copied to free slots below it."""
+    """What a resize reads and writes on the device, the same for every tree of the bank (parameters and
+    moments): the textures whose side changes; where a bucket shrinks, those past its capacity move."""
 
     reads: dict       # old bucket -> (k,) slots of the textures resampled (side n >= 1 -> m >= 1)
     resampled: list   # (n, m, old bucket, rows of reads[old bucket], new bucket, positions in writes)
@@ -371,6 +370,16 @@ def _moves(plan: _BankPlan) -> _Moves:
         parts.append(plan.old_slot[idx])
         resampled.append((n, m, b_old, slice(start, start + idx.size), b_new, pos))
     return _Moves({b: np.concatenate(p) for b, p in reads.items()}, resampled, fresh, writes, copies)
+
+
+#: Share of a bank's textures up to which a resize is made on the device (a growth event's few percent);
+#: above it (the Eq. 7 allocation) the host's whole copy costs less than moving most slots in chunks.
+DEVICE_MAX_SHARE = 0.25
+
+
+def _few_change(plan: _BankPlan) -> bool:
+    textures = max(int(np.count_nonzero((plan.old_size > 0) | (plan.new_size > 0))), 1)
+    return int(np.count_nonzero(plan.old_size != plan.new_size)) <= DEVICE_MAX_SHARE * textures
 
 
 def _apply_plan_device(plan: _BankPlan, old_buckets, fresh_value, moves: _Moves, donate: bool):
@@ -451,7 +460,8 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
         ``opt_state``'s texture buckets afterwards (the trainer's growth events; ignored where a
         buffer is shared).
       on_device: the buckets stay on the device and only the slots that change cross to the host
-        (the default); False makes every bucket on the host (the reference the device path is
+        (the default, where at most :data:`DEVICE_MAX_SHARE` of a bank's textures change); False
+        makes every bucket on the host (the reference the device path is
         tested against, and what it is measured against: the same result, bit for bit).
     Returns:
       ``(scene, opt_state, ResizeInfo)``; opt_state is None if it was None.
@@ -476,7 +486,7 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
 
     trees = [scene] + ([] if opt_state is None else
                        [m for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene) if _is_scene(m)])
-    moves = {name: _moves(plan) for name, plan in plans.items()} if on_device else {}
+    moves = {name: _moves(plan) for name, plan in plans.items() if on_device and _few_change(plan)}
     donate = bool(donate) and rd.can_donate([b for t in trees for name in moves for b in getattr(t, name).buckets])
     for name in moves:  # a new layout's write program, compiled while the host resamples
         if not _layout_kept(plans[name], getattr(scene, name).buckets):

@@ -91,7 +91,8 @@ def prepare(buckets: Sequence, donate: bool = True) -> None:
         if _pool is None:
             _pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="rebucket-compile")
         write = _scatter_donated if donate else _scatter_kept
-        for kind, don, fn, fargs in (("read", False, _gather_jit, args), ("write", donate, write, args + (blocks,))):
+        # (the write first: an event that makes a new layout waits for it; the reads come at the next)
+        for kind, don, fn, fargs in (("write", donate, write, args + (blocks,)), ("read", False, _gather_jit, args)):
             k = (kind, don, key)  # (reads never donate)
             if k not in _ahead:
                 _ahead[k] = _pool.submit(lambda fn=fn, fargs=fargs: fn.lower(*fargs).compile())
@@ -206,14 +207,16 @@ def _pow8(k: int, floor: int = 64) -> int:
 
 
 def _relayout(olds, caps, src, dst):
-    """New buckets of capacities ``caps``: each old bucket's first ``min(old, new)`` slots, then slots
-    ``src`` of the old bucket copied to ``dst`` (padded: ``dst`` past the capacity writes nothing),
-    zeros elsewhere."""
+    """New buckets of capacities ``caps``: each old bucket cut or zero-padded to its new capacity,
+    then (where ``src`` is given) slots ``src`` of the old bucket copied to ``dst`` (padded: ``dst``
+    past the capacity writes nothing)."""
     out = []
     for o, cap, s, d in zip(olds, caps, src, dst):
-        k = min(int(cap), int(o.shape[0]))
-        new = jnp.zeros((cap,) + tuple(o.shape[1:]), o.dtype).at[:k].set(o[:k])
-        out.append(new.at[d].set(jnp.take(o, s, axis=0, mode="clip"), mode="drop"))
+        grow = int(cap) - int(o.shape[0])
+        new = o[:cap] if grow <= 0 else jnp.pad(o, ((0, grow),) + ((0, 0),) * (o.ndim - 1))
+        if s is not None:  # (a small program where nothing moves: the usual bucket that grows)
+            new = new.at[d].set(jnp.take(o, s, axis=0, mode="clip"), mode="drop")
+        out.append(new)
     return tuple(out)
 
 
@@ -254,7 +257,11 @@ def relayout(buckets: Sequence, capacities: Sequence[int], copies: dict, channel
         src, dst = [], []
         for b in redo:
             s, d = (np.asarray(x, np.int32) for x in copies.get(b, ((), ())))
-            k = _pow8(s.size) if s.size else 1  # (bounded shapes: few programs a run)
+            if not s.size:
+                src.append(None)
+                dst.append(None)
+                continue
+            k = _pow8(s.size)  # (bounded shapes: few programs a run)
             src.append(np.concatenate([s, np.zeros(k - s.size, np.int32)]))
             dst.append(np.concatenate([d, int(capacities[b]) + np.arange(k - d.size, dtype=np.int32)]))
         src, dst = jax.device_put((src, dst))

@@ -62,6 +62,7 @@ def test_kept_layout_path_equals_the_host_path(monkeypatch, donate, chunk):
     parameters and of each moment tree equals the host path's, and slots of unchanged textures keep
     their whole block (garbage in the padding included); small chunks split the writes over calls."""
     monkeypatch.setattr(rd, "CHUNK_TEXELS", chunk)
+    monkeypatch.setattr(rb, "DEVICE_MAX_SHARE", 1.0)  # (every resize below on the device)
     scene, state, rng = _random_state(3, 48)
     kept = 0
     for _ in range(4):
@@ -153,6 +154,7 @@ def test_new_layout_on_the_device_equals_the_host_path(monkeypatch, donate, chun
     past a shrunk capacity moved): the device path's scene and optimiser state (parameters, moments,
     ages, index leaves) equal the host path's bit for bit, event after event."""
     monkeypatch.setattr(rd, "CHUNK_TEXELS", chunk)
+    monkeypatch.setattr(rb, "DEVICE_MAX_SHARE", 1.0)  # (every resize below on the device)
     scene, state, rng = _random_state(11, 64)
     host_scene, host_state = _copy(scene), _copy(state)
     overflowed = shrunk = moved = 0
@@ -179,3 +181,17 @@ def test_new_layout_on_the_device_equals_the_host_path(monkeypatch, donate, chun
         overflowed += info.shapes_changed
         _assert_trees_equal((scene, state), (host_scene, host_state))
     assert overflowed >= 3 and shrunk >= 1 and moved >= 1
+
+
+def test_resizes_that_change_most_textures_are_made_on_the_host(monkeypatch):
+    """Above DEVICE_MAX_SHARE of a bank's textures changing (the Eq. 7 allocation), the buckets are made
+    on the host (no device reads or writes); the result is the same either way."""
+    scene, state, _ = _random_state(13, 32)
+    sides = np.asarray(scene.rgb.size).astype(int)
+    most = np.where(sides > 0, sides + 1, 0)
+    calls = []
+    monkeypatch.setattr(rd, "write_slots", lambda *a, **k: calls.append(1))
+    want, _, _ = rb.resize_textures(_copy(scene), _copy(state), most, None, on_device=False)
+    got, _, _ = rb.resize_textures(scene, state, most, None)
+    assert not calls
+    _assert_trees_equal(got, want)
