@@ -372,14 +372,13 @@ def _moves(plan: _BankPlan) -> _Moves:
     return _Moves({b: np.concatenate(p) for b, p in reads.items()}, resampled, fresh, writes, copies)
 
 
-#: Share of a bank's textures up to which a resize is made on the device (a growth event's few percent);
-#: above it (the Eq. 7 allocation) the host's whole copy costs less than moving most slots in chunks.
-DEVICE_MAX_SHARE = 0.25
+#: Share of a bank's textures up to which a new layout is made on the device (a growth event's few percent);
+DEVICE_MAX_SHARE = 0.05  # above it (the Eq. 7 allocation) the host's whole copy costs less than chunked moves
 
 
 def _few_change(plan: _BankPlan) -> bool:
-    textures = max(int(np.count_nonzero((plan.old_size > 0) | (plan.new_size > 0))), 1)
-    return int(np.count_nonzero(plan.old_size != plan.new_size)) <= DEVICE_MAX_SHARE * textures
+    return np.count_nonzero(plan.old_size != plan.new_size) <= DEVICE_MAX_SHARE * max(1, np.count_nonzero(
+        (plan.old_size > 0) | (plan.new_size > 0)))
 
 
 def _apply_plan_device(plan: _BankPlan, old_buckets, fresh_value, moves: _Moves, donate: bool):
@@ -460,7 +459,8 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
         ``opt_state``'s texture buckets afterwards (the trainer's growth events; ignored where a
         buffer is shared).
       on_device: the buckets stay on the device and only the slots that change cross to the host
-        (the default, where at most :data:`DEVICE_MAX_SHARE` of a bank's textures change); False
+        (the default, where the layout is kept or at most :data:`DEVICE_MAX_SHARE` of a bank's
+        textures change); False
         makes every bucket on the host (the reference the device path is
         tested against, and what it is measured against: the same result, bit for bit).
     Returns:
@@ -484,9 +484,9 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
                 for name in plans:
                     _check_moment_bank(getattr(m, name), getattr(scene, name), name)
 
-    trees = [scene] + ([] if opt_state is None else
-                       [m for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene) if _is_scene(m)])
-    moves = {name: _moves(plan) for name, plan in plans.items() if on_device and _few_change(plan)}
+    trees = [scene] + [m for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene) if _is_scene(m)]
+    moves = {name: _moves(plan) for name, plan in plans.items()
+             if on_device and (_few_change(plan) or _layout_kept(plan, getattr(scene, name).buckets))}
     donate = bool(donate) and rd.can_donate([b for t in trees for name in moves for b in getattr(t, name).buckets])
     for name in moves:  # a new layout's write program, compiled while the host resamples
         if not _layout_kept(plans[name], getattr(scene, name).buckets):

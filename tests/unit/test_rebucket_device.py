@@ -184,11 +184,11 @@ def test_new_layout_on_the_device_equals_the_host_path(monkeypatch, donate, chun
 
 
 def test_resizes_that_change_most_textures_are_made_on_the_host(monkeypatch):
-    """Above DEVICE_MAX_SHARE of a bank's textures changing (the Eq. 7 allocation), the buckets are made
-    on the host (no device reads or writes); the result is the same either way."""
+    """Above DEVICE_MAX_SHARE of a bank's textures changing in a new layout (the Eq. 7 allocation), the
+    buckets are made on the host (no device reads or writes); the result is the same either way."""
     scene, state, _ = _random_state(13, 32)
     sides = np.asarray(scene.rgb.size).astype(int)
-    most = np.where(sides > 0, sides + 1, 0)
+    most = np.where(sides > 0, 2 * sides + 1, 0)  # (a new bucket: the layout is made afresh)
     calls = []
     monkeypatch.setattr(rd, "write_slots", lambda *a, **k: calls.append(1))
     want, _, _ = rb.resize_textures(_copy(scene), _copy(state), most, None, on_device=False)
