@@ -197,8 +197,8 @@ def _as_trained(scene, opt_state, rng):
     def texel(path):
         return any(str(getattr(k, "name", "")) == "buckets" for k in path)
 
-    def where_used(path, v):
-        return v * used[str(path[0].name), int(path[-1].idx)] if texel(path) else v
+    def where_used(path, v):  # (+0.0 elsewhere, as a run writes it: v * 0 would leave -0.0 where v < 0)
+        return np.where(used[str(path[0].name), int(path[-1].idx)], v, np.float32(0)) if texel(path) else v
 
     def params(path, x):
         if not texel(path) or np.size(x) == 0:
