@@ -491,7 +491,7 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
     for name in moves:  # a new layout's write program, compiled while the host resamples
         if not _layout_kept(plans[name], getattr(scene, name).buckets):
             rd.prepare(rd.layout_shapes(plans[name].capacities, plans[name].channels,
-                                         getattr(scene, name).buckets), donate=donate)
+                                         getattr(scene, name).buckets), donate=donate, kinds=("write",))
 
     def apply(s: Scene, is_params: bool) -> Scene:
         kw = {}

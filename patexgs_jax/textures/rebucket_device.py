@@ -79,10 +79,11 @@ def _single_device(buckets: Sequence) -> bool:
                and isinstance(getattr(b, "sharding", None), jax.sharding.SingleDeviceSharding) for b in buckets)
 
 
-def prepare(buckets: Sequence, donate: bool = True) -> None:
+def prepare(buckets: Sequence, donate: bool = True, kinds: Sequence[str] = ("write", "read")) -> None:
     """Compiles a bank's read and write programs for its layout in a background thread (once a layout;
     single-device banks only: others compile at first use, through ``jax.jit``). ``buckets`` may be
-    ``jax.ShapeDtypeStruct``-s with a sharding: a layout :func:`relayout` is about to make."""
+    ``jax.ShapeDtypeStruct``-s with a sharding: a layout :func:`relayout` is about to make, whose
+    event needs only its ``kinds=("write",)`` (the reads come at the next event)."""
     global _pool
     if not _live(buckets) or not _single_device(_live(buckets)):
         return
@@ -94,7 +95,7 @@ def prepare(buckets: Sequence, donate: bool = True) -> None:
         # (the write first: an event that makes a new layout waits for it; the reads come at the next)
         for kind, don, fn, fargs in (("write", donate, write, args + (blocks,)), ("read", False, _gather_jit, args)):
             k = (kind, don, key)  # (reads never donate)
-            if k not in _ahead:
+            if kind in kinds and k not in _ahead:
                 _ahead[k] = _pool.submit(lambda fn=fn, fargs=fargs: fn.lower(*fargs).compile())
         while len(_ahead) > 2 * _KEEP:
             _ahead.pop(next(iter(_ahead)))
