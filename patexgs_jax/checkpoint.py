@@ -220,6 +220,9 @@ class _Decoder:
                 if arr.ndim != len(shape) or any(b not in (1, s) for b, s in zip(arr.shape, shape)):
                     raise CorruptCheckpointError(f"array member {node['i']} of shape {arr.shape} is not a block "
                                                  f"of shape {shape}")
+                if node["kind"] == "jax":  # broadcast on the device: no host copy of the whole array
+                    dtype = np.dtype(jnp.dtype(node["dtype"]))
+                    return jnp.broadcast_to(jax.device_put(arr if arr.dtype == dtype else arr.view(dtype)), shape)
                 arr = np.array(np.broadcast_to(arr, shape))
             dtype = np.dtype(jnp.dtype(node["dtype"]))
             if arr.dtype != dtype:
