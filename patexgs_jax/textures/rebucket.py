@@ -377,8 +377,8 @@ DEVICE_MAX_SHARE = 0.05  # above it (the Eq. 7 allocation) the host's whole copy
 
 
 def _few_change(plan: _BankPlan) -> bool:
-    return np.count_nonzero(plan.old_size != plan.new_size) <= DEVICE_MAX_SHARE * max(1, np.count_nonzero(
-        (plan.old_size > 0) | (plan.new_size > 0)))
+    return bool(np.count_nonzero(plan.old_size != plan.new_size) <= DEVICE_MAX_SHARE * max(1, np.count_nonzero(
+        (plan.old_size > 0) | (plan.new_size > 0))))
 
 
 def _apply_plan_device(plan: _BankPlan, old_buckets, fresh_value, moves: _Moves, donate: bool):
