@@ -21,7 +21,10 @@ Builds a paper-scale state without training it and times each stage of a run on 
 * ``eq8_10_growth``: one growth event's selection (Eqs. 8-10) from a gradient statistic, and
   ``rebucket``: re-bucketing the grown textures with their Adam moments, in place, as the schedule
   does (its programs compiled in the background since the allocation's re-bucketing made the
-  layout); ``rebucket_again``: a second event.
+  layout); ``rebucket_again``: a second event; ``rebucket_overflow``: an event that overflows a
+  bucket (one more texture grows into it than it has free slots), so that every bucket is sized
+  afresh and the step would recompile. ``--rebucket-path host`` makes these re-bucketings' (and the
+  allocation's) buckets on the host instead (``resize_textures(on_device=False)``: the reference, the same result).
 * ``densify``: one densification step's bookkeeping (clone, split, prune; moments moved), on a
   copy of the state that it donates, as the trainer does (the first call compiles its row writes);
   ``densify_again``: a second event on its result (nothing to compile).
@@ -194,8 +197,8 @@ def _as_trained(scene, opt_state, rng):
     def texel(path):
         return any(str(getattr(k, "name", "")) == "buckets" for k in path)
 
-    def where_used(path, v):
-        return v * used[str(path[0].name), int(path[-1].idx)] if texel(path) else v
+    def where_used(path, v):  # (+0.0 elsewhere, as a run writes it: v * 0 would leave -0.0 where v < 0)
+        return np.where(used[str(path[0].name), int(path[-1].idx)], v, np.float32(0)) if texel(path) else v
 
     def params(path, x):
         if not texel(path) or np.size(x) == 0:
@@ -232,8 +235,29 @@ def _block(tree):
 # ---------------------------------------------------------------------------------------------
 # The rows
 # ---------------------------------------------------------------------------------------------
+def overflowing_sides(bank, sides: np.ndarray, rng) -> tuple[np.ndarray, int]:
+    """``sides`` with one more texture grown (by one texel a side) into a bucket than the bucket has
+    free slots: of the buckets the largest side of the bucket below can overflow, the one that needs
+    the fewest. Returns (new sides, the bucket that overflows)."""
+    caps = bank.capacities
+    b_of = np.where(sides > 0, np.frexp(np.maximum(sides - 1, 0).astype(np.float64))[1], -1)
+    counts = np.bincount(b_of[b_of >= 0], minlength=len(caps))
+    best = None
+    for b in range(1, len(caps)):
+        cand = np.flatnonzero(sides == (1 << (b - 1)))  # one texel more takes them into bucket b
+        need = int(caps[b] - counts[b]) + 1
+        if cand.size >= need and (best is None or need < best[1]):
+            best = (b, need, cand)
+    if best is None:
+        raise ValueError("no bucket can be overflowed by growing the textures below it by one texel")
+    b, need, cand = best
+    out = sides.copy()
+    out[rng.choice(cand, need, replace=False)] += 1
+    return out, b
+
+
 def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: int, skip: set, say,
-        on_row=lambda rows: None) -> list[dict]:
+        on_row=lambda rows: None, rebucket_path: str = "device") -> list[dict]:
     """The rows of one N (see the module docstring); ``on_row(rows so far)`` after each."""
     import jax
 
@@ -334,7 +358,7 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
     sides = np.where(active, sample_sides(C, rng), 0)
     with rows.time("allocation_rebucket", host=True) as note:
         scene, opt_state, info = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
-                                                 min_spare=TEXTURE_MIN_SPARE)
+                                                 min_spare=TEXTURE_MIN_SPARE, on_device=rebucket_path == "device")
         _block((scene, opt_state))
         note["texels"] = int(total_texels(sides, active))
         prepare_growth(scene)  # as the schedule does: the growth events' programs, in the background
@@ -349,15 +373,27 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
         state, new_sides, sel = state.step(grad, step, schedule, active=active)
         note["grown"] = int(sel.sum())
     # Two events (the programs of the layout were compiled in the background since the allocation).
-    for event in ("rebucket", "rebucket_again"):
+    on_device = rebucket_path == "device"
+    for event in ("rebucket", "rebucket_again", "rebucket_overflow"):
         if event == "rebucket_again":
             grad = np.where(active, rng.exponential(schedule.tau_preset, C), 0.0)
             state, new_sides, sel = state.step(grad, step + schedule.interval, schedule, active=active)
+        overflows = None
+        if event == "rebucket_overflow":
+            before = new_sides
+            new_sides, overflows = overflowing_sides(scene.rgb, new_sides, rng)
+            sel = new_sides != before
+            state = TextureScheduleState.create(new_sides)
         with rows.time(event, host=True) as note:
             scene, opt_state, info = resize_textures(scene, opt_state, new_sides, new_sides, donate=True,
-                                                     headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
+                                                     headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE,
+                                                     on_device=on_device)
             _block((scene, opt_state))
-            note.update(grown=int(sel.sum()), layout_changed=bool(info.shapes_changed))
+            note.update(grown=int(sel.sum()), layout_changed=bool(info.shapes_changed), path=rebucket_path)
+            if overflows is not None:
+                note["bucket"] = overflows
+                if not info.shapes_changed:
+                    raise AssertionError("the overflowing event kept the layout")
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_scale_"))
     try:
@@ -470,6 +506,9 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=2, help="steady training steps timed after the first")
     p.add_argument("--skip", default="", help="comma-separated: counts, densify, checkpoint, ply, eval, step")
     p.add_argument("--json", type=Path, default=None, help="also write the rows here (with the commit and machine)")
+    p.add_argument("--rebucket-path", choices=["device", "host"], default="device",
+                   help="where the growth events' re-bucketings make the buckets: device (the default: only "
+                        "the changing slots cross to the host) or host (every bucket; the reference)")
     p.add_argument("--step-only", choices=["2dgs", "textured"], default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.step_only is not None:  # the child of step_in_process: one JSON line on stdout
@@ -488,7 +527,7 @@ def main(argv=None) -> int:
 
     done: list[dict] = []
     config = dict(width=args.width, height=args.height, views=args.views, eq7_views=args.eq7_views,
-                  steps=args.steps, depth=DEPTH, side_histogram=SIDE_HISTOGRAM)
+                  steps=args.steps, rebucket_path=args.rebucket_path, depth=DEPTH, side_histogram=SIDE_HISTOGRAM)
 
     head = header(SCHEMA)  # the code and machine at the start (the checkout may move while it runs)
 
@@ -498,7 +537,8 @@ def main(argv=None) -> int:
 
     for n in args.gaussians:
         say(f"== {n} Gaussians, {args.views} views of {args.width}x{args.height}, Eq. 7 over {args.eq7_views} views")
-        done += run(n, args.width, args.height, args.views, args.eq7_views, args.steps, skip, say, write)
+        done += run(n, args.width, args.height, args.views, args.eq7_views, args.steps, skip, say, write,
+                    rebucket_path=args.rebucket_path)
     write([])
     return 0
 

@@ -41,8 +41,8 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import io
 import json
+import mmap
 import os
 import re
 import shutil
@@ -56,21 +56,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import checkpoint_rows
+from . import checkpoint_members, checkpoint_rows
+from .checkpoint_members import CheckpointError, CorruptCheckpointError
 
 FORMAT = "patexgs-checkpoint"
 VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
 SUFFIX = ".ckpt"
 ALLOWED_MODULE_PREFIXES: list[str] = ["patexgs_jax", "optax", "experiments"]
-
-
-class CheckpointError(Exception):
-    """A checkpoint cannot be written or read."""
-
-
-class CorruptCheckpointError(CheckpointError, ValueError):
-    """A checkpoint file is truncated, corrupt or not a checkpoint."""
 
 
 def allow_module(prefix: str) -> None:
@@ -227,12 +220,17 @@ class _Decoder:
                 if arr.ndim != len(shape) or any(b not in (1, s) for b, s in zip(arr.shape, shape)):
                     raise CorruptCheckpointError(f"array member {node['i']} of shape {arr.shape} is not a block "
                                                  f"of shape {shape}")
+                if node["kind"] == "jax":  # broadcast on the device: no host copy of the whole array
+                    dtype = np.dtype(jnp.dtype(node["dtype"]))
+                    return jnp.broadcast_to(jax.device_put(arr if arr.dtype == dtype else arr.view(dtype)), shape)
                 arr = np.array(np.broadcast_to(arr, shape))
             dtype = np.dtype(jnp.dtype(node["dtype"]))
             if arr.dtype != dtype:
                 arr = arr.view(dtype)
-            if node["kind"] == "jax":
-                return jax.device_put(arr)  # (jnp.asarray would compile a copy per new shape)
+            if node["kind"] == "jax":  # (jnp.asarray would compile a copy per new shape)
+                # A view of the mapped file is copied, never aliased: the array may be donated and
+                # written in place, and the mapping is read-only.
+                return jax.device_put(arr, may_alias=None if arr.flags.writeable else False)
             if node["kind"] == "scalar":
                 return arr[()]
             return arr.copy() if not arr.flags.writeable else arr  # (a view of the file's bytes)
@@ -373,7 +371,7 @@ def save_checkpoint(path, tree, metadata: dict | None = None, *, keep: int | Non
                         if i in enc.kept_rows:
                             checkpoint_rows.write_rows(m, arr, enc.kept_rows[i])
                         else:
-                            _write_npy(m, arr)
+                            checkpoint_members.write_npy(m, arr)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -399,40 +397,13 @@ def save_checkpoint(path, tree, metadata: dict | None = None, *, keep: int | Non
     return path
 
 
-def _write_npy(f, arr: np.ndarray) -> None:
-    """``np.lib.format.write_array`` without its ``tobytes()`` copy of a numeric array's data."""
-    arr = np.asarray(arr)
-    if arr.dtype.kind not in "biuf" or not arr.flags.c_contiguous or arr.size == 0:
-        np.lib.format.write_array(f, np.asarray(arr, order="C"), allow_pickle=False)
-        return
-    header = np.lib.format.header_data_from_array_1_0(arr)
-    try:
-        np.lib.format.write_array_header_1_0(f, header)
-    except ValueError:  # a header of over 64 KiB (never for this package's shapes)
-        np.lib.format.write_array_header_2_0(f, header)
-    f.write(arr.data.cast("B"))
-
-
-def _npy_view(data: bytes) -> np.ndarray:
-    """The array of a ``.npy`` member as a read-only view of ``data`` (read_array would copy it in
-    chunks: 1.3 s of a 3 s load at 300 MB); object arrays are refused as read_array refuses them."""
-    fp = io.BytesIO(data)
-    version = np.lib.format.read_magic(fp)
-    header = (np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0)
-    shape, fortran, dtype = header(fp)
-    if dtype.hasobject:
-        raise CorruptCheckpointError("an array member holds Python objects")
-    count = int(np.prod(shape, dtype=np.int64))
-    arr = np.frombuffer(data, dtype=dtype, count=count, offset=fp.tell())
-    return arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)
-
-
 def _read(path: Path, with_arrays: bool = True):
-    """(spec dict, {index: array}); raises CorruptCheckpointError naming the file."""
+    """(spec dict, {index: array}); raises CorruptCheckpointError naming the file. Stored members
+    (every one this module writes) are read as views of the memory-mapped file."""
     if not path.exists():
         raise FileNotFoundError(f"checkpoint {path} does not exist.")
     try:
-        with zipfile.ZipFile(path, "r") as zf:
+        with open(path, "rb") as f, zipfile.ZipFile(f, "r") as zf:
             names = set(zf.namelist())
             if "spec.json" not in names:
                 raise CorruptCheckpointError("no spec.json member")
@@ -444,12 +415,14 @@ def _read(path: Path, with_arrays: bool = True):
                                              f"(this code reads versions {READABLE_VERSIONS})")
             arrays = {}
             if with_arrays:
-                for name in names:
-                    m = re.fullmatch(r"arrays/(\d+)\.npy", name)
+                mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)  # (kept open by its views)
+                for info in zf.infolist():
+                    m = re.fullmatch(r"arrays/(\d+)\.npy", info.filename)
                     if m is None:
                         continue
-                    data = zf.read(name)  # checks the CRC
-                    arrays[int(m.group(1))] = _npy_view(data)
+                    data = (checkpoint_members.stored_member(mapped, info) if info.compress_type == zipfile.ZIP_STORED
+                            else zf.read(info.filename))  # (checks the CRC)
+                    arrays[int(m.group(1))] = checkpoint_members.npy_view(data)
             else:
                 bad = zf.testzip()
                 if bad is not None:

@@ -68,11 +68,20 @@ def write_rows(f, arr: np.ndarray, keep: np.ndarray) -> None:
 
 def fill_rows(rows: np.ndarray, mask_bits: np.ndarray, shape: tuple) -> np.ndarray:
     """The array of ``shape`` whose rows flagged in ``mask_bits`` (``np.packbits`` of the mask) are
-    ``rows``, in order, and whose other rows are zeros. Raises ValueError if they do not fit."""
+    ``rows``, in order, and whose other rows are zeros (run by run of flagged rows where the runs are
+    long, as :func:`write_rows` writes them). Raises ValueError if they do not fit."""
     keep = np.unpackbits(np.asarray(mask_bits, np.uint8), count=shape[0]).astype(bool)
     if rows.shape != (int(keep.sum()),) + tuple(shape[1:]):
         raise ValueError(f"{rows.shape[0]} stored rows of shape {rows.shape[1:]} do not fill the "
                          f"{int(keep.sum())} flagged rows of an array of shape {tuple(shape)}")
     out = np.zeros(shape, rows.dtype)
-    out[keep] = rows
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], keep.view(np.int8), [0]])))
+    flat, src = out.reshape(shape[0], -1), rows.reshape(rows.shape[0], -1)
+    if src.size * rows.itemsize < (1 << 16) * (edges.size // 2):  # short runs: one masked assignment
+        out[keep] = rows
+        return out
+    at = 0  # long runs (a bucket's slots filled from the first): slice by slice, no index array
+    for a, b in zip(edges[::2], edges[1::2]):
+        flat[a:b] = src[at:at + b - a]
+        at += b - a
     return out

@@ -26,11 +26,14 @@ Re-bucketing (:func:`resize_textures`)
   a bucket up, so with headroom most events fit the layout they find and compile nothing. Buckets
   are never removed. :class:`ResizeInfo` says when the shapes changed.
 
-Where the layout is kept, the buckets stay on the device: only the old slots of the textures that
-are resampled come to the host, and the new blocks and the zeros of the slots left go back
-(:mod:`.rebucket_device`; with ``donate`` they are written in place, and the layout's programs are
-compiled ahead by :func:`prepare_growth`); a new layout is made on the host. The resampling is
-host-side float64 numpy either way. Between jitted steps; every function is pure but for
+The buckets stay on the device: only the old slots of the textures that are resampled come to the
+host, and the new blocks and the zeros of the slots left go back (:mod:`.rebucket_device`). Where
+the layout is kept they are written in place with ``donate`` (the layout's programs compiled ahead
+by :func:`prepare_growth`); where it is made afresh, the buckets whose capacity changes are made anew
+on the device first (the slots that stay, and the textures moved past a shrunk capacity, copied
+there), while the new layout's write program compiles in the background. The resampling is
+host-side float64 numpy either way; ``on_device=False`` makes every bucket on the host instead (the
+reference, bit for bit the same). Between jitted steps; every function is pure but for
 ``donate``. Which sizes to give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
 """
 
@@ -320,26 +323,35 @@ def pad_pow8(x: np.ndarray, fill, floor: int = 64, limit: int | None = None) -> 
 
 
 @dataclasses.dataclass(frozen=True)
-class _KeptMoves:
-    """What a resize that keeps a bank's layout reads and writes, the same for every tree of the bank
-    (parameters and moments): slots are stable, so only the textures whose side changes matter."""
+class _Moves:
+    """What a resize reads and writes on the device, the same for every tree of the bank (parameters and
+    moments): the textures whose side changes; where a bucket shrinks, those past its capacity move."""
 
     reads: dict       # old bucket -> (k,) slots of the textures resampled (side n >= 1 -> m >= 1)
     resampled: list   # (n, m, old bucket, rows of reads[old bucket], new bucket, positions in writes)
     fresh: list       # (m, new bucket, positions in writes): textures appearing (0 -> m), fresh values
     writes: dict      # new bucket -> (k,) unique slots written whole (blocks zero but for the above)
+    copies: dict      # bucket -> ((k,) old slots, (k,) new slots): unchanged textures that move
 
 
-def _kept_moves(plan: _BankPlan) -> _KeptMoves:
+def _moves(plan: _BankPlan) -> _Moves:
     n_old, n_new = plan.old_size, plan.new_size
+    caps = np.asarray(plan.capacities, np.int64)
     changed = np.flatnonzero(n_old != n_new)
     left = changed[n_old[changed] > 0]       # their old slots are zeroed (or rewritten below)
+    left = left[plan.old_slot[left] < caps[plan.old_bucket[left]]]  # (past a shrunk capacity: gone)
     arrive = changed[n_new[changed] > 0]
+    moved = np.flatnonzero((n_new > 0) & (n_new == n_old) & (plan.new_slot != plan.old_slot))
+    copies = {int(b): (plan.old_slot[r], plan.new_slot[r])
+              for b in np.unique(plan.new_bucket[moved]) for r in [moved[plan.new_bucket[moved] == b]]}
     slots: dict[int, list] = {}
     for rows, bucket, slot in ((left, plan.old_bucket, plan.old_slot), (arrive, plan.new_bucket, plan.new_slot)):
         for b in np.unique(bucket[rows]):
             slots.setdefault(int(b), []).append(slot[rows[bucket[rows] == b]])
     writes = {b: np.unique(np.concatenate(parts)) for b, parts in slots.items()}
+    for b, (_, dst) in copies.items():  # a moved texture may take a slot another left: not zeroed
+        if b in writes:
+            writes[b] = np.setdiff1d(writes[b], dst)
 
     def positions(rows):
         b = bucket_of(int(n_new[rows[0]]))
@@ -357,15 +369,25 @@ def _kept_moves(plan: _BankPlan) -> _KeptMoves:
         start = sum(p.size for p in parts)
         parts.append(plan.old_slot[idx])
         resampled.append((n, m, b_old, slice(start, start + idx.size), b_new, pos))
-    return _KeptMoves({b: np.concatenate(p) for b, p in reads.items()}, resampled, fresh, writes)
+    return _Moves({b: np.concatenate(p) for b, p in reads.items()}, resampled, fresh, writes, copies)
 
 
-def _apply_plan_in_place(plan: _BankPlan, old_buckets, fresh_value, moves: _KeptMoves, donate: bool):
-    """The layout kept (a growth event within the headroom): the buckets stay on the device and only
-    the slots that change are read and written there (a few percent of them;
-    :mod:`patexgs_jax.textures.rebucket_device`), instead of a copy of every bucket through the host.
-    Written: the textures resized or new (their whole slot, zero padding included) and the slots left
-    (zeros); every other slot is unchanged, bit for bit."""
+#: Share of a bank's textures up to which a new layout is made on the device (a growth event's few percent);
+DEVICE_MAX_SHARE = 0.05  # above it (the Eq. 7 allocation) the host's whole copy costs less than chunked moves
+
+
+def _few_change(plan: _BankPlan) -> bool:
+    return bool(np.count_nonzero(plan.old_size != plan.new_size) <= DEVICE_MAX_SHARE * max(1, np.count_nonzero(
+        (plan.old_size > 0) | (plan.new_size > 0))))
+
+
+def _apply_plan_device(plan: _BankPlan, old_buckets, fresh_value, moves: _Moves, donate: bool):
+    """The buckets stay on the device and only the slots that change are read and written there (a
+    few percent of them; :mod:`patexgs_jax.textures.rebucket_device`), instead of a copy of every
+    bucket through the host. Where the layout is made afresh, the buckets whose capacity changes are
+    first made anew on the device (their old slots that stay, the textures that move). Written: the
+    textures resized or new (their whole slot, zero padding included) and the slots left (zeros);
+    every other slot is unchanged, bit for bit: :func:`_apply_plan`'s result."""
     ch = plan.channels
     got = rd.read_slots(old_buckets, moves.reads) if moves.reads else {}
     blocks = {b: np.zeros((s.size, 1 << b, 1 << b, ch), np.float32) for b, s in moves.writes.items()}
@@ -373,7 +395,8 @@ def _apply_plan_in_place(plan: _BankPlan, old_buckets, fresh_value, moves: _Kept
         blocks[b_new][pos, :m, :m] = _new_texels(n, m, got[b_old][rows, :n, :n], fresh_value)
     for m, b_new, pos in moves.fresh:
         blocks[b_new][pos, :m, :m] = np.asarray(fresh_value, np.float32)
-    return rd.write_slots(old_buckets, {b: (s, blocks[b]) for b, s in moves.writes.items()}, donate)
+    buckets = rd.relayout(old_buckets, plan.capacities, moves.copies, ch)
+    return rd.write_slots(buckets, {b: (s, blocks[b]) for b, s in moves.writes.items()}, donate)
 
 
 def _bank_from_plan(plan: _BankPlan, buckets, with_indices: bool, old: TextureBank | None = None) -> TextureBank:
@@ -416,7 +439,7 @@ def _check_moment_bank(mbank, bank: TextureBank, name: str):
 
 def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capacity: int = 1,
                     headroom: float = 0.0, min_spare: int = 0, max_size: int = MAX_TEXTURE_SIZE,
-                    donate: bool = False):
+                    donate: bool = False, on_device: bool = True):
     """Changes texture sides, resampling texels and their Adam moments (see the module docstring).
 
     Args:
@@ -431,9 +454,15 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
         slots beyond its count (then rounded up to a power of two), so that the next resizes that
         move a few textures into it keep the layout (and the jitted step's program).
       max_size: largest side accepted.
-      donate: where the layout is kept, the banks' buckets (parameters and moments) are written in
-        place, their old buffers reused: the caller must not read ``scene``'s or ``opt_state``'s
-        texture buckets afterwards (the trainer's growth events; ignored where a buffer is shared).
+      donate: the banks' buckets (parameters and moments) are written in place where their
+        capacity is kept, their old buffers reused: the caller must not read ``scene``'s or
+        ``opt_state``'s texture buckets afterwards (the trainer's growth events; ignored where a
+        buffer is shared).
+      on_device: the buckets stay on the device and only the slots that change cross to the host
+        (the default, where the layout is kept or at most :data:`DEVICE_MAX_SHARE` of a bank's
+        textures change); False
+        makes every bucket on the host (the reference the device path is
+        tested against, and what it is measured against: the same result, bit for bit).
     Returns:
       ``(scene, opt_state, ResizeInfo)``; opt_state is None if it was None.
     """
@@ -455,19 +484,22 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
                 for name in plans:
                     _check_moment_bank(getattr(m, name), getattr(scene, name), name)
 
-    trees = [scene] + ([] if opt_state is None else
-                       [m for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene) if _is_scene(m)])
-    kept = {name: _kept_moves(plan) for name, plan in plans.items()
-            if _layout_kept(plan, getattr(scene, name).buckets)}
-    donate = bool(donate) and rd.can_donate([b for t in trees for name in kept for b in getattr(t, name).buckets])
+    trees = [scene] + [m for m in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_scene) if _is_scene(m)]
+    moves = {name: _moves(plan) for name, plan in plans.items()
+             if on_device and (_few_change(plan) or _layout_kept(plan, getattr(scene, name).buckets))}
+    donate = bool(donate) and rd.can_donate([b for t in trees for name in moves for b in getattr(t, name).buckets])
+    for name in moves:  # a new layout's write program, compiled while the host resamples
+        if not _layout_kept(plans[name], getattr(scene, name).buckets):
+            rd.prepare(rd.layout_shapes(plans[name].capacities, plans[name].channels,
+                                         getattr(scene, name).buckets), donate=donate, kinds=("write",))
 
     def apply(s: Scene, is_params: bool) -> Scene:
         kw = {}
         for name, plan in plans.items():
             fresh = (RGB_NEUTRAL if name == "rgb" else ALPHA_NEUTRAL) if is_params else 0.0
             old = getattr(s, name)
-            if name in kept:
-                buckets = _apply_plan_in_place(plan, old.buckets, fresh, kept[name], donate)
+            if name in moves:
+                buckets = _apply_plan_device(plan, old.buckets, fresh, moves[name], donate)
                 kw[name] = _bank_from_plan(plan, buckets, with_indices=is_params, old=old)
             else:
                 kw[name] = _bank_from_plan(plan, _apply_plan(plan, old.buckets, fresh), with_indices=is_params)

@@ -1,11 +1,13 @@
-"""Slot reads and writes of a texture bank on the device, for re-bucketing that keeps the layout.
+"""Slot reads and writes of a texture bank on the device, for re-bucketing.
 
 A growth event within the buckets' headroom changes a few percent of the slots
 (:func:`patexgs_jax.textures.rebucket.resize_textures`): the old slots of the textures being
 resampled are read (:func:`read_slots`), the host resamples them, and the new blocks, with zeros
 in the slots left, are written (:func:`write_slots`); every other slot stays where it is, bit for
 bit. With ``donate`` the buckets are written in place (their old buffers are reused: the caller must
-not read them again); without it, each call copies the bank.
+not read them again); without it, each call copies the bank. An event that overflows a bucket
+sizes every bucket afresh: :func:`relayout` makes the buckets whose capacity changes anew on the
+device (one program a bank for all of them), and the same reads and writes follow.
 
 Shapes. Each bucket is read and written in chunks of :func:`chunk_slots` slots (about
 :data:`CHUNK_TEXELS` texels; the index padded past the capacity, which writes nothing), every bucket
@@ -24,7 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["CHUNK_TEXELS", "can_donate", "chunk_slots", "prepare", "read_slots", "write_slots"]
+__all__ = ["CHUNK_TEXELS", "can_donate", "chunk_slots", "layout_shapes", "prepare", "read_slots", "relayout",
+           "write_slots"]
 
 #: Texels a bucket's chunk holds (its slots: this over the slot's texels, at least one, at most the
 #: capacity): a chunk's padding costs at most this many texels a bucket and a call.
@@ -65,18 +68,22 @@ def _abstract(buckets: Sequence):
     args = (tuple(jax.ShapeDtypeStruct(b.shape, b.dtype, sharding=b.sharding) for b in live),
             tuple(jax.ShapeDtypeStruct((k,), jnp.int32) for k in sizes))
     blocks = tuple(jax.ShapeDtypeStruct((k,) + tuple(b.shape[1:]), b.dtype) for b, k in zip(live, sizes))
-    key = tuple((tuple(b.shape), str(b.dtype), b.sharding) for b in live)
+    # (the chunk sizes too: CHUNK_TEXELS may change between layouts)
+    key = tuple((tuple(b.shape), str(b.dtype), b.sharding, k) for b, k in zip(live, sizes))
     return key, args, blocks
 
 
 def _single_device(buckets: Sequence) -> bool:
-    return all(isinstance(b, jax.Array) and isinstance(b.sharding, jax.sharding.SingleDeviceSharding)
-               for b in buckets)
+    """Whether every bucket (an array, or a ``jax.ShapeDtypeStruct`` of a layout to come) lives on one device."""
+    return all(isinstance(b, (jax.Array, jax.ShapeDtypeStruct))
+               and isinstance(getattr(b, "sharding", None), jax.sharding.SingleDeviceSharding) for b in buckets)
 
 
-def prepare(buckets: Sequence, donate: bool = True) -> None:
+def prepare(buckets: Sequence, donate: bool = True, kinds: Sequence[str] = ("write", "read")) -> None:
     """Compiles a bank's read and write programs for its layout in a background thread (once a layout;
-    single-device banks only: others compile at first use, through ``jax.jit``)."""
+    single-device banks only: others compile at first use, through ``jax.jit``). ``buckets`` may be
+    ``jax.ShapeDtypeStruct``-s with a sharding: a layout :func:`relayout` is about to make, whose
+    event needs only its ``kinds=("write",)`` (the reads come at the next event)."""
     global _pool
     if not _live(buckets) or not _single_device(_live(buckets)):
         return
@@ -85,9 +92,10 @@ def prepare(buckets: Sequence, donate: bool = True) -> None:
         if _pool is None:
             _pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="rebucket-compile")
         write = _scatter_donated if donate else _scatter_kept
-        for kind, don, fn, fargs in (("read", False, _gather_jit, args), ("write", donate, write, args + (blocks,))):
+        # (the write first: an event that makes a new layout waits for it; the reads come at the next)
+        for kind, don, fn, fargs in (("write", donate, write, args + (blocks,)), ("read", False, _gather_jit, args)):
             k = (kind, don, key)  # (reads never donate)
-            if k not in _ahead:
+            if kind in kinds and k not in _ahead:
                 _ahead[k] = _pool.submit(lambda fn=fn, fargs=fargs: fn.lower(*fargs).compile())
         while len(_ahead) > 2 * _KEEP:
             _ahead.pop(next(iter(_ahead)))
@@ -178,5 +186,88 @@ def write_slots(buckets: Sequence, writes: dict, donate: bool) -> list:
         idx, blocks = jax.device_put((idx, blocks))  # (one batched transfer)
         out = _program("write", donate, new)(tuple(new[b] for b in live), tuple(idx), tuple(blocks))
         for b, o in zip(live, out):
+            new[b] = o
+    return new
+
+
+def layout_shapes(capacities: Sequence[int], channels: int, like: Sequence) -> list:
+    """A layout to come, as ``jax.ShapeDtypeStruct``-s on the device of the arrays ``like`` (what
+    :func:`prepare` compiles for), or [] where ``like`` holds no array to take the device from."""
+    live = [b for b in like if isinstance(b, jax.Array)]
+    if not live:
+        return []
+    return [jax.ShapeDtypeStruct((int(cap), 1 << b, 1 << b, int(channels)), jnp.float32, sharding=live[0].sharding)
+            for b, cap in enumerate(capacities)]
+
+
+def _pow8(k: int, floor: int = 64) -> int:
+    size = floor
+    while size < k:
+        size *= 8
+    return size
+
+
+def _relayout(olds, caps, src, dst):
+    """New buckets of capacities ``caps``: each old bucket cut or zero-padded to its new capacity,
+    then (where ``src`` is given) slots ``src`` of the old bucket copied to ``dst`` (padded: ``dst``
+    past the capacity writes nothing)."""
+    out = []
+    for o, cap, s, d in zip(olds, caps, src, dst):
+        grow = int(cap) - int(o.shape[0])
+        new = o[:cap] if grow <= 0 else jnp.pad(o, ((0, grow),) + ((0, 0),) * (o.ndim - 1))
+        if s is not None:  # (a small program where nothing moves: the usual bucket that grows)
+            new = new.at[d].set(jnp.take(o, s, axis=0, mode="clip"), mode="drop")
+        out.append(new)
+    return tuple(out)
+
+
+_relayout_jit = jax.jit(_relayout, static_argnums=1)
+
+
+def relayout(buckets: Sequence, capacities: Sequence[int], copies: dict, channels: int) -> list:
+    """A bank's buckets in a new layout, made on the device (a layout made afresh: some bucket
+    overflowed, so every bucket was sized again; see :mod:`patexgs_jax.textures.rebucket`).
+
+    Args:
+      buckets: the old buckets; ``buckets[b]`` (cap_b, P_b, P_b, ch) (fewer than ``capacities``
+        where buckets appear).
+      capacities: the new capacity of every bucket.
+      copies: {bucket b: ((k,) old slots, (k,) new slots)}: textures that keep their bucket and side
+        but move (slots past a shrunk capacity), copied whole.
+      channels: the bank's channels (for buckets that appear).
+    Returns:
+      The new buckets (a list): a bucket whose capacity is unchanged is the old array itself (it has
+      nothing to copy); a changed one holds the old slots below both capacities and the copies,
+      zeros elsewhere (one program for all of them); a new bucket is zeros. Slots whose texture
+      changes are the caller's to write (:func:`write_slots`).
+    """
+    new: list = []
+    redo = []
+    for b, cap in enumerate(int(c) for c in capacities):
+        old = buckets[b] if b < len(buckets) else None
+        if old is not None and int(old.shape[0]) == cap:
+            if b in copies:
+                raise ValueError(f"relayout: bucket {b} keeps its capacity and cannot move textures")
+            new.append(old)
+        elif old is not None and int(old.shape[0]) > 0 and cap > 0:
+            redo.append(b)
+            new.append(None)
+        else:
+            new.append(jnp.zeros((cap, 1 << b, 1 << b, int(channels)), jnp.float32))
+    if redo:
+        src, dst = [], []
+        for b in redo:
+            s, d = (np.asarray(x, np.int32) for x in copies.get(b, ((), ())))
+            if not s.size:
+                src.append(None)
+                dst.append(None)
+                continue
+            k = _pow8(s.size)  # (bounded shapes: few programs a run)
+            src.append(np.concatenate([s, np.zeros(k - s.size, np.int32)]))
+            dst.append(np.concatenate([d, int(capacities[b]) + np.arange(k - d.size, dtype=np.int32)]))
+        src, dst = jax.device_put((src, dst))
+        out = _relayout_jit(tuple(buckets[b] for b in redo), tuple(int(capacities[b]) for b in redo),
+                            tuple(src), tuple(dst))
+        for b, o in zip(redo, out):
             new[b] = o
     return new

@@ -100,7 +100,8 @@ def test_every_benchmark_file_names_its_provenance():
 def test_bench_scale_times_every_host_stage(tmp_path, capsys):
     """bench_scale's rows: every stage of a run on one state, with the fields scripts read; the host
     events flagged as host work; the re-bucketing of a growth event keeps its layout (the in-place
-    path); the JSON rewritten after every row. (Renders and steps skipped: behaviour, not speed.)"""
+    path), the overflowing one makes a new layout; the JSON rewritten after every row. (Renders and
+    steps skipped: behaviour, not speed.)"""
     from experiments import bench_scale
 
     out = tmp_path / "scale.json"
@@ -110,14 +111,15 @@ def test_bench_scale_times_every_host_stage(tmp_path, capsys):
     assert data["schema"] == bench_scale.SCHEMA and data["config"]["eq7_views"] == 6
     rows = {r["event"]: r for r in data["rows"]}
     host = ["build_state", "eq7_allocation", "eq7_budget_solve", "densify", "densify_again", "textures_start",
-            "allocation_rebucket", "eq8_10_growth", "rebucket", "rebucket_again", "checkpoint_save",
-            "checkpoint_load", "ply_export", "ply_load"]
+            "allocation_rebucket", "eq8_10_growth", "rebucket", "rebucket_again", "rebucket_overflow",
+            "checkpoint_save", "checkpoint_load", "ply_export", "ply_load"]
     assert list(rows) == host
     for r in rows.values():
         assert r["gaussians"] == 3000 and r["host"] is True
         assert math.isfinite(r["seconds"]) and r["seconds"] >= 0
         assert r["peak_rss_bytes"] > 0
     assert rows["rebucket"]["grown"] > 0 and rows["rebucket"]["layout_changed"] is False
+    assert rows["rebucket_overflow"]["layout_changed"] is True and rows["rebucket_overflow"]["path"] == "device"
     assert rows["checkpoint_save"]["bytes"] > 0 and rows["ply_export"]["bytes"] > 0
     assert rows["densify"]["cloned"] + rows["densify"]["split"] > 0
     assert rows["densify_again"]["cloned"] + rows["densify_again"]["split"] > 0

@@ -103,7 +103,7 @@ def test_atomic_on_crash(tmp_path, state, monkeypatch):
     before = p.read_bytes()
 
     calls = {"n": 0}
-    real = ckpt._write_npy
+    real = ckpt.checkpoint_members.write_npy
 
     def crash(*a, **k):  # dies half-way through the arrays
         calls["n"] += 1
@@ -111,10 +111,10 @@ def test_atomic_on_crash(tmp_path, state, monkeypatch):
             raise KeyboardInterrupt("simulated crash")
         return real(*a, **k)
 
-    monkeypatch.setattr(ckpt, "_write_npy", crash)
+    monkeypatch.setattr(ckpt.checkpoint_members, "write_npy", crash)
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(p, {"scene": state["scene"], "step": 2}, {"step": 2})
-    monkeypatch.setattr(ckpt, "_write_npy", real)
+    monkeypatch.setattr(ckpt.checkpoint_members, "write_npy", real)
     assert p.read_bytes() == before and [f.name for f in tmp_path.iterdir()] == ["same.ckpt"]
 
     monkeypatch.setattr(ckpt.os, "replace", lambda *a: (_ for _ in ()).throw(OSError(28, "No space left")))
@@ -301,13 +301,17 @@ def test_zero_rows_are_not_stored(tmp_path, monkeypatch):
     bucket[11, 0, 0, 0] = 0.0  # a row whose first element is zero, the rest not
     few = rng.normal(size=(300, 8)).astype(np.float32)
     few[:10] = 0.0
-    tree = {"bucket": jnp.asarray(bucket), "host": bucket.copy(), "few": few, "ints": (bucket != 0).astype(np.int16)}
+    runs = np.zeros((300, 32, 32, 1), np.float32)  # long runs of kept rows (slots filled from the first)
+    runs[:180] = rng.normal(size=(180, 32, 32, 1))
+    runs[190:200] = 1.0
+    tree = {"bucket": jnp.asarray(bucket), "host": bucket.copy(), "few": few, "ints": (bucket != 0).astype(np.int16),
+            "runs": jnp.asarray(runs)}
     path = save_checkpoint(tmp_path / "z.ckpt", tree)
     with zipfile.ZipFile(path) as z:
         spec = json.loads(z.read("spec.json"))
         nodes = dict(zip(spec["tree"]["k"], spec["tree"]["v"]))
         size = {k: z.getinfo(f"arrays/{v['i']}.npy").file_size for k, v in nodes.items()}
-    assert {k for k, v in nodes.items() if "rows" in v} == {"bucket", "host", "ints"}
+    assert {k for k, v in nodes.items() if "rows" in v} == {"bucket", "host", "ints", "runs"}
     assert size["bucket"] < 0.7 * bucket.nbytes and size["few"] > few.nbytes
     back, _ = load_checkpoint(path)
     for k, v in tree.items():

@@ -1,6 +1,7 @@
-"""The kept-layout re-bucketing on the device (:mod:`patexgs_jax.textures.rebucket_device`) against
-the host path that makes every bucket on the host (:func:`patexgs_jax.textures.rebucket._apply_plan`),
-bit for bit, on random banks with random Adam moments and ages."""
+"""The re-bucketing on the device (:mod:`patexgs_jax.textures.rebucket_device`), in a kept layout and
+in one made afresh, against the host path that makes every bucket on the host
+(:func:`patexgs_jax.textures.rebucket._apply_plan`), bit for bit, on random banks with random Adam
+moments and ages."""
 
 from __future__ import annotations
 
@@ -61,6 +62,7 @@ def test_kept_layout_path_equals_the_host_path(monkeypatch, donate, chunk):
     parameters and of each moment tree equals the host path's, and slots of unchanged textures keep
     their whole block (garbage in the padding included); small chunks split the writes over calls."""
     monkeypatch.setattr(rd, "CHUNK_TEXELS", chunk)
+    monkeypatch.setattr(rb, "DEVICE_MAX_SHARE", 1.0)  # (every resize below on the device)
     scene, state, rng = _random_state(3, 48)
     kept = 0
     for _ in range(4):
@@ -129,3 +131,67 @@ def test_prepared_programs_are_the_ones_used(monkeypatch):
     new, _, info = rb.resize_textures(scene, state, grown, None, headroom=1.0, min_spare=4, donate=True)
     assert not info.shapes_changed and used and set(used) == {"Compiled"}
     assert all(np.array_equal(np.asarray(g), w) for g, w in zip(new.rgb.buckets, want))
+
+
+def _copy(tree):
+    return jax.tree_util.tree_map(lambda x: jax.device_put(np.array(x)) if isinstance(x, jax.Array) else x, tree)
+
+
+def _assert_trees_equal(a, b):
+    la, da = jax.tree_util.tree_flatten(a)
+    lb, db = jax.tree_util.tree_flatten(b)
+    assert da == db
+    for x, y in zip(la, lb):
+        x, y = np.atleast_1d(np.asarray(x)), np.atleast_1d(np.asarray(y))
+        assert x.shape == y.shape and x.dtype == y.dtype
+        assert np.array_equal(x.view(np.uint8), y.view(np.uint8))
+
+
+@pytest.mark.parametrize("donate", [False, True])
+@pytest.mark.parametrize("chunk", [rd.CHUNK_TEXELS, 8])
+def test_new_layout_on_the_device_equals_the_host_path(monkeypatch, donate, chunk):
+    """Events that overflow a bucket (every bucket sized afresh: grown, shrunk, new buckets, textures
+    past a shrunk capacity moved): the device path's scene and optimiser state (parameters, moments,
+    ages, index leaves) equal the host path's bit for bit, event after event."""
+    monkeypatch.setattr(rd, "CHUNK_TEXELS", chunk)
+    monkeypatch.setattr(rb, "DEVICE_MAX_SHARE", 1.0)  # (every resize below on the device)
+    scene, state, rng = _random_state(11, 64)
+    host_scene, host_state = _copy(scene), _copy(state)
+    overflowed = shrunk = moved = 0
+    for event in range(6):
+        new = {}
+        for name in BANKS:
+            cur = np.asarray(getattr(scene, name).size).astype(int)
+            # Many grow (buckets overflow; the largest side appears: a new bucket) while many shrink or
+            # vanish (the layout made afresh shrinks their buckets; textures past the capacity move).
+            u = rng.random(cur.size)
+            step = np.where(u < 0.3, rng.choice([1, 2, 4, 8], size=cur.size),
+                            np.where(u < 0.6 + 0.1 * (event % 2), -rng.choice([1, 3, 20], size=cur.size), 0))
+            new[name] = np.clip(np.where(cur > 0, cur + step, rng.choice([0, 2], size=cur.size)), 0, 17)
+        plans = {n: rb._plan(getattr(scene, n), new[n], 1, 0.25, 2) for n in BANKS}
+        for n in BANKS:
+            caps0 = getattr(scene, n).capacities
+            shrunk += any(c < o for c, o in zip(plans[n].capacities, caps0))
+            moved += sum(len(s) for s, _ in rb._moves(plans[n]).copies.values())
+        host_scene, host_state, host_info = rb.resize_textures(host_scene, host_state, new["rgb"], new["alpha"],
+                                                               headroom=0.25, min_spare=2, on_device=False)
+        scene, state, info = rb.resize_textures(scene, state, new["rgb"], new["alpha"], headroom=0.25,
+                                                min_spare=2, donate=donate)
+        assert info == host_info
+        overflowed += info.shapes_changed
+        _assert_trees_equal((scene, state), (host_scene, host_state))
+    assert overflowed >= 3 and shrunk >= 1 and moved >= 1
+
+
+def test_resizes_that_change_most_textures_are_made_on_the_host(monkeypatch):
+    """Above DEVICE_MAX_SHARE of a bank's textures changing in a new layout (the Eq. 7 allocation), the
+    buckets are made on the host (no device reads or writes); the result is the same either way."""
+    scene, state, _ = _random_state(13, 32)
+    sides = np.asarray(scene.rgb.size).astype(int)
+    most = np.where(sides > 0, 2 * sides + 1, 0)  # (a new bucket: the layout is made afresh)
+    calls = []
+    monkeypatch.setattr(rd, "write_slots", lambda *a, **k: calls.append(1))
+    want, _, _ = rb.resize_textures(_copy(scene), _copy(state), most, None, on_device=False)
+    got, _, _ = rb.resize_textures(scene, state, most, None)
+    assert not calls
+    _assert_trees_equal(got, want)
