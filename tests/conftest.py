@@ -82,11 +82,10 @@ def _release_compiled_code():
     the programs compiled ahead for runs that never came (a study's), so that what a module counts
     does not depend on which modules ran before it in its worker."""
     yield
-    from patexgs_jax.training import compile_ahead
-    from patexgs_jax.training.step_cache import release_steps
+    from patexgs_jax.training.steps import PROCESS
 
-    release_steps()
-    compile_ahead.discard_prepared()
+    PROCESS.release_steps()
+    PROCESS.discard_prepared()
     compiled.release_compiled_code(threshold=0.25)
 
 

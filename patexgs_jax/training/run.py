@@ -192,21 +192,21 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         slots = max(run.scene.capacity, config.max_gaussians or 0)
         memory.check_training_memory(dataset, gaussians=slots, textured=run.spec.textures is not None)
         plan.check_fits(dataset, config, slots)  # every stage, on a GPU too
-    run.say(start_line(dataset, config, run, preset))
+    run.say(start_line(dataset, config, run.step, preset))
     xla_before = compiled.xla_compiles()
     run.run()
     xla_programs, xla_seconds = (a - b for a, b in zip(compiled.xla_compiles(), xla_before, strict=True))
     interrupt.check()
-    scene = run.scene
+    scene, compiles = run.scene, run.steps.compiles
     size = scene_storage(scene)
     summary: dict[str, Any] = dict(
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
-        storage_mb=size["storage_mb"], recompiles=run.recompiles, compiled_at_steps=run.compiled_at,
+        storage_mb=size["storage_mb"], recompiles=compiles.count, compiled_at_steps=compiles.at,
         # The step's programs this process traced for the run (``recompiles`` also counts those of a
         # run resumed or started from a stage-1 checkpoint) and the seconds those steps took; every
         # XLA program the process compiled or loaded while it trained.
-        compiles=dict(step_programs=len(run.compiled_at), step_seconds=round(run.compile_s, 3),
+        compiles=dict(step_programs=len(compiles.at), step_seconds=round(compiles.seconds, 3),
                       xla_programs=xla_programs, xla_seconds=round(xla_seconds, 3)),
         padding=run.pad.summary(run.render_cfg.tile_size),
         compile_ahead=run.ahead.summary(), skipped_steps=run.skipped,

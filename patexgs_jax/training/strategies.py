@@ -1,15 +1,16 @@
 """The host-side schedule of a training run as strategies: densification (stage 1) and Mip-Splatting's
 3D filter here, and the texture schedule (stage 2, :class:`patexgs_jax.schedule.TextureSchedule`).
 
-A strategy is a host-side object called between jitted steps, as gsplat's densification strategies
-are: ``before_step(state, step)`` and ``after_step(state, step)`` take the
+A strategy (:class:`Strategy`) is a host-side object called between jitted steps, as gsplat's
+densification strategies are: ``before_step(state, step)`` and ``after_step(state, step)`` take the
 :class:`~patexgs_jax.schedule.TrainState` and return the new one. The trainer calls them in order,
-:class:`Densification` first.
+:class:`Densification` first, and only through these two.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Protocol
 
 import numpy as np
 
@@ -18,7 +19,20 @@ from .. import filter3d
 from ..schedule import TrainState
 from .config import TrainConfig, effective_config
 
-__all__ = ["Densification", "SmoothingFilter"]
+__all__ = ["Densification", "SmoothingFilter", "Strategy"]
+
+
+class Strategy(Protocol):
+    """Host-side work between jitted steps: each call takes the training state and returns the new
+    one (the input is not used again). The trainer calls its strategies through these two only."""
+
+    def before_step(self, state: TrainState, step: int) -> TrainState:
+        """Before the step that starts at ``step``."""
+        ...
+
+    def after_step(self, state: TrainState, step: int) -> TrainState:
+        """Once ``step`` steps are complete."""
+        ...
 
 
 class Densification:

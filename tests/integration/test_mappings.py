@@ -230,11 +230,11 @@ def test_one_padding_compiles_the_step_once(mixed_sizes):
     """With ``padding="one"`` the 8 views of 6 sizes (2 tile grids: 2 programs per-size, see
     test_training_compiles_per_tile_grid_and_stops_near_the_map_limit) train with one program,
     and summary.json counts it."""
-    from patexgs_jax.training.step_cache import release_steps
+    from patexgs_jax.training.steps import PROCESS
 
     cfg = TrainConfig(method="2dgs", iters_2dgs=10, sh_interval=4, normal_from=2, padding="one",
                       densify=DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000))
-    release_steps()  # (a step of this layout shared by an earlier run would hide the count)
+    PROCESS.release_steps()  # (a step of this layout shared by an earlier run would hide the count)
     start = sum(STEP_TRACES.values())
     summary = train(mixed_sizes, cfg, None, verbose=False).summary
     assert sum(STEP_TRACES.values()) - start == 1
