@@ -94,7 +94,7 @@ class Source:
 
 def render_config_of(train_config: dict) -> RenderConfig:
     """The render configuration of a run's method from its saved training configuration (a dict)."""
-    from .training import Method
+    from .training.config import Method
 
     lam = train_config.get("lambda_mip")
     return Method.from_name(train_config.get("method", "patexgs")).render_config(

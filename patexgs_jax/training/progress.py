@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import collections
 import os
+import time
 from collections.abc import Callable
 
 import jax
@@ -14,7 +15,7 @@ import numpy as np
 from .config import PRESETS, TrainConfig
 
 __all__ = ["LONG_RUN_SECONDS", "TEXTURED_STEP_COST", "Estimate", "device_description", "format_seconds",
-           "long_run_note", "preset_name", "run_estimate", "start_line", "step_seconds", "typical_size"]
+           "long_run_note", "preset_name", "run_estimate", "start_line", "step_seconds", "typical_size", "StepWindow"]
 
 #: A textured step's cost in 2DGS steps, for the time estimate made before the texture stage is
 #: measured (2.5-4x on a 2-core CPU, docs/performance.md).
@@ -155,3 +156,24 @@ class Estimate:
         if first and whole > LONG_RUN_SECONDS:
             width, height = typical_size(self.views)
             self.say(long_run_note(cfg, step_seconds(textured, stage, per), width, height, self.factor))
+
+
+class StepWindow:
+    """The losses and PSNRs of the good steps since the last progress line, and its time."""
+
+    def __init__(self, log_every: int):
+        self.log_every = log_every
+        self.values: collections.deque = collections.deque(maxlen=max(1, log_every))
+        self.t_last = time.perf_counter()
+
+    def add(self, m: dict) -> None:
+        self.values.append((float(m["loss"]), float(m["psnr"])))
+
+    def take(self) -> tuple[float, float, float]:
+        """(mean loss, mean PSNR, ms per step over ``log_every`` steps) since the last call; restarts."""
+        now = time.perf_counter()
+        means = [float(np.mean([v[k] for v in self.values])) if self.values else float("nan") for k in (0, 1)]
+        ms = 1e3 * (now - self.t_last) / self.log_every
+        self.t_last = now
+        self.values.clear()
+        return means[0], means[1], ms

@@ -313,6 +313,20 @@ class StepProvider:
             self._mesh = parallel.data_mesh(parallel.num_batch_devices(self.cfg.batch_size, self.cfg.devices))
         return self._mesh
 
+    def batch_share(self) -> range:
+        """Positions in each batch of the views this process loads (all of them with one process)."""
+        return range(self.cfg.batch_size)[parallel.process_slice(self.cfg.batch_size, self.data_mesh())]
+
+    def batch_inputs(self, state, views, images) -> tuple[Any, tuple]:
+        """``state`` replicated on the mesh, and the stacked cameras and (B, H, W, 3) images placed
+        over it. ``images``: the batch's; only those at :meth:`batch_share` are read (with several
+        processes the others are not loaded and may be None)."""
+        mesh = self.data_mesh()
+        state = type(state)(*parallel.replicate(tuple(state), parallel.local_mesh(mesh)))
+        share = self.batch_share()
+        cams = parallel.stack_cameras([views[j].camera for j in share])
+        return state, parallel.shard_batch((cams, np.stack([np.asarray(images[j], np.float32) for j in share])), mesh)
+
     def _batch_jit(self, render_cfg: RenderConfig, capacity: Capacity | None):
         mesh, distortion = self.data_mesh(), self.cfg.lambda_dist > 0
         return jax.jit(lambda sc, st, stats, cams, imgs, sh, wn, hp: batch_step(

@@ -1,32 +1,16 @@
 """The host loop of a run (:class:`Trainer`): views, the jitted step, strategies, checkpoints.
 
-Stages
-  1. 2DGS (every method): SfM-point initialisation (:func:`init_scene`), per-group Adam
-     (:mod:`patexgs_jax.optim`), the loss of :mod:`patexgs_jax.training.step`, one SH band every
-     ``sh_interval`` steps, adaptive density control (:class:`~.strategies.Densification`).
-  2. Textures (all methods but ``2dgs``; :class:`patexgs_jax.schedule.TextureSchedule`).
-
-Robustness
-  The data order is a per-epoch permutation seeded by (seed, epoch), and every random choice is
-  seeded by (seed, step), so ``resume`` from a checkpoint reaches the same result as an
-  uninterrupted run. A non-finite loss or gradient, or a render whose tile capacity overflowed,
-  skips the update (never applied, never poisoning the state); overflow grows the capacity and the
-  step is retried; ``max_bad_steps`` consecutive non-finite steps stop the run, keeping the last
-  good checkpoint.
-
-Compiled programs (:mod:`.steps`, :mod:`.compile_ahead`, :mod:`patexgs_jax.compiled`)
-  The loop asks its step provider for the step of the scene's layout, the stage's render config
-  and the tile capacity; the provider decides which program runs (the run's, one another run of
-  the process compiled, one compiled ahead in the background, or a new one), announces compiles,
-  counts them and guards the memory-map cap (near it the run checkpoints and stops with
-  :class:`patexgs_jax.compiled.MapLimitReached`; resume with ``resume=True``). Views are padded
-  (``TrainConfig.padding``, :mod:`patexgs_jax.padding`), so the step compiles once per padded size
-  and again only when the tile capacity or the scene's shapes change.
+Each step: the strategies' ``before_step`` (:mod:`.strategies`; the texture stage,
+:mod:`patexgs_jax.schedule`), the step the provider gives (:mod:`.steps`: which compiled program
+runs, compile-ahead's claims, compile counts, the memory-map guard), a retry at a grown tile
+capacity on overflow or a skipped update on a non-finite loss or gradient (never applied;
+``max_bad_steps`` in a row stop the run), the strategies' ``after_step``, the log line and the
+checkpoint. The data order is a per-epoch permutation seeded by (seed, epoch) and every random
+choice is seeded by (seed, step), so ``resume`` reaches the same result as an uninterrupted run.
 """
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import datetime
 import json
@@ -46,52 +30,17 @@ from ..adaptive import TextureScheduleState
 from ..evaluation import camera_problem, image_problem
 from ..optim import ages_per_slot, make_optimizer, upgrade_state
 from ..render import Capacity, RenderConfig, count_pairs
-from ..scene import Scene
 from ..schedule import TextureSchedule, TrainState
 from .compile_ahead import CompileAhead
 from .config import TrainConfig, config_dict, effective_config
-from .progress import Estimate
+from .progress import Estimate, StepWindow
 from .steps import StepProvider, layout_of, refits_at
-from .strategies import Densification, SmoothingFilter, Strategy
+from .strategies import Densification, SmoothingFilter, Strategy, init_scene
 
 __all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
 
 #: Sub-folder of a run's checkpoints holding its end-of-2DGS-stage checkpoint (see Trainer.save_stage1).
 STAGE1_DIR = "stage1"
-
-
-def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
-    """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
-
-    Scales: the mean distance to the 3 nearest neighbours (both axes; all three for the 3D methods,
-    whose Mip-Splatting filter starts at zero); random rotations; opacity ``config.init_opacity``;
-    SH DC from the colours, higher bands zero.
-    """
-    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (missing from scipy's stubs)
-
-    points = np.asarray(points, np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise ValueError(f"need a non-empty (M, 3) point cloud to initialise from, got {points.shape}.")
-    if config.max_gaussians is not None and len(points) > config.max_gaussians:
-        keep = np.random.default_rng(config.seed).choice(len(points), config.max_gaussians, replace=False)
-        points = points[np.sort(keep)]
-        colors = None if colors is None else np.asarray(colors)[np.sort(keep)]
-    n = len(points)
-    k = min(4, n)
-    d, _ = cKDTree(points).query(points, k=k)
-    dist = np.sqrt(np.mean(np.square(d[:, 1:]), axis=1)) if k > 1 else np.ones(n)
-    dist = np.maximum(dist, 1e-7)
-    rng = np.random.default_rng(config.seed)
-    quats = rng.normal(size=(n, 4))
-    K = (config.sh_degree + 1) ** 2
-    sh = np.zeros((n, K, 3))
-    col = np.full((n, 3), 0.5) if colors is None else np.clip(np.asarray(colors, np.float64), 0, 1)
-    sh[:, 0] = (col - 0.5) / 0.28209479177387814
-    cap = capacity or 1 << max(n - 1, 1).bit_length()
-    spec = config.spec
-    return Scene.from_arrays(points, np.repeat(dist[:, None], 3 if spec.primitive == "3d" else 2, axis=1), quats,
-                             np.full(n, config.init_opacity), sh, capacity=cap,
-                             filter3d=np.zeros(n) if spec.filter3d else None)
 
 
 class Trainer:
@@ -268,9 +217,6 @@ class Trainer:
         """:meth:`TrainConfig.stage_name` of ``step`` (default: the current one)."""
         return self.cfg.stage_name(self.step if step is None else step)
 
-    def in_stage1(self, step: int) -> bool:
-        return self.cfg.in_stage1(step)
-
     def step_fn(self) -> Callable[..., Any]:
         """The training step of the current scene, stage and capacity (:meth:`.steps.StepProvider.get`)."""
         return self.steps.get(layout_of(self.scene), self.render_cfg, self.capacity)
@@ -278,20 +224,6 @@ class Trainer:
     def data_mesh(self):
         """The device mesh of the data-parallel step (``batch_size`` > 1)."""
         return self.steps.data_mesh()
-
-    def batch_share(self) -> range:
-        """Positions in each batch of the views this process loads (all of them with one process)."""
-        return range(self.cfg.batch_size)[parallel.process_slice(self.cfg.batch_size, self.data_mesh())]
-
-    def batch_inputs(self, views, images):
-        """Stacked cameras and (B, H, W, 3) images placed over the mesh, the state replicated on it.
-        ``images``: the batch's images; only those at :meth:`batch_share` are read (with several
-        processes the others are not loaded and may be None)."""
-        mesh = self.data_mesh()
-        self.state = TrainState(*parallel.replicate(tuple(self.state), parallel.local_mesh(mesh)))
-        share = self.batch_share()
-        cams = parallel.stack_cameras([views[j].camera for j in share])
-        return parallel.shard_batch((cams, np.stack([np.asarray(images[j], np.float32) for j in share])), mesh)
 
     def fit_capacity(self, camera):
         interrupt.set_phase("counting the tile pairs of a view (the counter compiles once per size)")
@@ -369,7 +301,7 @@ class Trainer:
         views = [self.view(step * cfg.batch_size + j) for j in range(cfg.batch_size)]
         # Each process loads only its share of the batch (all of it with one process); the
         # cameras, known to every process, are checked everywhere.
-        share = self.batch_share() if cfg.batch_size > 1 else range(1)
+        share = self.steps.batch_share() if cfg.batch_size > 1 else range(1)
         images = [views[j].image if j in share else None for j in range(len(views))]
         problems = [camera_problem(v.camera) for v in views]
         for j in share:
@@ -393,7 +325,10 @@ class Trainer:
         active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
         # (effective_config: no normal loss for 3D Gaussians, which have no surface normal)
         w_normal = jnp.float32(self.lambda_normal if step >= cfg.normal_from else 0.0)
-        data = (views[0].camera, images[0]) if cfg.batch_size == 1 else self.batch_inputs(views, images)
+        if cfg.batch_size == 1:
+            data = (views[0].camera, images[0])
+        else:
+            self.state, data = self.steps.batch_inputs(self.state, views, images)
         scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)
         self.state = TrainState(scene, opt_state, stats)
         return m
@@ -463,24 +398,3 @@ class Trainer:
         bar.set_postfix(psnr=f"{psnr:.2f}", gaussians=rec["gaussians"], refresh=False)
         self.say(f"step {self.step:6d}/{self.cfg.total_steps}  loss {loss:.4f}  psnr {psnr:6.2f}  "
                  f"gaussians {rec['gaussians']:7d}  texels {rec['texels']:8d}  {ms:7.1f} ms/step")
-
-
-class StepWindow:
-    """The losses and PSNRs of the good steps since the last progress line, and its time."""
-
-    def __init__(self, log_every: int):
-        self.log_every = log_every
-        self.values: collections.deque = collections.deque(maxlen=max(1, log_every))
-        self.t_last = time.perf_counter()
-
-    def add(self, m: dict) -> None:
-        self.values.append((float(m["loss"]), float(m["psnr"])))
-
-    def take(self) -> tuple[float, float, float]:
-        """(mean loss, mean PSNR, ms per step over ``log_every`` steps) since the last call; restarts."""
-        now = time.perf_counter()
-        means = [float(np.mean([v[k] for v in self.values])) if self.values else float("nan") for k in (0, 1)]
-        ms = 1e3 * (now - self.t_last) / self.log_every
-        self.t_last = now
-        self.values.clear()
-        return means[0], means[1], ms
