@@ -1,5 +1,5 @@
 """Compiling ahead: a texture stage's first programs compiled in a background thread before the run
-needs them (:mod:`patexgs_jax.ahead` runs the jobs), so the stage's first steps do not wait.
+needs them (:mod:`patexgs_jax.background` runs the jobs), so the stage's first steps do not wait.
 
 What is compiled ahead, from the end of the 2DGS stage (this run's own texture stage, or that of a
 run that starts from this run's stage-1 checkpoint in this process, ``train(..., prepare=)``):
@@ -11,10 +11,11 @@ run that starts from this run's stage-1 checkpoint in this process, ``train(...,
     40 steps later, usually falls in the same power-of-two texture buckets).
 
 A prediction that does not match what the run then needs is never used (the run compiles as it
-would have), so results never depend on it. The trainer sees a small interface
-(:class:`CompileAhead`): ``after_step`` and ``prepare_others`` start jobs, ``predict_own_allocation``
-at the texture stage's start, ``claim_step`` / ``claim_eq7`` / ``take`` when a program is needed,
-``cancel_unclaimed`` at the end. ``PATEXGS_COMPILE_AHEAD=0`` turns it off.
+would have), so results never depend on it. :class:`CompileAhead` is a listener, handed the
+state it needs: the trainer calls ``after_step`` and ``prepare_others`` (which start jobs),
+``predict_own_allocation`` at the texture stage's start and ``cancel_unclaimed`` at the end; the
+step provider (:mod:`.steps`) calls ``claim_step`` / ``take`` when a step is needed, the texture
+schedule ``claim_eq7`` at the allocation. ``PATEXGS_COMPILE_AHEAD=0`` turns it off.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import ahead, interrupt, padding
+from .. import background, interrupt, padding
 from ..adaptive import ContributionCounts
 from ..render import Capacity, RenderConfig, count_pairs, render_jit
 from ..scene import Scene
@@ -59,7 +60,7 @@ def owned_copy(tree):
 
 @dataclasses.dataclass(eq=False)
 class Prepared:
-    """A texture stage's first programs, being compiled ahead (:mod:`patexgs_jax.ahead`) for a layout
+    """A texture stage's first programs, being compiled ahead (:mod:`patexgs_jax.background`) for a layout
     not reached yet: the textured step for the warm-up's layout at the first view's padded size and,
     for Eq. 7 methods, the allocation's pair counter and renderer (:meth:`CompileAhead.prepare`).
 
@@ -75,8 +76,8 @@ class Prepared:
     padded: tuple[int, int]  # (height, width) of the padded size it is compiled for
     owner: int  # id() of the CompileAhead whose own stage 2 it is (0: made for another run)
     registry: list
-    step_job: ahead.Job | None = None
-    eq7_job: ahead.Job | None = None
+    step_job: background.Job | None = None
+    eq7_job: background.Job | None = None
     capacity: Capacity | None = None
     fn: Any = None
     counted: threading.Event = dataclasses.field(default_factory=threading.Event)
@@ -145,7 +146,7 @@ class CompileAhead:
 
     def prepare(self, config: TrainConfig, state: TrainState, capacity: Capacity | None,
                 predict_allocation: bool = True) -> None:
-        """Starts compiling ahead, in the background (:mod:`patexgs_jax.ahead`), the first programs of
+        """Starts compiling ahead, in the background (:mod:`patexgs_jax.background`), the first programs of
         ``config``'s texture stage (this run's own, or one that will start from this run's stage-1
         checkpoint in this process) from this run's ``state`` (at tile capacity ``capacity``): the
         textured step for the warm-up's layout at the padded size of the stage's first view, with
@@ -158,7 +159,7 @@ class CompileAhead:
         prediction that does not match what the run then needs is not used (the run compiles as it
         would have), so results never depend on it. Does nothing when compiling ahead is off, for
         2DGS, batches, or several processes."""
-        if (not ahead.enabled() or config.spec.textures is None or config.batch_size != 1
+        if (not background.enabled() or config.spec.textures is None or config.batch_size != 1
                 or config.iters_2dgs != self.cfg.iters_2dgs or config.total_steps <= config.iters_2dgs
                 or jax.process_count() > 1):
             return
@@ -221,10 +222,10 @@ class CompileAhead:
             return programs
 
         whose = "" if own else f" of {config.method}"
-        prep.step_job = ahead.submit(f"the textured step{whose} for {cam.width}x{cam.height} px", compile_step,
+        prep.step_job = background.submit(f"the textured step{whose} for {cam.width}x{cam.height} px", compile_step,
                                      self.say)
         if config.spec.textures == "adaptive" and config.warmup_tex < config.iters_tex:
-            prep.eq7_job = ahead.submit(f"Eq. 7's pair counter and renderer{whose}", compile_eq7, self.say)
+            prep.eq7_job = background.submit(f"Eq. 7's pair counter and renderer{whose}", compile_eq7, self.say)
         if prep.step_job is None:
             return
         self.prepared.append(prep)
@@ -239,7 +240,7 @@ class CompileAhead:
             self.prepared.pop(0).cancel()
 
     def _predict_allocation(self, config: TrainConfig, stage: TextureSchedule, identity: tuple, state: tuple,
-                            eq7_job: ahead.Job, capacity: Callable[[], Capacity | None], owner: int,
+                            eq7_job: background.Job, capacity: Callable[[], Capacity | None], owner: int,
                             whose: str = "") -> Prepared | None:
         """Queues a speculative Eq. 7 allocation of ``config`` on ``state`` (scene, opt_state, stats:
         arrays the background thread owns, at the warm-up's layout) and the compile of the textured
@@ -278,7 +279,7 @@ class CompileAhead:
             if done is None:
                 alloc.fn.lower(new_scene, new_opt, stats, cam, *args).compile()
 
-        alloc.step_job = ahead.submit(f"the textured step{whose} for Eq. 7's predicted layout", compile_allocation,
+        alloc.step_job = background.submit(f"the textured step{whose} for Eq. 7's predicted layout", compile_allocation,
                                       self.say)
         if alloc.step_job is None:
             return None
@@ -290,7 +291,7 @@ class CompileAhead:
         :meth:`_predict_allocation`) from the warm-up's actual first ``state``, with Eq. 7's
         programs compiled ahead for this layout (:meth:`prepare`)."""
         cfg = self.cfg
-        if (not ahead.enabled() or cfg.spec.textures != "adaptive" or cfg.batch_size != 1
+        if (not background.enabled() or cfg.spec.textures != "adaptive" or cfg.batch_size != 1
                 or cfg.warmup_tex >= cfg.iters_tex or jax.process_count() > 1 or capacity is None):
             return
         render_cfg = cfg.render_config(stage=2)
@@ -412,7 +413,7 @@ class CompileAhead:
         self.record(step, what, job.ok, "" if job.ok else "its background compile failed")
         return job.value if job.ok else None
 
-    def wait(self, job: ahead.Job, step: int) -> None:
+    def wait(self, job: background.Job, step: int) -> None:
         """Waits for a background compile the step needs (a stop signal still stops the run)."""
         if job.done:
             return
@@ -422,7 +423,7 @@ class CompileAhead:
                  "into its compile)")
         job.wait(poll=interrupt.check)
 
-    def take(self, job: ahead.Job | None, what: str, step: int) -> bool:
+    def take(self, job: background.Job | None, what: str, step: int) -> bool:
         """Whether the step's program for a new padded size was compiled ahead by ``job`` (waited for
         if still compiling); False (the step compiles it) if the job failed or had not started."""
         if job is None:

@@ -11,13 +11,13 @@ everything that decides which program runs and what compiling costs:
 * the compile announcements (the heartbeat says what compiles) and the compile counts of
   ``summary.json`` (:class:`Compiles`): a call compiles when its padded size is new to its step and
   no background compile made the program;
-* the memory-map guard (:mod:`patexgs_jax.compiled`), checked before a step after something
+* the memory-map guard (:mod:`patexgs_jax.memory_maps`), checked before a step after something
   compiled and every few steps: near the cap it releases compiled code, past the stop share it hands
   the trainer the stop (which saves and raises).
 
 A layout, once left, is rarely met again within a run (the Gaussian capacity only grows; texture
 buckets are sized afresh when one overflows), so when the layout changes in a process holding more
-than :data:`patexgs_jax.compiled.KEEP_SHARE` of its memory-map cap, the steps of the layouts left
+than :data:`patexgs_jax.memory_maps.KEEP_SHARE` of its memory-map cap, the steps of the layouts left
 are released with the renderer's programs.
 """
 
@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import compiled, interrupt, padding, parallel
+from .. import interrupt, memory_maps, padding, parallel
 from ..optim import RATE_NAMES, step_rates
 from ..render import Capacity, RenderConfig
 from ..scene import Scene
@@ -140,13 +140,13 @@ class ProcessPrograms:
 
 
 def _release(entry: StepEntry) -> None:
-    compiled.release_programs(entry.fn)
+    memory_maps.release_programs(entry.fn)
     entry.compiled.clear()  # (its programs are gone: every size compiles again)
 
 
 #: The programs of this process's runs (see :class:`ProcessPrograms`).
 PROCESS = ProcessPrograms()
-compiled.on_clear(PROCESS.steps.clear)  # (JAX's caches cleared: the steps hold no programs any more)
+memory_maps.on_clear(PROCESS.steps.clear)  # (JAX's caches cleared: the steps hold no programs any more)
 
 
 @dataclasses.dataclass
@@ -182,7 +182,7 @@ class StepProvider:
     """
 
     def __init__(self, config: TrainConfig, optimizer, radius: float, pad: padding.TrainPadding, *,
-                 ahead: AheadListener | None, map_guard: compiled.MapGuard,
+                 ahead: AheadListener | None, map_guard: memory_maps.MapGuard,
                  on_map_limit: Callable[[tuple[int, int] | None, int | None], None],
                  shared: ProcessPrograms = PROCESS):
         self.cfg, self.optimizer, self.pad, self.ahead = config, optimizer, pad, ahead

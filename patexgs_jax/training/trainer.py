@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import checkpoint as ckpt
-from .. import compiled, interrupt, padding, parallel, progress
 from .. import densify as dens
+from .. import interrupt, memory_maps, padding, parallel, progress
 from ..adaptive import TextureScheduleState
 from ..evaluation import camera_problem, image_problem
 from ..optim import ages_per_slot, make_optimizer, upgrade_state
@@ -53,7 +53,7 @@ class Trainer:
     """
 
     def __init__(self, dataset, config: TrainConfig, out_dir: Path | None, verbose: bool,
-                 map_guard: compiled.MapGuard | None = None):
+                 map_guard: memory_maps.MapGuard | None = None):
         self.ds, self.cfg, self.out, self.verbose = dataset, config, out_dir, verbose
         self.train_views = list(dataset.train_views)
         if not self.train_views:
@@ -84,7 +84,7 @@ class Trainer:
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
         self.ahead = CompileAhead(config, self.optimizer, self.train_views, self.pad, say=self.say)
         self.steps = StepProvider(config, self.optimizer, self.radius, self.pad, ahead=self.ahead,
-                                  map_guard=map_guard if map_guard is not None else compiled.MapGuard(),
+                                  map_guard=map_guard if map_guard is not None else memory_maps.MapGuard(),
                                   on_map_limit=self.stop_at_map_limit)
         self.densification = Densification(config, self.radius)
         self.textures = TextureSchedule(config, self.optimizer, self.train_views, self.render_cfgs[1],
@@ -192,7 +192,7 @@ class Trainer:
     def stop_at_map_limit(self, maps: tuple[int, int] | None, other: int | None) -> None:
         """Near the memory-map cap even after releasing compiled code (``maps``: this process's
         count and cap; ``other``: the process that hit it): saves a checkpoint and raises
-        :class:`compiled.MapLimitReached` (a clear stop, not a crash in XLA)."""
+        :class:`memory_maps.MapLimitReached` (a clear stop, not a crash in XLA)."""
         if self.out is None:
             what = f"Training stopped at step {self.step}; no output directory was given, so nothing was saved."
         elif self.bad_streak == 0:
@@ -204,9 +204,9 @@ class Trainer:
             what = (f"Training stopped at step {self.step}, during non-finite steps: the last good checkpoint in "
                     f"{self.out / 'checkpoints'} is kept; continue from it with --resume (train(..., resume=True)).")
         if maps is None:
-            raise compiled.MapLimitReached(f"process {other} of this run neared its memory-map cap, so every process "
-                                           f"stops. {what}")
-        raise compiled.MapLimitReached(compiled.limit_message(maps[0], maps[1], what))
+            raise memory_maps.MapLimitReached(f"process {other} of this run neared its memory-map cap, so every "
+                                              f"process stops. {what}")
+        raise memory_maps.MapLimitReached(memory_maps.limit_message(maps[0], maps[1], what))
 
     # -- helpers ---------------------------------------------------------------------------------
     def view(self, step, seed: int | None = None):

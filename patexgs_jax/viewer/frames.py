@@ -409,7 +409,7 @@ class FrameRenderer:
             r.capacities.clear()
         self._renderers.clear()
         release_scene_programs()
-        from ..compiled import release_programs
+        from ..memory_maps import release_programs
 
         release_programs(dominant_mip_level)
 
@@ -417,11 +417,11 @@ class FrameRenderer:
 def _programs() -> tuple:
     """Traces of the renderer and programs of the pair counter, the texture preparer and the mip-level
     function: a frame that changes them compiled something."""
-    from .. import compiled
+    from .. import memory_maps
     from ..render import TRACE_COUNTS, count_pairs, prepare_textures
 
-    return (sum(TRACE_COUNTS.values()), compiled.program_count(count_pairs),
-            compiled.program_count(prepare_textures), compiled.program_count(dominant_mip_level))
+    return (sum(TRACE_COUNTS.values()), memory_maps.program_count(count_pairs),
+            memory_maps.program_count(prepare_textures), memory_maps.program_count(dominant_mip_level))
 
 
 def scene_stats(scene) -> dict:

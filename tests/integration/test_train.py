@@ -305,7 +305,7 @@ def test_recompiles_counted(run_p):
     # One trace per distinct (tile capacity, scene / optimiser / statistics shapes) the step saw:
     # at least 512 -> 1024 Gaussians, the texture banks' appearance, the allocation's buckets; the
     # texture stage's first one may have been traced and compiled ahead, in the background
-    # (patexgs_jax.ahead, test_ahead), and then the step itself traces nothing.
+    # (patexgs_jax.background, test_ahead), and then the step itself traces nothing.
     assert s["recompiles"] == rec["traces"] and len(rec["keys"]) >= 4
     assert rec["traces"] <= len(rec["keys"]) <= rec["traces"] + rec["ahead_traces"], rec
     # Growth events that fit the texture buckets' headroom keep the layout and compile nothing.
