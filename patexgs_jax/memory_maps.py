@@ -9,22 +9,14 @@ evaluation at many sizes, studies that train many runs in one process, a noteboo
 suite - reaches the cap. The next compile then fails inside XLA ("LLVM ERROR: Unable to allocate
 section memory"), and on the CPU that ends as a crash or a segfault rather than as a Python error.
 
-What keeps the count bounded:
-
-* few programs: views are rendered at a few padded sizes (:mod:`patexgs_jax.padding`), so a run
-  compiles one program per padded size, not one per image size;
-* programs of retired layouts are released once the process holds a quarter of the cap
-  (:data:`KEEP_SHARE`; below it they are kept for the next run or evaluation of the same shapes):
-  :func:`retire_programs` drops a jitted function's compiled code (training does it when the scene's
-  shapes change, evaluation when it is done with a scene), and :func:`trim_programs` bounds the
-  programs a function keeps;
-* a guard (:class:`MapGuard`): above ``release_share`` of the cap, all of JAX's compiled code is
-  dropped (:func:`release_compiled_code`); above ``stop_share`` even so, training checkpoints and
-  stops with :class:`MapLimitReached` instead of crashing in the next compile.
-
-Programs also outlive the process: the command lines turn on JAX's persistent compilation cache
-(:func:`enable_compile_cache`), so a second run, or a resumed one, loads the programs the first
-compiled (seconds to tens of seconds each on a CPU) instead of compiling them again.
+What keeps the count bounded: few programs (views rendered at a few padded sizes,
+:mod:`patexgs_jax.padding`); the programs of retired layouts released once the process holds
+:data:`KEEP_SHARE` of the cap (:func:`retire_programs`; :func:`trim_programs` bounds a per-shape
+cache); and a guard (:class:`MapGuard`) that drops all of JAX's compiled code above
+``release_share`` of the cap and, above ``stop_share`` even so, makes training checkpoint and stop
+with :class:`MapLimitReached` instead of crashing in the next compile. Programs also outlive the
+process: the command lines turn on JAX's persistent compilation cache (:func:`enable_compile_cache`),
+so a second or resumed run loads what the first compiled.
 """
 
 from __future__ import annotations

@@ -1,21 +1,16 @@
-"""Compiling ahead: a texture stage's first programs compiled in a background thread before the run
-needs them (:mod:`patexgs_jax.background` runs the jobs), so the stage's first steps do not wait.
+"""Compiling ahead: a texture stage's first programs compiled on the background thread
+(:mod:`patexgs_jax.background`) before the run needs them, so the stage's first steps do not wait.
 
-What is compiled ahead, from the end of the 2DGS stage (this run's own texture stage, or that of a
-run that starts from this run's stage-1 checkpoint in this process, ``train(..., prepare=)``):
-
-  * the textured step for the warm-up's layout at the padded size of the stage's first view, with
-    the tile capacity the first step will fit;
-  * for Eq. 7 methods, the allocation's pair counter and renderer, and the textured step for the
-    layout a speculative Eq. 7 allocation gives on the warm-up's first state (the real allocation,
-    40 steps later, usually falls in the same power-of-two texture buckets).
-
-A prediction that does not match what the run then needs is never used (the run compiles as it
-would have), so results never depend on it. :class:`CompileAhead` is a listener, handed the
-state it needs: the trainer calls ``after_step`` and ``prepare_others`` (which start jobs),
-``predict_own_allocation`` at the texture stage's start and ``cancel_unclaimed`` at the end; the
-step provider (:mod:`.steps`) calls ``claim_step`` / ``take`` when a step is needed, the texture
-schedule ``claim_eq7`` at the allocation. ``PATEXGS_COMPILE_AHEAD=0`` turns it off.
+From the end of the 2DGS stage (this run's texture stage, or that of a run that starts from this
+run's stage-1 checkpoint in this process, ``train(..., prepare=)``): the textured step for the
+warm-up's layout at the padded size of the stage's first view, at the tile capacity the first step
+will fit; for Eq. 7 methods, the allocation's pair counter and renderer, and the textured step for
+the layout a speculative Eq. 7 allocation gives on the warm-up's first state (the real one, 40 steps
+later, usually falls in the same power-of-two buckets). A prediction that does not match what the
+run needs is never used, so results never depend on it. :class:`CompileAhead` is a listener handed
+the state it needs: the trainer calls ``after_step``, ``prepare_others``, ``predict_own_allocation``
+and ``cancel_unclaimed``; the step provider ``claim_step`` and ``take``; the texture schedule
+``claim_eq7``. ``PATEXGS_COMPILE_AHEAD=0`` turns it off.
 """
 
 from __future__ import annotations
@@ -60,15 +55,10 @@ def owned_copy(tree):
 
 @dataclasses.dataclass(eq=False)
 class Prepared:
-    """A texture stage's first programs, being compiled ahead (:mod:`patexgs_jax.background`) for a layout
-    not reached yet: the textured step for the warm-up's layout at the first view's padded size and,
-    for Eq. 7 methods, the allocation's pair counter and renderer (:meth:`CompileAhead.prepare`).
-
-    ``identity``: what defines the step besides its render config and tile capacity
-    (:func:`~.steps.step_identity`); ``capacity`` and ``fn`` (the jitted step) are set by the
-    background job. ``layout`` is None while a predicted allocation's sides are being counted
-    (``counted`` is set once it is known); ``then``: the entry of the allocation predicted from this
-    warm-up state; ``registry``: the list of prepared entries it is in."""
+    """Programs being compiled ahead for a layout not reached yet (:meth:`CompileAhead.prepare`).
+    ``capacity`` and ``fn`` (the jitted step) are set by the background job; ``layout`` is None while
+    a predicted allocation is counted (``counted`` is set once it is known); ``then``: the allocation
+    predicted from this warm-up state; ``registry``: the list of prepared entries it is in."""
 
     identity: tuple
     render_cfg: RenderConfig
@@ -102,17 +92,10 @@ MAX_PREPARED = 4
 
 
 class CompileAhead:
-    """The compile-ahead work of one run, a listener of its :class:`~.steps.StepProvider` and its
-    trainer, which pass it the state it needs.
-
-    ``config``, ``optimizer`` (its structure), ``train_views``, ``pad`` (the run's
-    :class:`~patexgs_jax.padding.TrainPadding`) and ``say`` are the run's; ``shared``: the process's
-    programs, whose ``prepared`` list holds the entries not claimed yet (a run may prepare the runs
-    that start from its stage-1 checkpoint). ``prepare_for``: configs of those runs
-    (``train(..., prepare=)``); ``outcomes``: each program this run needed and found compiled ahead
-    (``hit``) or prepared for something else (the ``why``), in order (summary.json's
-    ``compile_ahead``).
-    """
+    """The compile-ahead work of one run (see the module's docstring). ``shared``: the process's
+    programs, whose ``prepared`` list holds the entries no run claimed yet; ``prepare_for``: configs
+    of the runs that start from this run's stage-1 checkpoint; ``outcomes``: each program this run
+    needed and found compiled ahead (``hit``) or not (``why``), summary.json's ``compile_ahead``."""
 
     def __init__(self, config: TrainConfig, optimizer, train_views, pad: padding.TrainPadding, *,
                  say: Callable[[str], None], shared: ProcessPrograms = PROCESS):
@@ -146,19 +129,12 @@ class CompileAhead:
 
     def prepare(self, config: TrainConfig, state: TrainState, capacity: Capacity | None,
                 predict_allocation: bool = True) -> None:
-        """Starts compiling ahead, in the background (:mod:`patexgs_jax.background`), the first programs of
-        ``config``'s texture stage (this run's own, or one that will start from this run's stage-1
-        checkpoint in this process) from this run's ``state`` (at tile capacity ``capacity``): the
-        textured step for the warm-up's layout at the padded size of the stage's first view, with
-        the tile capacity the first step will fit, and for Eq. 7 methods the allocation's pair
-        counter and renderer and, with ``predict_allocation``, the textured step for the layout Eq. 7
-        gives on the warm-up's first state (a speculative allocation: counted and sized in the
-        background; the real one, 40 steps of training later, usually falls in the same power-of-two
-        buckets). The warm-up's layout is known exactly once the Gaussian count is fixed
-        (densification has stopped); the capacities are predicted from the current scene. A
-        prediction that does not match what the run then needs is not used (the run compiles as it
-        would have), so results never depend on it. Does nothing when compiling ahead is off, for
-        2DGS, batches, or several processes."""
+        """Starts compiling ahead the first programs of ``config``'s texture stage (this run's, or
+        one that starts from this run's stage-1 checkpoint) from this run's ``state`` at tile
+        capacity ``capacity`` (see the module's docstring; the allocation's step with
+        ``predict_allocation``). The warm-up's layout is exact once densification has stopped; the
+        capacities are predicted from the current scene. Nothing for 2DGS, batches or several
+        processes, or when compiling ahead is off."""
         if (not background.enabled() or config.spec.textures is None or config.batch_size != 1
                 or config.iters_2dgs != self.cfg.iters_2dgs or config.total_steps <= config.iters_2dgs
                 or jax.process_count() > 1):
@@ -242,12 +218,10 @@ class CompileAhead:
     def _predict_allocation(self, config: TrainConfig, stage: TextureSchedule, identity: tuple, state: tuple,
                             eq7_job: background.Job, capacity: Callable[[], Capacity | None], owner: int,
                             whose: str = "") -> Prepared | None:
-        """Queues a speculative Eq. 7 allocation of ``config`` on ``state`` (scene, opt_state, stats:
-        arrays the background thread owns, at the warm-up's layout) and the compile of the textured
-        step for the layout it gives, at the padded size of the allocation step's view and the tile
-        capacity ``capacity()`` (called in the background); counted with Eq. 7's programs of
-        ``eq7_job``. Returns its entry (prepared; its layout is None until counted), or None when
-        compiling ahead is off."""
+        """Queues a speculative Eq. 7 allocation of ``config`` on ``state`` (arrays the background
+        owns, at the warm-up's layout), counted with ``eq7_job``'s programs, and the compile of the
+        step for the layout it gives at tile capacity ``capacity()``; returns its entry (None when
+        compiling ahead is off)."""
         render_cfg = config.render_config(stage=2)
         scene, opt_state, stats = state
         view = self.train_views[config.view_index(config.iters_2dgs + config.warmup_tex, len(self.train_views))]
@@ -405,13 +379,7 @@ class CompileAhead:
                 self.record(step, what, False, "compiled ahead for another texture layout")
             return None
         prep.drop()
-        job = prep.eq7_job
-        if job.cancel():
-            self.record(step, what, False, "its background compile had not started")
-            return None
-        self.wait(job, step)
-        self.record(step, what, job.ok, "" if job.ok else "its background compile failed")
-        return job.value if job.ok else None
+        return prep.eq7_job.value if self.take(prep.eq7_job, what, step) else None
 
     def wait(self, job: background.Job, step: int) -> None:
         """Waits for a background compile the step needs (a stop signal still stops the run)."""
@@ -424,8 +392,8 @@ class CompileAhead:
         job.wait(poll=interrupt.check)
 
     def take(self, job: background.Job | None, what: str, step: int) -> bool:
-        """Whether the step's program for a new padded size was compiled ahead by ``job`` (waited for
-        if still compiling); False (the step compiles it) if the job failed or had not started."""
+        """Whether ``what``, needed at ``step``, was compiled ahead by ``job`` (waited for if still
+        compiling); False (the caller compiles it) if the job failed or had not started."""
         if job is None:
             return False
         if job.cancel():

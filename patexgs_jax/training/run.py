@@ -26,7 +26,7 @@ from .config import (
     stage1_key,
     stage1_part,
 )
-from .progress import start_line
+from .estimate import start_line
 from .trainer import STAGE1_DIR, Trainer
 
 __all__ = ["STAGE2_FIELDS", "TrainResult", "load_stage1", "stage1_checkpoint", "train"]

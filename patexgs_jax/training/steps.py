@@ -1,24 +1,14 @@
 """Which compiled training step runs: the :class:`StepProvider` of a run.
 
 A run's step is one jitted function per (render config, tile capacity[, batch size]) and scene
-layout, with one program per padded view size (:mod:`patexgs_jax.padding`). The provider owns
-everything that decides which program runs and what compiling costs:
-
-* ``get(layout, render_config, capacity)``: the step for the current scene, from the run's cache,
-  from the process's (:class:`ProcessPrograms`: a resumed run, a study's next run or a notebook's
-  second run call the executables an earlier run compiled), from a compile-ahead listener
-  (:class:`AheadListener`, :mod:`.compile_ahead`), or jitted afresh;
-* the compile announcements (the heartbeat says what compiles) and the compile counts of
-  ``summary.json`` (:class:`Compiles`): a call compiles when its padded size is new to its step and
-  no background compile made the program;
-* the memory-map guard (:mod:`patexgs_jax.memory_maps`), checked before a step after something
-  compiled and every few steps: near the cap it releases compiled code, past the stop share it hands
-  the trainer the stop (which saves and raises).
-
-A layout, once left, is rarely met again within a run (the Gaussian capacity only grows; texture
-buckets are sized afresh when one overflows), so when the layout changes in a process holding more
-than :data:`patexgs_jax.memory_maps.KEEP_SHARE` of its memory-map cap, the steps of the layouts left
-are released with the renderer's programs.
+layout, with one program per padded view size (:mod:`patexgs_jax.padding`). The provider gives the
+step (:meth:`StepProvider.get`) from the run's cache, the process's (:class:`ProcessPrograms`: a
+resumed run or a study's next run call what an earlier run compiled), a compile-ahead listener
+(:mod:`.compile_ahead`) or a fresh jit; it announces and counts compiles (:class:`Compiles`: a call
+compiles when its padded size is new to its step and no background compile made it) and guards the
+memory-map cap (:mod:`patexgs_jax.memory_maps`). A layout once left is rarely met again (the
+Gaussian capacity only grows; texture buckets are sized afresh when one overflows), so leaving one
+in a process past :data:`~patexgs_jax.memory_maps.KEEP_SHARE` of its cap releases its programs.
 """
 
 from __future__ import annotations
@@ -169,17 +159,10 @@ class AheadListener(Protocol):
 
 
 class StepProvider:
-    """The compiled steps of one run (see the module's docstring).
-
-    Args:
-      config, optimizer, radius: the run's (``optimizer`` for its structure; rates are ``hp``).
-      pad: the run's padding (:class:`patexgs_jax.padding.TrainPadding`).
-      ahead: the compile-ahead listener (claims and waits), or None.
-      map_guard: the memory-map guard; ``on_map_limit(maps, process)`` is called past its stop
-        share (``maps`` this process's (count, cap) or None when another ``process`` hit it) and
-        is expected to save and raise.
-      shared: the process's programs (:data:`PROCESS`).
-    """
+    """The compiled steps of one run (see the module's docstring). ``pad``: the run's padding;
+    ``ahead``: the compile-ahead listener, or None; ``on_map_limit(maps, process)``, called past the
+    ``map_guard``'s stop share (``maps`` this process's (count, cap), or None when another
+    ``process`` hit it), saves and raises; ``shared``: the process's programs."""
 
     def __init__(self, config: TrainConfig, optimizer, radius: float, pad: padding.TrainPadding, *,
                  ahead: AheadListener | None, map_guard: memory_maps.MapGuard,
@@ -208,7 +191,7 @@ class StepProvider:
             self.check_memory_maps()
         self.step, self.compiled_now = step, False
 
-    def phase(self, step: int) -> str:
+    def phase(self, step: int) -> str:  # (the heartbeat's)
         return f"training the {self.cfg.stage_name(step)} stage"
 
     def check_memory_maps(self) -> None:
@@ -240,13 +223,9 @@ class StepProvider:
 
         def step(scene, opt_state, stats, camera, image, active_sh, w_normal):
             cam = self.pad.camera(camera, tile)
-            compiles = self._first_call(entry, (cam.height, cam.width), f"{cam.width}x{cam.height} px")
-            t0 = time.perf_counter()
-            out = entry.fn(scene, opt_state, stats, cam, padding.pad_image(image, cam.height, cam.width),
-                           np.array([camera.height, camera.width], np.int32), active_sh, w_normal, self.hp)
-            if compiles:
-                self._compiled(time.perf_counter() - t0)
-            return out
+            return self._call(entry, (cam.height, cam.width), f"{cam.width}x{cam.height} px", scene, opt_state,
+                              stats, cam, padding.pad_image(image, cam.height, cam.width),
+                              np.array([camera.height, camera.width], np.int32), active_sh, w_normal, self.hp)
 
         return step
 
@@ -280,9 +259,23 @@ class StepProvider:
                 _release(self.shared.steps.popitem(last=False)[1])
         return entry
 
-    def _first_call(self, entry: StepEntry, size: tuple, what: str) -> bool:
-        """Whether this call of ``entry`` at ``size`` compiles: False when the size was called
-        before or a background compile made its program (waited for here)."""
+    def _call(self, entry: StepEntry, size: tuple, what: str, *args):
+        """``entry.fn(*args)`` at padded size ``size``, counted as a compile where it compiles
+        (compiling is synchronous; the step is not)."""
+        compiles = self._compiles(entry, size, what)
+        t0 = time.perf_counter()
+        out = entry.fn(*args)
+        if compiles:
+            self.compiles.count += 1
+            self.compiles.at.append(self.step)
+            self.compiles.seconds += time.perf_counter() - t0
+            self.compiled_now = True
+            interrupt.set_phase(self.phase(self.step))
+        return out
+
+    def _compiles(self, entry: StepEntry, size: tuple, what: str) -> bool:
+        """Whether the call of ``entry`` at ``size`` compiles: not when the size was called before or
+        a background compile made its program (waited for here)."""
         if size in entry.compiled:
             return False
         entry.compiled.add(size)
@@ -297,14 +290,6 @@ class StepProvider:
         interrupt.set_phase(f"compiling the {self.cfg.stage_name(self.step)} step for {what}")
         interrupt.set_step(self.step, self.cfg.total_steps)
         return True
-
-    def _compiled(self, seconds: float) -> None:
-        """Counts a compile (compiling is synchronous; the step is not)."""
-        self.compiles.count += 1
-        self.compiles.at.append(self.step)
-        self.compiles.seconds += seconds
-        self.compiled_now = True
-        interrupt.set_phase(self.phase(self.step))
 
     # -- batches over devices ---------------------------------------------------------------------
     def data_mesh(self):
@@ -338,12 +323,7 @@ class StepProvider:
         mesh = self.data_mesh()
 
         def fn(*args):
-            compiles = self._first_call(entry, (), f"batches of {self.cfg.batch_size} views")
-            t0 = time.perf_counter()
-            out = entry.fn(*args)
-            if compiles:
-                self._compiled(time.perf_counter() - t0)
-            return out
+            return self._call(entry, (), f"batches of {self.cfg.batch_size} views", *args)
 
         if jax.process_count() == 1:
             return lambda *args: fn(*args, self.hp)

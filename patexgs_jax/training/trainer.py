@@ -33,7 +33,7 @@ from ..render import Capacity, RenderConfig, count_pairs
 from ..schedule import TextureSchedule, TrainState
 from .compile_ahead import CompileAhead
 from .config import TrainConfig, config_dict, effective_config
-from .progress import Estimate, StepWindow
+from .estimate import Estimate, StepWindow
 from .steps import StepProvider, layout_of, refits_at
 from .strategies import Densification, SmoothingFilter, Strategy, init_scene
 

@@ -1,5 +1,7 @@
-"""What a run tells its user: the start line, the time estimate after its first steps, and the note
-that says how to shorten a long run (the progress bars and lines themselves: :mod:`patexgs_jax.progress`).
+"""A run's time estimate and what it tells its user at the start and as it goes: the start line,
+the estimate after the first clean steps of each stage, the note that says how to shorten a long
+run, and the window of losses a progress line averages (the bars and the printing itself:
+:mod:`patexgs_jax.progress`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ __all__ = ["LONG_RUN_SECONDS", "TEXTURED_STEP_COST", "Estimate", "device_descrip
            "long_run_note", "preset_name", "run_estimate", "start_line", "step_seconds", "typical_size", "StepWindow"]
 
 #: A textured step's cost in 2DGS steps, for the time estimate made before the texture stage is
-#: measured (2.5-4x on a 2-core CPU, docs/performance.md).
+#: measured (the measured ratios: docs/performance.md).
 TEXTURED_STEP_COST = 3.0
 
 #: Runs estimated to take longer than this many seconds say so at the start, with the flags that
