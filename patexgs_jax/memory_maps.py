@@ -1,8 +1,8 @@
 """Keeping a long-lived process within the kernel's limit on memory mappings.
 
 XLA's CPU backend keeps every compiled executable's machine code in memory mappings of its own (a
-training step's are thousands, docs/performance.md) for as long as the executable lives, and JAX's caches keep executables alive after the functions that
-made them are gone. Linux caps the mappings of a process (``vm.max_map_count``, 65,530 by default).
+training step's are thousands, docs/performance.md) for as long as the executable lives, and JAX's
+caches keep executables alive after the functions that made them are gone. Linux caps the mappings of a process (``vm.max_map_count``, 65,530 by default).
 A process that compiles many distinct programs - a training run over images of many sizes, an
 evaluation at many sizes, studies that train many runs in one process, a notebook session, a test
 suite - reaches the cap. The next compile then fails inside XLA ("LLVM ERROR: Unable to allocate
