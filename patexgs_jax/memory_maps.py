@@ -2,11 +2,12 @@
 
 XLA's CPU backend keeps every compiled executable's machine code in memory mappings of its own (a
 training step's are thousands, docs/performance.md) for as long as the executable lives, and JAX's
-caches keep executables alive after the functions that made them are gone. Linux caps the mappings of a process (``vm.max_map_count``, 65,530 by default).
-A process that compiles many distinct programs - a training run over images of many sizes, an
-evaluation at many sizes, studies that train many runs in one process, a notebook session, a test
-suite - reaches the cap. The next compile then fails inside XLA ("LLVM ERROR: Unable to allocate
-section memory"), and on the CPU that ends as a crash or a segfault rather than as a Python error.
+caches keep executables alive after the functions that made them are gone. Linux caps the mappings
+of a process (``vm.max_map_count``, 65,530 by default). A process that compiles many distinct
+programs - a training run over images of many sizes, an evaluation at many sizes, studies that train
+many runs in one process, a notebook session, a test suite - reaches the cap. The next compile then
+fails inside XLA ("LLVM ERROR: Unable to allocate section memory"), and on the CPU that ends as a
+crash or a segfault rather than as a Python error.
 
 What keeps the count bounded: few programs (views rendered at a few padded sizes,
 :mod:`patexgs_jax.padding`); the programs of retired layouts released once the process holds
