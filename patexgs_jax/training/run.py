@@ -11,7 +11,7 @@ import jax
 import numpy as np
 
 from .. import checkpoint as ckpt
-from .. import interrupt, memory_maps
+from .. import interrupt, memory_maps, parallel
 from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
@@ -145,8 +145,6 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
     """
     # A process that trains many runs keeps their programs (steps shared between runs, the renderer's)
     # until half the kernel's memory-map cap is reached: then free them (see patexgs_jax.memory_maps).
-    from .. import parallel
-
     memory_maps.release_compiled_code()
     if jax.process_count() > 1:  # the batch must split evenly over every process's devices
         parallel.num_batch_devices(config.batch_size, config.devices)

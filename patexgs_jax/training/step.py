@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from .. import background, losses, padding
+from .. import background, losses, padding, parallel
 from .. import densify as dens
 from ..render import render_jit
 
@@ -146,8 +146,6 @@ def batch_step(scene, opt_state, stats, cameras, images, active_sh, w_normal, *,
       ``pairs_needed`` and ``max_tile_count`` are the maxima over the batch, ``l1`` and ``psnr``
       the means.
     """
-    from .. import parallel
-
     B = images.shape[0]
     _count_trace((render_config, capacity, B))
 
