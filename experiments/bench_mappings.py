@@ -6,7 +6,7 @@
 Runs the paper's protocol (:mod:`experiments.mipnerf360`, in this process, output in ``--out``,
 default a temporary folder) and measures what limits a long run: XLA keeps each compiled program's
 machine code in memory mappings of its own, and Linux caps a process's mappings
-(``vm.max_map_count``, 65,530 by default; see :mod:`patexgs_jax.compiled`). A thread samples
+(``vm.max_map_count``, 65,530 by default; see :mod:`patexgs_jax.memory_maps`). A thread samples
 ``/proc/self/maps`` every ``--interval`` seconds, and the count is also read after every training
 step and every evaluated view; compiles are counted from JAX's backend-compile events (persistent
 cache hits included: a loaded program holds mappings too), by function, and the traces of the
@@ -36,9 +36,9 @@ class Meter:
     """Mapping samples and compile counts, attributed to the current phase."""
 
     def __init__(self, interval: float, max_seconds: float | None = None):
-        from patexgs_jax import compiled
+        from patexgs_jax import memory_maps
 
-        self.compiled = compiled
+        self.memory_maps = memory_maps
         self.interval = interval
         self.max_seconds = max_seconds
         self.interrupted = False
@@ -76,7 +76,7 @@ class Meter:
         self._enter(phase)
 
     def maps(self) -> int:
-        m = self.compiled.memory_maps()
+        m = self.memory_maps.memory_maps()
         return 0 if m is None else m[0]
 
     def record(self, event: str) -> None:
@@ -218,9 +218,9 @@ def main(argv=None) -> int:
     M = importlib.import_module("experiments.mipnerf360")
     meter = Meter(args.interval, args.max_seconds)
     if not args.no_compile_cache:
-        meter.compiled.enable_compile_cache()
+        meter.memory_maps.enable_compile_cache()
     instrument(meter)
-    maps = meter.compiled.memory_maps()
+    maps = meter.memory_maps.memory_maps()
     limit = None if maps is None else maps[1]
     out = args.out or tempfile.mkdtemp(prefix="bench_mappings_")
     config = {k: v for k, v in dict(preset=args.preset, factor=args.factor, iters_2dgs=args.iters_2dgs,

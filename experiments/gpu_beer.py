@@ -164,11 +164,11 @@ def main(argv=None) -> int:
         args.budget_s = REHEARSAL_BUDGET_S if rehearsal else 540.0
     t0 = time.monotonic()
     deadline = t0 + args.budget_s
-    from patexgs_jax import compiled, data
+    from patexgs_jax import data, memory_maps
     from patexgs_jax.evaluation import LPIPS, evaluate_scales
     from patexgs_jax.training import stage1_checkpoint, train
 
-    compiled.enable_compile_cache()
+    memory_maps.enable_compile_cache()
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     head = header(SCHEMA)

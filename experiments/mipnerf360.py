@@ -450,11 +450,11 @@ def _study(args) -> int:
     import jax
 
     from patexgs_jax import checkpoint as ckpt
-    from patexgs_jax import compiled
+    from patexgs_jax import memory_maps
     from patexgs_jax.training.cli import tidy_output_dir
 
     if not args.no_compile_cache:
-        compiled.enable_compile_cache()
+        memory_maps.enable_compile_cache()
 
     def split(s):
         return None if s is None else [x.strip() for x in s.split(",") if x.strip()]

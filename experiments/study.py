@@ -239,7 +239,7 @@ class Study:
         if shared:
             self.say(f"[{name}] stage 1 (2DGS), shared by {', '.join(label(m, budget) for m in shared)}")
             # The texture stages that start from it get their first programs compiled ahead, in the
-            # background, from the end of its 2DGS stage (patexgs_jax.ahead).
+            # background, from the end of its 2DGS stage (patexgs_jax.background).
             nxt = [self._train_config(m, max_g) for m in shared if m not in ("2dgs", MATCHED)]
             s1 = train(ds, s1_cfg, s1_dir, resume=True, verbose=self.verbose, evaluate_everywhere=True,
                        prepare=nxt)

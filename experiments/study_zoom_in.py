@@ -112,7 +112,7 @@ def evaluate_zoom_in(renderer, zoomed: dict, *, lpips=None, phase: str | None = 
     a stop line says is being done (``"... zoomed in"``; the zoom is added)."""
     import jax.numpy as jnp
 
-    from patexgs_jax import compiled, interrupt
+    from patexgs_jax import interrupt, memory_maps
     from patexgs_jax import lpips as lp
     from patexgs_jax.evaluation import MAX_METRIC_PROGRAMS, usable
     from patexgs_jax.metrics import psnr, ssim
@@ -135,7 +135,7 @@ def evaluate_zoom_in(renderer, zoomed: dict, *, lpips=None, phase: str | None = 
             ps.append(float(psnr(img, gt)))
             ss.append(float(ssim(jnp.asarray(img), jnp.asarray(gt))))
             ls.append(lpips(img, gt) if lpips is not None else None)
-            compiled.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
+            memory_maps.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
         result[str(z)] = dict(psnr=float(np.mean(ps)), ssim=float(np.mean(ss)),
                               lpips=float(np.mean(ls)) if ls and all(x is not None for x in ls) else None,
                               views=len(ps), source=source)

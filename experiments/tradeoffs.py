@@ -501,12 +501,12 @@ def main(argv=None) -> int:
                     "as labelled points; nothing is trained")
     args = ap.parse_args(argv)
 
-    from patexgs_jax import compiled
+    from patexgs_jax import memory_maps
     from patexgs_jax.checkpoint import CheckpointError, check_output_dir
     from patexgs_jax.data import load
 
     if not args.no_compile_cache:
-        compiled.enable_compile_cache()
+        memory_maps.enable_compile_cache()
 
     if args.from_study is not None:
         from experiments.study_tradeoffs import write_from_study

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import jax
 
-from patexgs_jax import compiled
+from patexgs_jax import memory_maps
 from patexgs_jax.camera import ZOOM_SCALES
 from patexgs_jax.checkpoint import CheckpointError, check_output_dir, latest_checkpoint, load_checkpoint
 from patexgs_jax.evaluation import evaluate_scales, render_ms, usable
@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default=None, help="only these runs (comma-separated labels; default all)")
     ap.add_argument("--json", default=None, help="also write the figures here")
     args = ap.parse_args(argv)
-    compiled.enable_compile_cache()
+    memory_maps.enable_compile_cache()
     study = Path(args.study)
     names = args.variants.split(",")
     for n in names:

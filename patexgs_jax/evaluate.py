@@ -128,13 +128,13 @@ def main(argv=None) -> int:
                     "cap, else all)")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the figures there")
     args = ap.parse_args(argv)
-    from . import compiled
+    from . import memory_maps
     from .data import DatasetError
     from .export import PlyFormatError
 
     try:
         scales, nets = _scales(args.scales), _nets(args.lpips)
-        compiled.enable_compile_cache()
+        memory_maps.enable_compile_cache()
         source = load_source(args.source)
         record = DataRecord(Path(args.data), args.factor) if args.data is not None else source.data
         if record is None:

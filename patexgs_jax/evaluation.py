@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import compiled, interrupt, progress
+from . import interrupt, memory_maps, progress
 from .camera import ZOOM_SCALES
 from .padding import ViewRenderer
 from .render import RenderConfig
@@ -184,7 +184,7 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
     from . import lpips as lp
     from .metrics import ssim
 
-    compiled.release_compiled_code()  # (only past half the memory-map cap, as train() does)
+    memory_maps.release_compiled_code()  # (only past half the memory-map cap, as train() does)
     scales = [int(s) for s in scales]
     acc = {s: dict(psnr=[], ssim=[], lpips=[], alias_psnr=[], supersampled_psnr=[], kept=[]) for s in scales}
     views = [v for v in views if usable(v)]
@@ -196,7 +196,7 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
                 interrupt.check()  # a command line's stop signal (see patexgs_jax.interrupt)
                 interrupt.set_step(i, len(views), "view")
                 _evaluate_view(renderer, i, v, scales, acc, lpips, keep_images)
-                compiled.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
+                memory_maps.trim_programs(ssim, lp.lpips, max_programs=MAX_METRIC_PROGRAMS)
                 bar.update(1)
     result, images = {}, {}
     for s in scales:

@@ -188,14 +188,14 @@ def _forced_exit(signum: int) -> None:
 
 def end_with_stop_line(signum: int) -> int:
     """For the command line that caught :class:`Interrupted`: prints the stop line and returns the
-    exit status. When a background compile (:mod:`patexgs_jax.ahead`) is running, the process ends
+    exit status. When a background compile (:mod:`patexgs_jax.background`) is running, the process ends
     here, with :func:`os._exit` and that status, after the registered clean-ups: the work is saved,
     and neither waiting for XLA's compiler nor tearing the interpreter down under it is safe
     (the latter crashes)."""
-    from . import ahead
+    from . import background
 
     _end(signum)
-    if ahead.busy() is not None:
+    if background.busy() is not None:
         _forced_exit(signum)
     return exit_code(signum)
 

@@ -3,7 +3,7 @@
 A jitted renderer or training step is compiled once per image size (``Camera.width`` and
 ``height`` are static). Undistorted captures have a slightly different size per image (beer at 1/4:
 20 sizes over 62 training views), and evaluation adds every view's zoom-outs, so compiling per size
-fills the process's memory mappings (see :mod:`patexgs_jax.compiled`). Here a view is rendered at a
+fills the process's memory mappings (see :mod:`patexgs_jax.memory_maps`). Here a view is rendered at a
 padded size instead, with the same intrinsics, and cropped: pixel (i, j) keeps its centre
 (j + 0.5, i + 0.5) and the renderer composites each tile independently, so the cropped image is the
 unpadded render: bit for bit when the padded size keeps the tile grid, within float rounding (1e-6
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import compiled
+from . import memory_maps
 from .camera import Camera
 from .render import Capacity, count_pairs, prepare_textures, render_jit
 
@@ -248,7 +248,7 @@ class ViewRenderer:
       reuse_textures: build the scene's texture atlases and their pyramids once
         (:func:`patexgs_jax.render.prepare_textures`) and reuse them for every view, instead of in every
         render: for many views of one scene (a viewer), at the cost of one more program.
-      programs: programs compiled ahead for this scene's layout (:mod:`patexgs_jax.ahead`):
+      programs: programs compiled ahead for this scene's layout (:mod:`patexgs_jax.training.compile_ahead`):
         ``("count", h, w)``: ``count_pairs.lower(scene, camera, config=config).compile()``;
         ``("render", h, w, capacity)``: ``render_jit.lower(scene, camera, config=config,
         capacity=capacity, active_sh_degree=None, textures=None).compile()``, for padded cameras of
@@ -320,7 +320,7 @@ class ViewRenderer:
 
     def release(self) -> None:
         """Done with the scene: its capacities and programs are forgotten, and the compiled renderer
-        and pair counter released where the process holds more than :data:`compiled.KEEP_SHARE` of
+        and pair counter released where the process holds more than :data:`memory_maps.KEEP_SHARE` of
         its memory-map cap (below it they are kept for the next scene of these shapes; see
         :func:`release_scene_programs`)."""
         release_scene_programs(retire=True)
@@ -339,12 +339,12 @@ class ViewRenderer:
 def release_scene_programs(retire: bool = False) -> bool:
     """Releases the renderer's, the pair counter's and the texture preparer's compiled programs (one
     per scene shape, image size and capacity), and the image metrics' (one per image size); with
-    ``retire``, only where the process holds more than :data:`compiled.KEEP_SHARE` of its
-    memory-map cap (:func:`compiled.retire_programs`). Returns whether it released them."""
+    ``retire``, only where the process holds more than :data:`memory_maps.KEEP_SHARE` of its
+    memory-map cap (:func:`memory_maps.retire_programs`). Returns whether it released them."""
     from . import metrics
 
     fns = (render_jit, count_pairs, prepare_textures, metrics.ssim)
     if retire:
-        return compiled.retire_programs(*fns)
-    compiled.release_programs(*fns)
+        return memory_maps.retire_programs(*fns)
+    memory_maps.release_programs(*fns)
     return True

@@ -168,7 +168,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     """
     import jax
 
-    from .ahead import AHEAD_ENV
+    from .background import AHEAD_ENV
     from .densify import DensifyConfig
     from .evaluation import evaluate as evaluate_views
     from .training.trainer import Trainer

@@ -139,7 +139,7 @@ __all__ = [
 #: How many times the jitted renderer has been traced, per (config, capacity), in this process. Tests
 #: and benchmarks read it to assert that a view of known shapes does not retrace; nothing in the
 #: package reads it (whether a viewer frame compiled comes from JAX's compile events,
-#: :func:`patexgs_jax.compiled.xla_compiles`).
+#: :func:`patexgs_jax.memory_maps.xla_compiles`).
 TRACE_COUNTS: collections.Counter = collections.Counter()
 
 

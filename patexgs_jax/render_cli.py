@@ -219,7 +219,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    from . import compiled
+    from . import memory_maps
     from .export import PlyFormatError
 
     try:
@@ -229,7 +229,7 @@ def main(argv=None) -> int:
             raise RenderError(f"--width {args.width}: pass 2 px or more.")
         if args.enlarge < 1 or (args.fps is not None and not args.fps > 0):
             raise RenderError("--enlarge must be 1 or more and --fps positive.")
-        compiled.enable_compile_cache()
+        memory_maps.enable_compile_cache()
         sources = [load_source(p) for p in [args.source, *args.compare]]
         if len({s.name for s in sources}) < len(sources):  # the same folder name twice: the paths tell them apart
             for s, p in zip(sources, [args.source, *args.compare], strict=True):

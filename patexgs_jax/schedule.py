@@ -110,18 +110,19 @@ class TextureSchedule:
     """
 
     def __init__(self, config: TrainConfig, optimizer, train_views, render_config: RenderConfig, *,
-                 log: Callable[[dict], None] = lambda record: None, say: Callable[[str], None] = lambda msg: None):
+                 log: Callable[[dict], None] = lambda record: None, say: Callable[[str], None] = lambda msg: None,
+                 programs: Callable[[Scene, int], dict | None] = lambda scene, step: None):
         self.cfg, self.spec, self.optimizer = config, config.spec, optimizer
         self.train_views, self.render_config = train_views, render_config
         self.log, self.say = log, say
+        # Eq. 7's pair counter and renderer compiled ahead for a scene's layout (padding.ViewRenderer's
+        # ``programs``), asked for at the allocation: the trainer passes its compile-ahead's claim.
+        self.programs = programs
         self.schedule = growth_schedule(config)
         self.state: adaptive.TextureScheduleState | None = None
         self.texel_budget: int | None = None
         self.allocation: dict | None = None
         self.growth_events: list[dict] = []  # one dict per Eq. 8-10 event that grew textures
-        # Eq. 7's pair counter and renderer compiled ahead for the next allocation (see
-        # padding.ViewRenderer's ``programs``), set by the trainer; used once.
-        self.programs: dict | None = None
 
     def load(self, state: adaptive.TextureScheduleState | None, allocation: dict | None, growth_events) -> None:
         """Restores the strategy's state from a checkpoint."""
@@ -171,8 +172,7 @@ class TextureSchedule:
         """Eqs. 6-7 at ``step``: contribution counts over all training views -> initial sizes (or
         N x N for every Gaussian, ``patexgs-fixed-N``)."""
         scene = state.scene
-        programs, self.programs = self.programs, None
-        with padding.ViewRenderer(scene, self.render_config, programs=programs) as renderer:
+        with padding.ViewRenderer(scene, self.render_config, programs=self.programs(scene, step)) as renderer:
             renderer.prepare([v.camera for v in self.train_views])
             # Kept sparse, one view at a time: a dense (views, C) stack is GBs at the paper's scale.
             counts = adaptive.ContributionCounts.from_views(

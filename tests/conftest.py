@@ -28,7 +28,7 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
-from patexgs_jax import compiled  # noqa: E402
+from patexgs_jax import memory_maps  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
 
@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 # with the same programs (test_train, the studies), which then load instead of compiling again. Set
 # before anything compiles (JAX decides once whether the cache is used). It was once switched off
 # after "a hang in the compile-and-write-cache path"; that hang was the memory-map cap (see
-# patexgs_jax.compiled), which _release_compiled_code below now keeps the session away from.
+# patexgs_jax.memory_maps), which _release_compiled_code below now keeps the session away from.
 # The first process to load this file (pytest-xdist's controller, or pytest alone) picks the folder;
 # xdist's workers inherit its path, so a program one worker compiled loads in the other. It is
 # test-xla/ in the project's cache, $PATEXGS_CACHE (default $XDG_CACHE_HOME/patexgs_jax, i.e.
@@ -50,21 +50,21 @@ sys.path.insert(0, os.path.dirname(__file__))
 # programs again (tests/integration/test_mipnerf360.py alone: 249 -> 234 s).
 _XLA_CACHE = os.environ.get("PATEXGS_TEST_XLA_CACHE")
 if not _XLA_CACHE or not os.path.isdir(_XLA_CACHE):
-    _XLA_CACHE = str(compiled.project_cache_root() / "test-xla")
+    _XLA_CACHE = str(memory_maps.project_cache_root() / "test-xla")
     try:
         os.makedirs(_XLA_CACHE, exist_ok=True)
         # (JAX's own size cap needs the filelock package: a kept folder past 4 GiB starts afresh)
         if sum(e.stat().st_size for e in os.scandir(_XLA_CACHE) if e.is_file()) > 4 << 30:
             shutil.rmtree(_XLA_CACHE, ignore_errors=True)
             os.makedirs(_XLA_CACHE, exist_ok=True)
-        compiled.drop_empty_entries(_XLA_CACHE)  # (what a killed run left would compile every time)
+        memory_maps.drop_empty_entries(_XLA_CACHE)  # (what a killed run left would compile every time)
     except OSError:  # (no writable cache folder: a throw-away one, removed at exit)
         _XLA_CACHE = tempfile.mkdtemp(prefix="patexgs_xla_cache_")
         atexit.register(shutil.rmtree, _XLA_CACHE, ignore_errors=True)
     os.environ["PATEXGS_TEST_XLA_CACHE"] = _XLA_CACHE
 jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-# The command lines turn on a per-user cache (patexgs_jax.compiled.enable_compile_cache); the ones
+# The command lines turn on a per-user cache (patexgs_jax.memory_maps.enable_compile_cache); the ones
 # the tests start, in this process or in subprocesses, use the session's instead, never that one.
 os.environ["PATEXGS_COMPILE_CACHE"] = _XLA_CACHE
 
@@ -76,18 +76,17 @@ settings.load_profile("ci" if os.environ.get("CI") else "default")
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_code():
     """After each module, free JAX's compiled code once the process holds a quarter of its
-    memory-map cap (see patexgs_jax.compiled): a whole suite in one process compiles far more than
+    memory-map cap (see patexgs_jax.memory_maps): a whole suite in one process compiles far more than
     the cap allows, and reaching it ended in a crash (or, with pycolmap's signal handler, a hang).
     The training steps that runs of one process share are released after every module, and so are
     the programs compiled ahead for runs that never came (a study's), so that what a module counts
     does not depend on which modules ran before it in its worker."""
     yield
-    from patexgs_jax.training import compile_ahead
-    from patexgs_jax.training.step_cache import release_steps
+    from patexgs_jax.training.steps import PROCESS
 
-    release_steps()
-    compile_ahead.discard_prepared()
-    compiled.release_compiled_code(threshold=0.25)
+    PROCESS.release_steps()
+    PROCESS.discard_prepared()
+    memory_maps.release_compiled_code(threshold=0.25)
 
 
 @pytest.fixture(scope="module")

@@ -4,11 +4,12 @@ One module a concern:
 
 - :mod:`.config`: :class:`TrainConfig`, the methods (:class:`Method`), the presets;
 - :mod:`.step`: the jitted single-view and batched steps;
-- :mod:`.strategies`: densification, called between steps (the texture schedule, also called
-  between steps, is :mod:`patexgs_jax.schedule`);
-- :mod:`.trainer`: the host loop (:class:`~.trainer.Trainer`);
+- :mod:`.strategies`: the strategy protocol, densification and the 3D filter, called between steps
+  (the texture schedule, also a strategy, is :mod:`patexgs_jax.schedule`);
+- :mod:`.steps`: the step provider, which decides which compiled step runs;
 - :mod:`.compile_ahead`: the texture stage's first programs compiled in the background;
-- :mod:`.progress`: the start line, the time estimate, the note on long runs;
+- :mod:`.trainer`: the host loop (:class:`~.trainer.Trainer`);
+- :mod:`.estimate`: the start line, the time estimate, the note on long runs;
 - :mod:`.run`: :func:`train` (resume, stage-1 sharing, outputs);
 - :mod:`.cli`: ``python -m patexgs_jax.train``.
 

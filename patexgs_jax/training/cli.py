@@ -235,9 +235,9 @@ def _train_cli(args) -> int:
 
 
 def _train(args) -> None:
-    from .. import compiled
+    from .. import memory_maps
 
-    compiled.enable_compile_cache()
+    memory_maps.enable_compile_cache()
     interrupt.set_phase("checking the arguments")
     cfg = _config(args)
     if args.data is None:
@@ -269,14 +269,14 @@ def _config(args):
 
 def _plan(args) -> None:
     """``--plan``: the run's plan (:func:`patexgs_jax.plan.make_plan`), printed and in ``--json``."""
-    from .. import compiled
+    from .. import memory_maps
     from .. import plan as planning
     from ..plan_steps import Progress
 
     devices = [planning.parse_device(d) for d in args.plan_device]
     if args.plan_steps < 0:
         raise ValueError(f"--plan-steps {args.plan_steps}: give the steps to time in each stage, 0 or more.")
-    compiled.enable_compile_cache()
+    memory_maps.enable_compile_cache()
     cfg = _config(args)
     if args.data is None:
         from ..data.synthetic import ensure_default_scene

@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
+
 from .. import densify as dens
 from ..adaptive import DEFAULT_MAX_SIZE, sigma_setting
 from ..optim import LearningRates
@@ -284,6 +286,20 @@ class TrainConfig:
     @property
     def total_steps(self) -> int:
         return self.iters_2dgs + (self.continue_2dgs if self.spec.textures is None else self.iters_tex)
+
+    def in_stage1(self, step: int) -> bool:
+        """Whether step ``step`` trains as the first stage (every step of an untextured method)."""
+        return step < self.iters_2dgs or self.spec.textures is None
+
+    def stage_name(self, step: int) -> str:
+        """``"2DGS"`` (``"3DGS"`` for 3D Gaussians) or ``"textured"``: which step ``step`` runs."""
+        return self.spec.stage1_name if self.in_stage1(step) else "textured"
+
+    def view_index(self, step: int, num_views: int, seed: int | None = None) -> int:
+        """The training view of ``step``, of ``num_views``: a per-epoch permutation seeded by (seed,
+        epoch); ``seed`` defaults to the run's."""
+        epoch, i = divmod(step, num_views)
+        return int(np.random.default_rng([self.seed if seed is None else seed, epoch]).permutation(num_views)[i])
 
     def render_config(self, stage: int = 2) -> RenderConfig:
         """The renderer's settings in ``stage`` (1: the 2DGS stage, the same for every method so that

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 
 from .. import checkpoint as ckpt
-from .. import compiled, interrupt
+from .. import interrupt, memory_maps, parallel
 from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
@@ -26,7 +26,7 @@ from .config import (
     stage1_key,
     stage1_part,
 )
-from .progress import start_line
+from .estimate import start_line
 from .trainer import STAGE1_DIR, Trainer
 
 __all__ = ["STAGE2_FIELDS", "TrainResult", "load_stage1", "stage1_checkpoint", "train"]
@@ -97,7 +97,7 @@ def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
 
 
 def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume: bool = False,  # noqa: B008 (frozen)
-          verbose: bool = True, stage1=None, map_guard: compiled.MapGuard | None = None,
+          verbose: bool = True, stage1=None, map_guard: memory_maps.MapGuard | None = None,
           evaluate_everywhere: bool = False, end_distributed: bool = False,
           check_memory: bool = True, preset: str | None = None, prepare=()) -> TrainResult:
     """Trains ``config.method`` on ``dataset`` (see :func:`patexgs_jax.data.load`).
@@ -114,8 +114,8 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         ``config`` outside :data:`STAGE2_FIELDS` (see :func:`stage1_checkpoint`). The stage-1
         training time is carried over into ``train_seconds``. Ignored when resuming.
       map_guard: when the process nears the kernel's memory-map cap, compiled code is released and,
-        if that is not enough, the run checkpoints and raises :class:`compiled.MapLimitReached`
-        (default ``compiled.MapGuard()``: release at half the cap, stop at 90%).
+        if that is not enough, the run checkpoints and raises :class:`memory_maps.MapLimitReached`
+        (default ``memory_maps.MapGuard()``: release at half the cap, stop at 90%).
       evaluate_everywhere, end_distributed: with several processes (``jax.distributed``, see
         :mod:`patexgs_jax.parallel`) every process trains and process 0 alone writes the outputs
         and, by default, evaluates (the others' summaries have None metrics). With
@@ -129,7 +129,7 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
       preset: the name of the preset ``config`` was made from, for the start line.
       prepare: configs of runs this process will start from this run's stage-1 checkpoint
         (``stage1=``): when this run reaches the end of its 2DGS stage, their texture stage's first
-        programs are compiled ahead in a background thread (:mod:`patexgs_jax.ahead`,
+        programs are compiled ahead in a background thread (:mod:`patexgs_jax.background`,
         ``PATEXGS_COMPILE_AHEAD=0`` turns it off), so that their first steps do not wait for them.
     Returns:
       :class:`TrainResult`. Its summary's ``train_seconds`` is the wall-clock time of the training
@@ -138,16 +138,14 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
       allocation and growth, checkpoints), data loading or evaluation; its ``config`` is the
       configuration the run trained with (:func:`~patexgs_jax.training.config.effective_config`).
     Raises:
-      compiled.MapLimitReached: near the memory-map cap (the message says how to resume).
+      memory_maps.MapLimitReached: near the memory-map cap (the message says how to resume).
       parallel.DistributedError: with several processes, they do not start from the same state, or
         one of them stopped (the message says what to do).
       memory.NotEnoughMemory: the step would not fit in memory (the message names a factor that fits).
     """
     # A process that trains many runs keeps their programs (steps shared between runs, the renderer's)
-    # until half the kernel's memory-map cap is reached: then free them (see patexgs_jax.compiled).
-    from .. import parallel
-
-    compiled.release_compiled_code()
+    # until half the kernel's memory-map cap is reached: then free them (see patexgs_jax.memory_maps).
+    memory_maps.release_compiled_code()
     if jax.process_count() > 1:  # the batch must split evenly over every process's devices
         parallel.num_batch_devices(config.batch_size, config.devices)
     out = None if out_dir is None else Path(out_dir)
@@ -192,21 +190,21 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         slots = max(run.scene.capacity, config.max_gaussians or 0)
         memory.check_training_memory(dataset, gaussians=slots, textured=run.spec.textures is not None)
         plan.check_fits(dataset, config, slots)  # every stage, on a GPU too
-    run.say(start_line(dataset, config, run, preset))
-    xla_before = compiled.xla_compiles()
+    run.say(start_line(dataset, config, run.step, preset))
+    xla_before = memory_maps.xla_compiles()
     run.run()
-    xla_programs, xla_seconds = (a - b for a, b in zip(compiled.xla_compiles(), xla_before, strict=True))
+    xla_programs, xla_seconds = (a - b for a, b in zip(memory_maps.xla_compiles(), xla_before, strict=True))
     interrupt.check()
-    scene = run.scene
+    scene, compiles = run.scene, run.steps.compiles
     size = scene_storage(scene)
     summary: dict[str, Any] = dict(
         method=config.method, steps=run.step, train_seconds=run.t_train, num_gaussians=size["gaussians"],
         texels=size["texels"], texels_rgb=size["texels_rgb"], texels_alpha=size["texels_alpha"],
-        storage_mb=size["storage_mb"], recompiles=run.recompiles, compiled_at_steps=run.compiled_at,
+        storage_mb=size["storage_mb"], recompiles=compiles.count, compiled_at_steps=compiles.at,
         # The step's programs this process traced for the run (``recompiles`` also counts those of a
         # run resumed or started from a stage-1 checkpoint) and the seconds those steps took; every
         # XLA program the process compiled or loaded while it trained.
-        compiles=dict(step_programs=len(run.compiled_at), step_seconds=round(run.compile_s, 3),
+        compiles=dict(step_programs=len(compiles.at), step_seconds=round(compiles.seconds, 3),
                       xla_programs=xla_programs, xla_seconds=round(xla_seconds, 3)),
         padding=run.pad.summary(run.render_cfg.tile_size),
         compile_ahead=run.ahead.summary(), skipped_steps=run.skipped,

@@ -15,21 +15,21 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from .. import ahead, losses, padding
+from .. import background, losses, padding, parallel
 from .. import densify as dens
 from ..render import render_jit
 
 __all__ = ["AHEAD_STEP_TRACES", "STEP_TRACES", "batch_step", "single_view_step", "view_loss_and_grads"]
 
 #: Traces of the jitted training step, per (render config, capacity[, batch size]): tests assert on it.
-#: Traces made by a background compile (:mod:`patexgs_jax.ahead`) count in AHEAD_STEP_TRACES instead,
+#: Traces made by a background compile (:mod:`patexgs_jax.background`) count in AHEAD_STEP_TRACES instead,
 #: so that STEP_TRACES counts what the steps themselves trace (and a step can tell that it traced).
 STEP_TRACES: collections.Counter = collections.Counter()
 AHEAD_STEP_TRACES: collections.Counter = collections.Counter()
 
 
 def _count_trace(key) -> None:
-    (AHEAD_STEP_TRACES if ahead.in_background() else STEP_TRACES)[key] += 1
+    (AHEAD_STEP_TRACES if background.in_background() else STEP_TRACES)[key] += 1
 
 _GROUPS = ("means", "log_scales", "quats", "opacity_logits", "sh", "rgb", "alpha")
 
@@ -146,8 +146,6 @@ def batch_step(scene, opt_state, stats, cameras, images, active_sh, w_normal, *,
       ``pairs_needed`` and ``max_tile_count`` are the maxima over the batch, ``l1`` and ``psnr``
       the means.
     """
-    from .. import parallel
-
     B = images.shape[0]
     _count_trace((render_config, capacity, B))
 

@@ -1,24 +1,40 @@
 """The host-side schedule of a training run as strategies: densification (stage 1) and Mip-Splatting's
-3D filter here, and the texture schedule (stage 2, :class:`patexgs_jax.schedule.TextureSchedule`).
+3D filter here, and the texture schedule (stage 2, :class:`patexgs_jax.schedule.TextureSchedule`);
+and where stage 1 starts from (:func:`init_scene`).
 
-A strategy is a host-side object called between jitted steps, as gsplat's densification strategies
-are: ``before_step(state, step)`` and ``after_step(state, step)`` take the
+A strategy (:class:`Strategy`) is a host-side object called between jitted steps, as gsplat's
+densification strategies are: ``before_step(state, step)`` and ``after_step(state, step)`` take the
 :class:`~patexgs_jax.schedule.TrainState` and return the new one. The trainer calls them in order,
-:class:`Densification` first.
+:class:`Densification` first, and only through these two.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Protocol
 
 import numpy as np
 
 from .. import densify as dens
 from .. import filter3d
+from ..scene import Scene
 from ..schedule import TrainState
 from .config import TrainConfig, effective_config
 
-__all__ = ["Densification", "SmoothingFilter"]
+__all__ = ["Densification", "SmoothingFilter", "Strategy", "init_scene"]
+
+
+class Strategy(Protocol):
+    """Host-side work between jitted steps: each call takes the training state and returns the new
+    one (the input is not used again). The trainer calls its strategies through these two only."""
+
+    def before_step(self, state: TrainState, step: int) -> TrainState:
+        """Before the step that starts at ``step``."""
+        ...
+
+    def after_step(self, state: TrainState, step: int) -> TrainState:
+        """Once ``step`` steps are complete."""
+        ...
 
 
 class Densification:
@@ -76,3 +92,37 @@ class SmoothingFilter:
         if not self.on or not self.recomputes_at(step):
             return state
         return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))
+
+
+def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:
+    """2DGS initialisation from points (M, 3) and colours (M, 3) in [0, 1] (or None: grey).
+
+    Scales: the mean distance to the 3 nearest neighbours (both axes; all three for the 3D methods,
+    whose Mip-Splatting filter starts at zero); random rotations; opacity ``config.init_opacity``;
+    SH DC from the colours, higher bands zero.
+    """
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (missing from scipy's stubs)
+
+    points = np.asarray(points, np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise ValueError(f"need a non-empty (M, 3) point cloud to initialise from, got {points.shape}.")
+    if config.max_gaussians is not None and len(points) > config.max_gaussians:
+        keep = np.random.default_rng(config.seed).choice(len(points), config.max_gaussians, replace=False)
+        points = points[np.sort(keep)]
+        colors = None if colors is None else np.asarray(colors)[np.sort(keep)]
+    n = len(points)
+    k = min(4, n)
+    d, _ = cKDTree(points).query(points, k=k)
+    dist = np.sqrt(np.mean(np.square(d[:, 1:]), axis=1)) if k > 1 else np.ones(n)
+    dist = np.maximum(dist, 1e-7)
+    rng = np.random.default_rng(config.seed)
+    quats = rng.normal(size=(n, 4))
+    K = (config.sh_degree + 1) ** 2
+    sh = np.zeros((n, K, 3))
+    col = np.full((n, 3), 0.5) if colors is None else np.clip(np.asarray(colors, np.float64), 0, 1)
+    sh[:, 0] = (col - 0.5) / 0.28209479177387814
+    cap = capacity or 1 << max(n - 1, 1).bit_length()
+    spec = config.spec
+    return Scene.from_arrays(points, np.repeat(dist[:, None], 3 if spec.primitive == "3d" else 2, axis=1), quats,
+                             np.full(n, config.init_opacity), sh, capacity=cap,
+                             filter3d=np.zeros(n) if spec.filter3d else None)

@@ -409,7 +409,7 @@ class FrameRenderer:
             r.capacities.clear()
         self._renderers.clear()
         release_scene_programs()
-        from ..compiled import release_programs
+        from ..memory_maps import release_programs
 
         release_programs(dominant_mip_level)
 
@@ -418,9 +418,9 @@ def _programs() -> int:
     """XLA programs this process has compiled (or loaded from the persistent cache) so far, from JAX's
     compile events: a frame that changes the count compiled something (the renderer, the pair
     counter, the texture preparer, the mip-level function or an eager op)."""
-    from .. import compiled
+    from .. import memory_maps
 
-    return compiled.xla_compiles()[0]
+    return memory_maps.xla_compiles()[0]
 
 
 def scene_stats(scene) -> dict:

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import compiled, interrupt
+from .. import interrupt, memory_maps
 from . import frames as vw
 
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
@@ -397,7 +397,7 @@ class Viewer:
             self.log(f"client {client.client_id}: first frame, {frame.rendered[0]}x{frame.rendered[1]} rendered "
                      f"in {frame.ms:.0f} ms")
         if frame.compiled:  # a long session compiles many programs: keep within the memory-map cap
-            compiled.release_compiled_code()
+            memory_maps.release_compiled_code()
         if frame.grew:
             self.log(f"tile capacity grown for a {frame.rendered[0]}x{frame.rendered[1]} view (one new program)")
         now = time.monotonic()
@@ -440,7 +440,7 @@ def main(argv=None) -> int:
     ap.add_argument("--settle", type=float, default=0.2, help="seconds at rest before the full-size frame")
     ap.add_argument("--verbose", action="store_true", help="log every frame sent")
     args = ap.parse_args(argv)
-    compiled.enable_compile_cache()
+    memory_maps.enable_compile_cache()
     try:
         if args.max_side < 16 or args.preview < 1 or args.settle < 0:
             raise vw.ViewerError("--max-side must be at least 16, --preview at least 1 and --settle >= 0.")

@@ -1,4 +1,4 @@
-"""Compiling ahead (:mod:`patexgs_jax.ahead`): the texture stage's first step and Eq. 7's
+"""Compiling ahead (:mod:`patexgs_jax.background`): the texture stage's first step and Eq. 7's
 programs are compiled in a background thread before they are needed; the step at the stage change
 then traces and compiles nothing, the results are bit-identical to a run without it
 (``PATEXGS_COMPILE_AHEAD=0``), and a stop signal during a background compile ends the process with
@@ -21,13 +21,13 @@ import numpy as np
 import pytest
 
 from locations import REPO
-from patexgs_jax import ahead
+from patexgs_jax import background
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax.data import load
 from patexgs_jax.training import compile_ahead
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.step_cache import release_steps
+from patexgs_jax.training.steps import PROCESS
 from patexgs_jax.training.trainer import Trainer
 from train_configs import tiny_config
 
@@ -112,8 +112,8 @@ def test_stage2_compiled_ahead_is_hit_and_bit_identical(dataset, tmp_path, monke
     results = {}
     ck = None
     for mode in ("1", "0"):
-        release_steps()  # (each run compiles its own: the steps shared within a process would serve the second)
-        monkeypatch.setenv(ahead.AHEAD_ENV, mode)
+        PROCESS.release_steps()  # (each run compiles its own: the steps shared within a process would serve the second)
+        monkeypatch.setenv(background.AHEAD_ENV, mode)
         out = tmp_path / f"ahead{mode}"
         ahead_traces = sum(AHEAD_STEP_TRACES.values())
         if ck is None:  # (the 2DGS run is the same either way; with compiling ahead it prepares the next)
@@ -121,8 +121,8 @@ def test_stage2_compiled_ahead_is_hit_and_bit_identical(dataset, tmp_path, monke
             ck = stage1_checkpoint(tmp_path / "2dgs", cfg)
             assert ck is not None
         result = _train_recorded(monkeypatch, dataset, cfg, out / "patexgs", stage1=ck, verbose=False)
-        monkeypatch.setenv(ahead.AHEAD_ENV, mode)
-        assert ahead.wait_all(600)
+        monkeypatch.setenv(background.AHEAD_ENV, mode)
+        assert background.wait_all(600)
         results[mode] = (result, _final_tree(out / "patexgs"), dict(_record.traces), dict(_record.main_compiles),
                          sum(AHEAD_STEP_TRACES.values()) - ahead_traces)
     (r1, t1, traces1, comp1, ahead1), (r0, t0, traces0, comp0, ahead0) = results["1"], results["0"]
@@ -156,11 +156,11 @@ def test_own_stage2_compiled_ahead_is_bit_identical(dataset, tmp_path, monkeypat
     cfg = tiny_config(iters_tex=6, warmup_tex=3, growth_interval=2)
     trees, summaries, traces = {}, {}, {}
     for mode in ("1", "0"):
-        release_steps()
-        monkeypatch.setenv(ahead.AHEAD_ENV, mode)
+        PROCESS.release_steps()
+        monkeypatch.setenv(background.AHEAD_ENV, mode)
         out = tmp_path / f"own{mode}"
         summaries[mode] = _train_recorded(monkeypatch, dataset, cfg, out, verbose=False).summary
-        assert ahead.wait_all(600)
+        assert background.wait_all(600)
         trees[mode], traces[mode] = _final_tree(out), dict(_record.traces)
     _assert_same_state(trees["1"], trees["0"])
     assert summaries["1"]["test_psnr"] == summaries["0"]["test_psnr"]
@@ -181,18 +181,18 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
 
     def record(what, fn, say=None):
         submitted.append(what)
-        return ahead.Job(what, fn, say)
+        return background.Job(what, fn, say)
 
-    monkeypatch.setattr(ahead, "submit", record)
+    monkeypatch.setattr(background, "submit", record)
     # (entries prepared for runs that never came, by this module's earlier tests, would count here or
     # leave no room; tests/conftest.py clears those of earlier modules)
-    compile_ahead.discard_prepared()
+    PROCESS.discard_prepared()
     methods = ("patexgs", "patexgs-fixed-4", "patexgs-no-mip", "patexgs-no-alpha-mip", "patexgs-no-rgb-mip",
                "patexgs-fixed-8")
     cfgs = [tiny_config(method=m, iters_2dgs=15) for m in methods]  # (prepared after densification, at 12)
     try:
         train(dataset, tiny_config(method="2dgs", iters_2dgs=15), tmp_path / "2dgs", verbose=False, prepare=cfgs)
-        entries = list(compile_ahead.PREPARED)
+        entries = list(PROCESS.prepared)
         assert 0 < len(entries) <= compile_ahead.MAX_PREPARED
         first = [p for p in entries if p.render_cfg == cfgs[0].render_config(stage=2) and p.layout is not None]
         assert len(first) == 1 and first[0].then in entries and first[0].eq7_job is not None, entries
@@ -203,7 +203,7 @@ def test_a_study_of_many_runs_prepares_the_first_ones(dataset, tmp_path, monkeyp
         assert sum("predicted layout" in w for w in submitted) == 2, submitted
         assert len(entries) == compile_ahead.MAX_PREPARED
     finally:
-        compile_ahead.discard_prepared()
+        PROCESS.discard_prepared()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

@@ -1,4 +1,4 @@
-"""Memory mappings stay bounded (patexgs_jax.compiled, patexgs_jax.padding): views of many sizes are
+"""Memory mappings stay bounded (patexgs_jax.memory_maps, patexgs_jax.padding): views of many sizes are
 rendered at a few padded sizes with unchanged pixels, compiled programs of retired layouts are
 released, and a run near the cap checkpoints and stops with a clear message instead of crashing."""
 
@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from patexgs_jax import Camera, RenderConfig, compiled, look_at, padding, random_scene
+from patexgs_jax import Camera, RenderConfig, look_at, memory_maps, padding, random_scene
 from patexgs_jax import checkpoint as ckpt
 from patexgs_jax.data import load
 from patexgs_jax.data.synthetic import generate
@@ -23,7 +23,7 @@ from patexgs_jax.training.run import train
 from patexgs_jax.training.step import STEP_TRACES, view_loss_and_grads
 from patexgs_jax.training.trainer import Trainer
 
-needs_proc = pytest.mark.skipif(compiled.memory_maps() is None, reason="needs /proc (Linux)")
+needs_proc = pytest.mark.skipif(memory_maps.memory_maps() is None, reason="needs /proc (Linux)")
 
 
 def test_padded_sides():
@@ -95,10 +95,10 @@ def test_padded_render_equals_the_unpadded_one():
 @needs_proc
 def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded(monkeypatch):
     """8 view sizes in one bucket, over 3 texture layouts (growth events): one renderer program per
-    layout, released when done in a process past compiled.KEEP_SHARE of its cap (simulated: 0), so
+    layout, released when done in a process past memory_maps.KEEP_SHARE of its cap (simulated: 0), so
     the mapping count comes back to where it was; below it, kept for the next evaluation."""
     scene = _scene(rgb_side=1)
-    compiled.release_compiled_code(threshold=0)
+    memory_maps.release_compiled_code(threshold=0)
     # Below the share (the real one; the suite's processes stay far under it): a second evaluation
     # of the same scene takes the first's programs, tracing nothing.
     cams = [_camera(w, h) for w, h in SIZES]
@@ -110,9 +110,9 @@ def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded(mo
         renderer.prepare(cams)
         np.testing.assert_array_equal(renderer.image(cams[0]), first)
     assert sum(TRACE_COUNTS.values()) == traces
-    monkeypatch.setattr(compiled, "KEEP_SHARE", 0.0)
-    compiled.release_compiled_code(threshold=0)
-    base = compiled.memory_maps()[0]
+    monkeypatch.setattr(memory_maps, "KEEP_SHARE", 0.0)
+    memory_maps.release_compiled_code(threshold=0)
+    base = memory_maps.memory_maps()[0]
     peaks = []
     for side in (1, 3, 6):  # each growth changes the texture buckets: a new layout, new programs
         if side > 1:
@@ -126,9 +126,9 @@ def test_evaluation_compiles_one_program_per_bucket_and_mappings_stay_bounded(mo
                 img = renderer.image(cam)
                 assert img.shape == (cam.height, cam.width, 3) and np.isfinite(img).all()
             assert len(renderer.capacities) == 1
-            peaks.append(compiled.memory_maps()[0] - base)
+            peaks.append(memory_maps.memory_maps()[0] - base)
         assert sum(TRACE_COUNTS.values()) - traces == 1  # 8 sizes, 1 bucket: 1 program
-    after = compiled.memory_maps()[0] - base
+    after = memory_maps.memory_maps()[0] - base
     # One layout's programs (renderer, counter, SSIM-free) at a time: no growth from layout to layout.
     assert max(peaks) < 2500, peaks
     assert peaks[-1] < peaks[0] + 500, peaks
@@ -157,7 +157,7 @@ def mixed_sizes(tmp_path_factory):
                                  normalization=ds.normalization)
 
 
-class _Simulated(compiled.MapGuard):
+class _Simulated(memory_maps.MapGuard):
     """A guard whose mapping count crosses its cap once ``trigger()`` says so."""
 
     def __init__(self, trigger):
@@ -176,7 +176,7 @@ def test_training_compiles_per_tile_grid_and_stops_near_the_map_limit(mixed_size
     # Stop once both tile grids compiled (the check after a compile sees it).
     guard = _Simulated(lambda: sum(STEP_TRACES.values()) - start >= 2)
     out = tmp_path / "run"
-    with pytest.raises(compiled.MapLimitReached) as err:
+    with pytest.raises(memory_maps.MapLimitReached) as err:
         train(mixed_sizes, cfg, out, verbose=False, map_guard=guard)
     msg = str(err.value)
     for words in ("950 memory mappings", "limit of 1,000", "vm.max_map_count", "--resume", "resume=True",
@@ -230,11 +230,11 @@ def test_one_padding_compiles_the_step_once(mixed_sizes):
     """With ``padding="one"`` the 8 views of 6 sizes (2 tile grids: 2 programs per-size, see
     test_training_compiles_per_tile_grid_and_stops_near_the_map_limit) train with one program,
     and summary.json counts it."""
-    from patexgs_jax.training.step_cache import release_steps
+    from patexgs_jax.training.steps import PROCESS
 
     cfg = TrainConfig(method="2dgs", iters_2dgs=10, sh_interval=4, normal_from=2, padding="one",
                       densify=DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000))
-    release_steps()  # (a step of this layout shared by an earlier run would hide the count)
+    PROCESS.release_steps()  # (a step of this layout shared by an earlier run would hide the count)
     start = sum(STEP_TRACES.values())
     summary = train(mixed_sizes, cfg, None, verbose=False).summary
     assert sum(STEP_TRACES.values()) - start == 1

@@ -135,7 +135,7 @@ def check_equivalence(ds, scene):
     for n in (DEVICES, 1):
         run = runs[n] = Trainer(ds, _config(4, n), None, verbose=False)
         sh, wn = _start(run, scene, 1024)
-        data = run.batch_inputs(views, images)
+        run.state, data = run.steps.batch_inputs(run.state, views, images)
         new_scene, new_opt, new_stats, m = run.step_fn()(run.scene, run.opt_state, run.stats, *data, sh, wn)
         assert bool(m["ok"]) and not bool(m["overflow"]), m
         res[n] = dict(loss=float(m["loss"]), g=jax.tree_util.tree_map(lambda x: x / 0.1, adam_moments(new_opt)[0]),

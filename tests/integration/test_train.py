@@ -40,7 +40,7 @@ from patexgs_jax.schedule import TextureSchedule, growth_schedule, growth_steps
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.step_cache import release_steps
+from patexgs_jax.training.steps import PROCESS
 from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
 from train_configs import tiny_config
 
@@ -305,7 +305,7 @@ def test_recompiles_counted(run_p):
     # One trace per distinct (tile capacity, scene / optimiser / statistics shapes) the step saw:
     # at least 512 -> 1024 Gaussians, the texture banks' appearance, the allocation's buckets; the
     # texture stage's first one may have been traced and compiled ahead, in the background
-    # (patexgs_jax.ahead, test_ahead), and then the step itself traces nothing.
+    # (patexgs_jax.background, test_ahead), and then the step itself traces nothing.
     assert s["recompiles"] == rec["traces"] and len(rec["keys"]) >= 4
     assert rec["traces"] <= len(rec["keys"]) <= rec["traces"] + rec["ahead_traces"], rec
     # Growth events that fit the texture buckets' headroom keep the layout and compile nothing.
@@ -317,7 +317,7 @@ def test_recompiles_counted(run_p):
 
 def test_steady_state_has_one_trace(dataset):
     cfg = tiny_config(method="2dgs", iters_2dgs=12, densify=NO_DENSIFY)
-    release_steps()  # (the main run's first steps have these shapes: its program would serve this run)
+    PROCESS.release_steps()  # (the main run's first steps have these shapes: its program would serve this run)
     traces = sum(STEP_TRACES.values())
     result = train(dataset, cfg, None, verbose=False)
     assert result.summary["recompiles"] == 1
@@ -337,7 +337,7 @@ def test_runs_of_other_lengths_and_rates_share_the_step_and_train_as_alone(datas
     traces = sum(STEP_TRACES.values())
     train(dataset, other, tmp_path / "shared", verbose=False)
     assert sum(STEP_TRACES.values()) == traces
-    release_steps()
+    PROCESS.release_steps()
     train(dataset, other, tmp_path / "alone", verbose=False)
     assert sum(STEP_TRACES.values()) == traces + 1
     final = [ckpt.load_checkpoint(ckpt.latest_checkpoint(tmp_path / run / "checkpoints"))[0]
@@ -408,14 +408,14 @@ def test_repeated_nonfinite_steps_stop_the_run(dataset, tmp_path):
 
     # (the loss is traced into the step: the steps shared by this process's runs are released before
     # and after, so that the patched loss is traced, and then is not reused)
-    release_steps()
+    PROCESS.release_steps()
     try:
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(losses, "photometric", nan_loss)
             with pytest.raises(FloatingPointError, match="3 consecutive non-finite steps"):
                 train(dataset, cfg, out, resume=True, verbose=False)
     finally:
-        release_steps()
+        PROCESS.release_steps()
     assert ckpt.latest_checkpoint(out / "checkpoints") == good and good.read_bytes() == good_bytes
     tree, _ = ckpt.load_checkpoint(good)
     assert all_finite(tree["scene"]) and all_finite(tree["opt_state"])

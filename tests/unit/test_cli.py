@@ -131,7 +131,7 @@ def test_resume_command_and_flag_hint():
 
 def test_time_estimate_and_the_long_run_note():
     from patexgs_jax.training import preset_config
-    from patexgs_jax.training.progress import format_seconds, long_run_note, run_estimate
+    from patexgs_jax.training.estimate import format_seconds, long_run_note, run_estimate
 
     paper = preset_config("paper")  # 30,000 + 30,000 steps
     left, whole = run_estimate(paper, True, 0, 1, 0.1)  # 0.1 s a 2DGS step, a textured step 3x that

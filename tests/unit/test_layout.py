@@ -90,9 +90,9 @@ def test_no_import_cycles():
 def test_each_module_imports_on_its_own():
     """Every module of the package imports first in a fresh interpreter (no order it depends on)."""
     names = ["patexgs_jax.schedule", "patexgs_jax.render", "patexgs_jax.textures.rebucket",
-             "patexgs_jax.training.compile_ahead", "patexgs_jax.training.progress", "patexgs_jax.viewer.frames",
-             "patexgs_jax.data.colmap_text", "patexgs_jax.data.colmap_binary", "patexgs_jax.data.colmap_records",
-             "patexgs_jax.padding"]
+             "patexgs_jax.training.compile_ahead", "patexgs_jax.training.estimate", "patexgs_jax.training.steps",
+             "patexgs_jax.viewer.frames", "patexgs_jax.data.colmap_text", "patexgs_jax.data.colmap_binary",
+             "patexgs_jax.data.colmap_records", "patexgs_jax.padding"]
     code = ("import importlib, sys\n"
             "for n in sys.argv[1:]:\n"
             "    for m in [k for k in sys.modules if k.startswith('patexgs_jax')]:\n"

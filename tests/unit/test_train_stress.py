@@ -233,15 +233,14 @@ def test_compile_ahead_prepares_again_only_when_a_refit_changed_the_capacity():
     from patexgs_jax.render import Capacity
     from patexgs_jax.training.compile_ahead import CompileAhead
 
-    cfg = SimpleNamespace(iters_2dgs=1000)
-    run = SimpleNamespace(cfg=cfg, scene=SimpleNamespace(rgb=None), capacity=Capacity(1 << 16),
-                          refits_at=lambda step: step % 100 == 0)
     ahead = object.__new__(CompileAhead)
-    ahead.run, ahead._last_densify, ahead._prepared_own = run, 500, None
+    ahead.cfg, ahead._last_densify, ahead._prepared_own = SimpleNamespace(iters_2dgs=1000), 500, None
     prepared = []
-    ahead.prepare = lambda config, predict_allocation=True: prepared.append(run.capacity)
+    ahead.prepare = lambda config, state, capacity, predict_allocation=True: prepared.append(capacity)
+    state = SimpleNamespace(scene=SimpleNamespace(rgb=None))
+    capacity = Capacity(1 << 16)
     for step in range(1, 1000):
         if step == 800:
-            run.capacity = Capacity(1 << 17)  # the refit after step 800 grew it
-        ahead.after_step(step)
+            capacity = Capacity(1 << 17)  # the refit after step 800 grew it
+        ahead.after_step(step, state, capacity)
     assert prepared == [Capacity(1 << 16), Capacity(1 << 17)]

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from patexgs_jax import checkpoint as ckpt
-from patexgs_jax import compiled
+from patexgs_jax import memory_maps
 from patexgs_jax.camera import Camera, look_at
 from patexgs_jax.render import TRACE_COUNTS, RenderConfig, count_pairs, render, render_jit
 from patexgs_jax.scene import Scene
@@ -74,14 +74,14 @@ def test_camera_moves_never_compile(frames):
         frames.render(orbit_camera(0.0), view=view)
         frames.render(orbit_camera(0.0), view=view, scale=4, enlarge=False)
     traces = sum(TRACE_COUNTS.values())
-    programs = [compiled.program_count(f) for f in fns]
+    programs = [memory_maps.program_count(f) for f in fns]
     for k, angle in enumerate(np.linspace(0.2, 2.5, 6)):
         cam = orbit_camera(angle, radius=3.2 + 0.15 * k)
         for view in ("rgb", "mip level"):
             for f in (frames.render(cam, view=view), frames.render(cam, view=view, scale=4, enlarge=False)):
                 assert not f.grew and not f.compiled
     assert sum(TRACE_COUNTS.values()) == traces
-    assert [compiled.program_count(f) for f in fns] == programs
+    assert [memory_maps.program_count(f) for f in fns] == programs
 
 
 def test_every_view_and_scale(frames):

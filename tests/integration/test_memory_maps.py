@@ -12,21 +12,21 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from patexgs_jax import compiled
+from patexgs_jax import memory_maps
 
 
-@pytest.mark.skipif(compiled.memory_maps() is None, reason="needs /proc (Linux)")
+@pytest.mark.skipif(memory_maps.memory_maps() is None, reason="needs /proc (Linux)")
 def test_release_compiled_code_frees_mappings():
-    compiled.release_compiled_code(threshold=0)
-    base = compiled.memory_maps()[0]
+    memory_maps.release_compiled_code(threshold=0)
+    base = memory_maps.memory_maps()[0]
     fns = [jax.jit(lambda x, k=k: jnp.cumsum(jnp.sin(x) * k)) for k in range(30)]
     for k, f in enumerate(fns):
         f(jnp.ones(64 + k)).block_until_ready()
-    peak = compiled.memory_maps()[0]
+    peak = memory_maps.memory_maps()[0]
     assert peak > base + 150, (base, peak)  # each executable holds mappings of its own
-    assert not compiled.release_compiled_code(threshold=1.0)  # under the whole cap: nothing to do
-    assert compiled.release_compiled_code(threshold=0)
-    after = compiled.memory_maps()[0]
+    assert not memory_maps.release_compiled_code(threshold=1.0)  # under the whole cap: nothing to do
+    assert memory_maps.release_compiled_code(threshold=0)
+    after = memory_maps.memory_maps()[0]
     # Released although the jitted functions are still alive: most of their mappings are returned.
     assert after < base + 0.3 * (peak - base), (base, peak, after)
     assert float(fns[3](jnp.ones(67))[-1]) == pytest.approx(3 * 67 * float(jnp.sin(1.0)), rel=1e-5)
@@ -77,23 +77,23 @@ def test_segfault_after_importing_the_loaders_crashes_with_a_python_traceback():
 
 
 def test_compile_cache_folder_from_the_environment(monkeypatch, tmp_path):
-    monkeypatch.setenv(compiled.COMPILE_CACHE_ENV, str(tmp_path / "mine"))
-    assert compiled.compile_cache_dir() == tmp_path / "mine"
+    monkeypatch.setenv(memory_maps.COMPILE_CACHE_ENV, str(tmp_path / "mine"))
+    assert memory_maps.compile_cache_dir() == tmp_path / "mine"
     for off in ("off", "0", "", "None"):
-        monkeypatch.setenv(compiled.COMPILE_CACHE_ENV, off)
-        assert compiled.compile_cache_dir() is None
-    monkeypatch.delenv(compiled.COMPILE_CACHE_ENV)
+        monkeypatch.setenv(memory_maps.COMPILE_CACHE_ENV, off)
+        assert memory_maps.compile_cache_dir() is None
+    monkeypatch.delenv(memory_maps.COMPILE_CACHE_ENV)
     monkeypatch.setenv("PATEXGS_CACHE", str(tmp_path / "project"))
-    assert compiled.compile_cache_dir() == tmp_path / "project" / "xla"
+    assert memory_maps.compile_cache_dir() == tmp_path / "project" / "xla"
     monkeypatch.delenv("PATEXGS_CACHE")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert compiled.compile_cache_dir() == tmp_path / "xdg" / "patexgs_jax" / "xla"
+    assert memory_maps.compile_cache_dir() == tmp_path / "xdg" / "patexgs_jax" / "xla"
 
 
 _CACHED_COMPILE = textwrap.dedent("""
     import jax, jax.numpy as jnp
-    from patexgs_jax import compiled
-    print(compiled.enable_compile_cache())
+    from patexgs_jax import memory_maps
+    print(memory_maps.enable_compile_cache())
     jax.jit(lambda x: jnp.cumsum(jnp.sin(x)))(jnp.ones(8)).block_until_ready()
     """)
 

@@ -1,30 +1,22 @@
 """Keeping a long-lived process within the kernel's limit on memory mappings.
 
-XLA's CPU backend keeps every compiled executable's machine code in memory mappings of its own (about
-20 for a small function, a few hundred for a render, one to three thousand for a training step) for
-as long as the executable lives, and JAX's caches keep executables alive after the functions that
-made them are gone. Linux caps the mappings of a process (``vm.max_map_count``, 65,530 by default).
-A process that compiles many distinct programs - a training run over images of many sizes, an
-evaluation at many sizes, studies that train many runs in one process, a notebook session, a test
-suite - reaches the cap. The next compile then fails inside XLA ("LLVM ERROR: Unable to allocate
-section memory"), and on the CPU that ends as a crash or a segfault rather than as a Python error.
+XLA's CPU backend keeps every compiled executable's machine code in memory mappings of its own (a
+training step's are thousands, docs/performance.md) for as long as the executable lives, and JAX's
+caches keep executables alive after the functions that made them are gone. Linux caps the mappings
+of a process (``vm.max_map_count``, 65,530 by default). A process that compiles many distinct
+programs - a training run over images of many sizes, an evaluation at many sizes, studies that train
+many runs in one process, a notebook session, a test suite - reaches the cap. The next compile then
+fails inside XLA ("LLVM ERROR: Unable to allocate section memory"), and on the CPU that ends as a
+crash or a segfault rather than as a Python error.
 
-What keeps the count bounded:
-
-* few programs: views are rendered at a few padded sizes (:mod:`patexgs_jax.padding`), so a run
-  compiles one program per padded size, not one per image size;
-* programs of retired layouts are released once the process holds a quarter of the cap
-  (:data:`KEEP_SHARE`; below it they are kept for the next run or evaluation of the same shapes):
-  :func:`retire_programs` drops a jitted function's compiled code (training does it when the scene's
-  shapes change, evaluation when it is done with a scene), and :func:`trim_programs` bounds the
-  programs a function keeps;
-* a guard (:class:`MapGuard`): above ``release_share`` of the cap, all of JAX's compiled code is
-  dropped (:func:`release_compiled_code`); above ``stop_share`` even so, training checkpoints and
-  stops with :class:`MapLimitReached` instead of crashing in the next compile.
-
-Programs also outlive the process: the command lines turn on JAX's persistent compilation cache
-(:func:`enable_compile_cache`), so a second run, or a resumed one, loads the programs the first
-compiled (seconds to tens of seconds each on a CPU) instead of compiling them again.
+What keeps the count bounded: few programs (views rendered at a few padded sizes,
+:mod:`patexgs_jax.padding`); the programs of retired layouts released once the process holds
+:data:`KEEP_SHARE` of the cap (:func:`retire_programs`; :func:`trim_programs` bounds a per-shape
+cache); and a guard (:class:`MapGuard`) that drops all of JAX's compiled code above
+``release_share`` of the cap and, above ``stop_share`` even so, makes training checkpoint and stop
+with :class:`MapLimitReached` instead of crashing in the next compile. Programs also outlive the
+process: the command lines turn on JAX's persistent compilation cache (:func:`enable_compile_cache`),
+so a second or resumed run loads what the first compiled.
 """
 
 from __future__ import annotations

@@ -1,26 +1,26 @@
-"""What a run tells its user: the start line, the time estimate after its first steps, and the note
-that says how to shorten a long run (the progress bars and lines themselves: :mod:`patexgs_jax.progress`).
+"""A run's time estimate and what it tells its user at the start and as it goes: the start line,
+the estimate after the first clean steps of each stage, the note that says how to shorten a long
+run, and the window of losses a progress line averages (the bars and the printing itself:
+:mod:`patexgs_jax.progress`).
 """
 
 from __future__ import annotations
 
 import collections
 import os
-from typing import TYPE_CHECKING
+import time
+from collections.abc import Callable
 
 import jax
 import numpy as np
 
 from .config import PRESETS, TrainConfig
 
-if TYPE_CHECKING:
-    from .trainer import Trainer
-
 __all__ = ["LONG_RUN_SECONDS", "TEXTURED_STEP_COST", "Estimate", "device_description", "format_seconds",
-           "long_run_note", "preset_name", "run_estimate", "start_line", "step_seconds", "typical_size"]
+           "long_run_note", "preset_name", "run_estimate", "start_line", "step_seconds", "typical_size", "StepWindow"]
 
 #: A textured step's cost in 2DGS steps, for the time estimate made before the texture stage is
-#: measured (2.5-4x on a 2-core CPU, docs/performance.md).
+#: measured (the measured ratios: docs/performance.md).
 TEXTURED_STEP_COST = 3.0
 
 #: Runs estimated to take longer than this many seconds say so at the start, with the flags that
@@ -109,38 +109,39 @@ def preset_name(config: TrainConfig) -> str | None:
     return None
 
 
-def start_line(dataset, config: TrainConfig, run: Trainer, preset: str | None = None) -> str:
+def start_line(dataset, config: TrainConfig, step: int = 0, preset: str | None = None) -> str:
     """What a run will do, in one line: method, images, views, preset, schedule, Gaussian cap,
-    device. ``preset``: the preset the config was made from (default: the one with its step counts)."""
+    device; ``step``: where it starts. ``preset``: the preset the config was made from (default: the
+    one with its step counts)."""
     n_sizes = len({(v.camera.width, v.camera.height) for v in dataset.train_views})
     size = "{}x{} px".format(*typical_size(dataset.train_views)) + (
         f" (and {n_sizes - 1} other size{'s' if n_sizes > 2 else ''})" if n_sizes > 1 else "")
     preset = preset or preset_name(config)
-    stage1 = run.spec.stage1_name
-    steps = (f"{config.iters_2dgs} {stage1} steps" if run.spec.textures is None and not config.continue_2dgs
+    spec = config.spec
+    steps = (f"{config.iters_2dgs} {spec.stage1_name} steps" if spec.textures is None and not config.continue_2dgs
              else f"{config.iters_2dgs} + {config.total_steps - config.iters_2dgs} steps")
     cap = "no Gaussian cap" if config.max_gaussians is None else f"at most {config.max_gaussians:,} Gaussians"
-    where = "" if run.step == 0 else f", from step {run.step}"
+    where = "" if step == 0 else f", from step {step}"
     return (f"training {config.method}: {len(dataset.train_views)} training and {len(dataset.test_views)} test "
             f"views of {size}; {'preset ' + preset + ', ' if preset else ''}{steps}{where}; {cap}; "
             f"on {device_description()}")
 
 
 class Estimate:
-    """The time estimate of a run (:class:`~patexgs_jax.training.trainer.Trainer`): the durations of
-    steps that compiled nothing, per stage; after the first few steps of each stage it says how long
-    the rest of the run will take, and the first time, when the whole run takes over
-    :data:`LONG_RUN_SECONDS`, how to shorten it."""
+    """The time estimate of a run: the durations of steps that compiled nothing, per stage; after
+    the first few steps of each stage it says (``say``) how long the rest of the run will take, and
+    the first time, when the whole run takes over :data:`LONG_RUN_SECONDS`, how to shorten it.
+    ``views``: the training views; ``factor``: the images' downsampling."""
 
-    def __init__(self, run: Trainer):
-        self.run = run
+    def __init__(self, config: TrainConfig, views, factor: float, say: Callable[[str], None]):
+        self.cfg, self.views, self.factor, self.say = config, views, factor, say
         self.clean_steps: dict[int, list[float]] = {1: [], 2: []}
         self.estimated: set[int] = set()  # the stages whose steps gave an estimate
 
     def measure(self, step: int, seconds: float) -> None:
         """Records ``seconds``, the duration of step ``step`` (one that compiled nothing)."""
-        run = self.run
-        stage = 1 if run.in_stage1(step) else 2
+        cfg = self.cfg
+        stage = 1 if cfg.in_stage1(step) else 2
         times = self.clean_steps[stage]
         times.append(seconds)
         if stage in self.estimated or not (len(times) >= 10 or (len(times) >= 2 and sum(times) >= 20.0)):
@@ -148,13 +149,33 @@ class Estimate:
         first = not self.estimated
         self.estimated.add(stage)
         per = float(np.median(times))
-        textured = run.spec.textures is not None
-        left, whole = run_estimate(run.cfg, textured, run.step, stage, per)
+        textured = cfg.spec.textures is not None
+        left, whole = run_estimate(cfg, textured, step, stage, per)
         guess = (f", a textured step taken as {TEXTURED_STEP_COST:g}x that"
-                 if stage == 1 and textured and run.cfg.iters_tex else "")
-        run.say(f"estimated time: {format_seconds(left)} for the {run.cfg.total_steps - run.step} steps left "
-                f"({1e3 * per:.0f} ms a {run.stage_name(step)} step{guess}), plus compiles and the evaluation")
+                 if stage == 1 and textured and cfg.iters_tex else "")
+        self.say(f"estimated time: {format_seconds(left)} for the {cfg.total_steps - step} steps left "
+                 f"({1e3 * per:.0f} ms a {cfg.stage_name(step)} step{guess}), plus compiles and the evaluation")
         if first and whole > LONG_RUN_SECONDS:
-            width, height = typical_size(run.train_views)
-            run.say(long_run_note(run.cfg, step_seconds(textured, stage, per), width, height,
-                                  float(getattr(run.ds, "factor", 1.0) or 1.0)))
+            width, height = typical_size(self.views)
+            self.say(long_run_note(cfg, step_seconds(textured, stage, per), width, height, self.factor))
+
+
+class StepWindow:
+    """The losses and PSNRs of the good steps since the last progress line, and its time."""
+
+    def __init__(self, log_every: int):
+        self.log_every = log_every
+        self.values: collections.deque = collections.deque(maxlen=max(1, log_every))
+        self.t_last = time.perf_counter()
+
+    def add(self, m: dict) -> None:
+        self.values.append((float(m["loss"]), float(m["psnr"])))
+
+    def take(self) -> tuple[float, float, float]:
+        """(mean loss, mean PSNR, ms per step over ``log_every`` steps) since the last call; restarts."""
+        now = time.perf_counter()
+        means = [float(np.mean([v[k] for v in self.values])) if self.values else float("nan") for k in (0, 1)]
+        ms = 1e3 * (now - self.t_last) / self.log_every
+        self.t_last = now
+        self.values.clear()
+        return means[0], means[1], ms

@@ -1,15 +1,8 @@
-"""Compiling ahead: programs whose shapes are known before they are needed, compiled off the
-critical path in a background thread.
-
-A textured run compiles its step again whenever the scene's shapes change, and each compile of a
-training step takes tens of seconds on a CPU (docs/performance.md). Some of those shapes
-are known well before the step that needs them: the texture stage's first layout once stage 1's
-densification has stopped (or once the stage-1 checkpoint another run starts from is written),
-Eq. 7's renderer as soon as that layout exists, and (predicted: a speculative Eq. 7 on the
-warm-up's first state) the layout the allocation will give. :func:`submit` hands such a compile
-(``jax.jit(f).lower(...).compile()``, which fills the same in-memory cache a later ``f(x)`` hits)
-to one background thread; the program is the one the main thread would have compiled, so results
-are bit-identical with and without it.
+"""The background thread that compiles ahead (:mod:`patexgs_jax.training.compile_ahead` decides
+what): :func:`submit` hands it a compile (``jax.jit(f).lower(...).compile()``, which fills the
+same in-memory cache a later ``f(x)`` hits), so a program whose shapes are known before it is
+needed is compiled off the critical path; it is the one the main thread would have compiled, so
+results are bit-identical with and without it.
 
 * One job runs at a time, in submission order; a queued job can be cancelled (:meth:`Job.cancel`);
   a running one cannot (XLA's compile cannot be stopped) and is waited for (:meth:`Job.wait`) or
