@@ -36,7 +36,7 @@ import numpy as np
 
 from . import memory_maps
 from .camera import Camera
-from .render import Capacity, count_pairs, prepare_textures, render_jit
+from .render import Capacity, count_pairs, render_jit, scene_textures
 
 #: Padded sizes per octave of tiles used by evaluation: the exact tile grid up to 16 x 16 = 256
 #: pixels a side, at most an eighth of extra tiles above (beer's test views at 1/4 and their
@@ -246,7 +246,7 @@ class ViewRenderer:
       headroom: a padded size first met in :meth:`padded` gets the capacity of ``headroom`` times the
         view's need, so that nearby views (an interactive camera) fit it without a new program.
       reuse_textures: build the scene's texture atlases and their pyramids once
-        (:func:`patexgs_jax.render.prepare_textures`) and reuse them for every view, instead of in every
+        (:func:`patexgs_jax.render.scene_textures`) and reuse them for every view, instead of in every
         render: for many views of one scene (a viewer), at the cost of one more program.
       programs: programs compiled ahead for this scene's layout (:mod:`patexgs_jax.training.compile_ahead`):
         ``("count", h, w)``: ``count_pairs.lower(scene, camera, config=config).compile()``;
@@ -264,7 +264,7 @@ class ViewRenderer:
         self.active_sh_degree = active_sh_degree
         self.headroom = float(headroom)
         self.reuse_textures = reuse_textures
-        self._textures = None  # the scene's prepare_textures, once built (reuse_textures)
+        self._textures = None  # the scene's scene_textures, once built (reuse_textures)
         self.capacities: dict = {}  # (height, width) of a padded size -> Capacity; one per size
         self.programs = dict(programs or {})
 
@@ -302,7 +302,7 @@ class ViewRenderer:
         if cap is None:
             cap = self.capacities[key] = Capacity.fit(self.headroom * self._needed(cam))
         if self.reuse_textures and self._textures is None:
-            self._textures = prepare_textures(self.scene, config=self.config)
+            self._textures = scene_textures(self.scene, config=self.config)
         out = self._render(cam, cap)
         if bool(out.overflow):  # a view not prepared for, needing more than its padded size's capacity holds
             cap = self.capacities[key] = Capacity.fit(float(out.pairs_needed), minimum=cap)
@@ -343,7 +343,7 @@ def release_scene_programs(retire: bool = False) -> bool:
     memory-map cap (:func:`memory_maps.retire_programs`). Returns whether it released them."""
     from . import metrics
 
-    fns = (render_jit, count_pairs, prepare_textures, metrics.ssim)
+    fns = (render_jit, count_pairs, scene_textures, metrics.ssim)
     if retire:
         return memory_maps.retire_programs(*fns)
     memory_maps.release_programs(*fns)

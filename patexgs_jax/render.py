@@ -69,7 +69,7 @@ Structure: one stage a module of :mod:`patexgs_jax.rendering`
   (:mod:`.rendering.pallas_composite`, :mod:`.rendering.pallas_texture`: one program per tile, the
   same outputs and gradients); None, the default, picks per backend: the Pallas kernel on a GPU,
   the XLA compositor elsewhere (:func:`.rendering.config.resolve_compositor`).
-  This module: :func:`render`, :data:`render_jit`, :data:`count_pairs`, :data:`prepare_textures`
+  This module: :func:`render`, :data:`render_jit`, :data:`count_pairs`, :data:`scene_textures`
   and :func:`check_inputs`.
 
   One-texel textures are constants: they are folded into the splat's colour and opacity
@@ -131,7 +131,7 @@ __all__ = [
     "SceneTextures",
     "check_inputs",
     "count_pairs",
-    "prepare_textures",
+    "scene_textures",
     "render",
     "render_jit",
 ]
@@ -232,7 +232,7 @@ def _mip_banks(config: RenderConfig) -> tuple[bool, bool]:
 @dataclasses.dataclass(frozen=True)
 class SceneTextures:
     """What a render derives from the scene's textures alone, for any view: reusable across the
-    views of a scene that does not change (:func:`prepare_textures`).
+    views of a scene that does not change (:func:`scene_textures`).
 
     Attributes:
       peak: (C,) each splat's largest alpha-texture value (:func:`projection.alpha_peak`).
@@ -269,13 +269,13 @@ def _scene_textures(scene: Scene, config: RenderConfig) -> SceneTextures:
         texel_grid=texel_grid)
 
 
-#: ``prepare_textures(scene, config=...)`` -> :class:`SceneTextures`: the texture atlases (with
+#: ``scene_textures(scene, config=...)`` -> :class:`SceneTextures`: the texture atlases (with
 #: their mip pyramids), peaks and one-texel folds of ``scene`` for renders with ``config``'s mip
 #: settings, built once. Pass them to :data:`render_jit` (``textures=``) for every view of a scene
 #: that does not change (a viewer, an evaluation): each frame then does its view's work only, where
 #: it would otherwise rebuild every texture's pyramid. No gradient reaches the textures through
 #: prepared ones.
-prepare_textures = jax.jit(_scene_textures, static_argnames=("config",))
+scene_textures = jax.jit(_scene_textures, static_argnames=("config",))
 
 
 def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capacity,
@@ -292,7 +292,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
             textures.alpha_atlas is None) != (scene.alpha is None) or textures.texel_grid != (
             config.coverage == "texel-grid"):
         raise ValueError("render: the prepared textures were made for another scene or other mip settings; "
-                         "call prepare_textures(scene, config=config) with this render's scene and config.")
+                         "call scene_textures(scene, config=config) with this render's scene and config.")
     peak, rgb_add, alpha_mul = textures.peak, textures.rgb_add, textures.alpha_mul
     rgb_const, alpha_const = textures.rgb_const, textures.alpha_const
     rgb_atlas, alpha_atlas = textures.rgb_atlas, textures.alpha_atlas
@@ -356,7 +356,7 @@ def _render(scene: Scene, camera: Camera, config: RenderConfig, capacity: Capaci
 #: ``screen_offset`` ((C, 2) zeros) is a gradient hook: its gradient is the loss gradient with
 #: respect to a screen-space translation of each splat, in pixels (the densification statistic);
 #: ``active_sh_degree`` (traced int) masks SH bands above it; ``textures``: the scene's
-#: :func:`prepare_textures` for this config, or None to build them (differentiably) in the render;
+#: :func:`scene_textures` for this config, or None to build them (differentiably) in the render;
 #: ``valid_hw``: None, or the view's own (H, W) ((2,) int, traced) when ``camera`` is a larger padded
 #: size of it: only the tiles covering it are binned (the others stay empty and show the background),
 #: so visibility, radii and ``pairs_needed`` are those of the view's own tile grid.

@@ -19,7 +19,7 @@ import hard_scenes as hs
 from patexgs_jax import Camera, Capacity, RenderConfig, look_at, random_scene, render, render_jit
 from patexgs_jax.data import box_downsample
 from patexgs_jax.render import _render as render_unjitted
-from patexgs_jax.render import prepare_textures
+from patexgs_jax.render import scene_textures
 from patexgs_jax.training import TrainConfig
 from render_cases import (
     CAP,
@@ -160,20 +160,20 @@ def test_zoom_out_matches_supersampled_render(seed, factor, textured):
 
 
 def test_prepared_textures_render_the_same_image_and_must_match_the_config():
-    """render_jit with the scene's prepare_textures (built once, as the viewer reuses them) gives the
+    """render_jit with the scene's scene_textures (built once, as the viewer reuses them) gives the
     render that builds them itself, to float32 rounding (the same arithmetic in two programs, which
     XLA may fuse differently: bit-equal with its default CPU code generation, 74 of 4,752 values
     6e-8 apart with its older emitters) and the same dominant splats; textures prepared for other
     mip settings or a scene without textures are refused with a line that names the fix."""
     sc, cam = scene(3), camera()
     cfg = RenderConfig(mip="nearest", coverage="prefilter")
-    tx = prepare_textures(sc, config=cfg)
+    tx = scene_textures(sc, config=cfg)
     own = tile_render(sc, cam, cfg)
     out = jax.tree_util.tree_map(np.asarray, render_jit(sc, cam, config=cfg, capacity=CAP, textures=tx))
     for name in ("rgb", "alpha", "depth", "normal"):  # (a few ulps)
         np.testing.assert_allclose(getattr(out, name), getattr(own, name), rtol=5e-7, atol=5e-7, err_msg=name)
     np.testing.assert_array_equal(out.dominant, own.dominant)
-    with pytest.raises(ValueError, match="prepare_textures"):
+    with pytest.raises(ValueError, match="scene_textures"):
         render_jit(sc, cam, config=dataclasses.replace(cfg, mip="none"), capacity=CAP, textures=tx)
-    with pytest.raises(ValueError, match="prepare_textures"):
+    with pytest.raises(ValueError, match="scene_textures"):
         render_jit(scene(3, textured=False), cam, config=cfg, capacity=CAP, textures=tx)

@@ -15,7 +15,7 @@ from jax import export
 from patexgs_jax import RenderConfig, random_scene, render_jit
 from patexgs_jax.densify import DensifyStats
 from patexgs_jax.optim import make_optimizer
-from patexgs_jax.render import prepare_textures
+from patexgs_jax.render import scene_textures
 from patexgs_jax.rendering import tiling
 from patexgs_jax.training.step import single_view_step
 from render_cases import CAP, camera, scene
@@ -120,7 +120,7 @@ def test_render_lowered_for_cuda_states_full_precision(config):
 
     counts = []
     for fn in (lambda s: render_jit(s, cam, config=config, capacity=CAP).rgb, jax.grad(loss),
-               lambda s: prepare_textures(s, config=config)):
+               lambda s: scene_textures(s, config=config)):
         count, low = _low_precision_products(fn, sc)
         assert not low, f"{len(low)} of {count} products without precision=HIGHEST:\n" + "\n".join(low)
         counts.append(count)

@@ -12,8 +12,6 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-import pytest
-
 from locations import REPO
 
 PACKAGE = "patexgs_jax"
@@ -134,8 +132,6 @@ def test_the_graph_sees_imports_at_any_depth():
     assert f"{PACKAGE}.render" in edges[PACKAGE]
 
 
-@pytest.mark.xfail(strict=False, reason="the trainer's circle (training.trainer <-> compile_ahead <-> progress) "
-                   "and plan <-> plan_advice are removed on their own branches; the mark goes when they land")
 def test_no_import_circle():
     modules, edges = import_graph()
     found = circles(edges)

@@ -2,7 +2,6 @@
 kept, no module over 600 lines, no import cycle between the package's modules, and one default
 preset rule for both command lines."""
 
-import ast
 import subprocess
 import sys
 
@@ -31,60 +30,6 @@ def test_no_module_over_600_lines():
     long = {str(p.relative_to(ROOT)): n for folder in ("patexgs_jax", "experiments")
             for p in (ROOT / folder).rglob("*.py") if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not long, f"modules over {MAX_LINES} lines: {long}; split them by concern"
-
-
-def _top_level_imports(path, package: str) -> set[str]:
-    """The package's modules a module imports at its top level (imports inside functions and under
-    TYPE_CHECKING are left out: they do not run when the module is imported)."""
-    tree = ast.parse(path.read_text())
-    rel = path.relative_to(ROOT).with_suffix("")
-    parts = list(rel.parts)
-    here = parts[:-1] if parts[-1] != "__init__" else parts[:-1]
-    if parts[-1] == "__init__":
-        parts = parts[:-1]
-    out = set()
-    for node in tree.body:
-        if isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = here[:len(here) - node.level + 1]
-                mod = ".".join(base + ([node.module] if node.module else []))
-            else:
-                mod = node.module or ""
-            if mod.startswith(package):
-                out.add(mod)
-                out |= {f"{mod}.{a.name}" for a in node.names}
-        elif isinstance(node, ast.Import):
-            out |= {a.name for a in node.names if a.name.startswith(package)}
-    return out
-
-
-def test_no_import_cycles():
-    """Top-level imports between the package's modules form no cycle (a cycle works only in some
-    import orders)."""
-    modules = {}
-    for p in (ROOT / "patexgs_jax").rglob("*.py"):
-        rel = p.relative_to(ROOT).with_suffix("").parts
-        name = ".".join(rel[:-1] if rel[-1] == "__init__" else rel)
-        modules[name] = p
-    graph = {m: {d for d in _top_level_imports(p, "patexgs_jax") if d in modules and d != m}
-             for m, p in modules.items()}
-    # A package's own __init__ importing its submodules is how re-exports work: not a cycle to flag.
-    for m in graph:
-        graph[m] = {d for d in graph[m] if not m.startswith(d + ".")}
-    state: dict[str, int] = {}
-
-    def visit(m, path):
-        state[m] = 1
-        for d in graph[m]:
-            if state.get(d) == 1:
-                raise AssertionError("import cycle: " + " -> ".join(path[path.index(d):] + [d]))
-            if d not in state:
-                visit(d, path + [d])
-        state[m] = 2
-
-    for m in sorted(graph):
-        if m not in state:
-            visit(m, [m])
 
 
 def test_each_module_imports_on_its_own():
