@@ -642,7 +642,7 @@ def test_not_a_dataset_says_what_was_looked_for(tmp_path):
         data.load(tmp_path / "nope")
     (tmp_path / "photos").mkdir()
     (tmp_path / "photos" / "a.png").write_bytes(b"")
-    with pytest.raises(DatasetError, match=r"no camera poses.*python -m patexgs_jax\.prepare"):
+    with pytest.raises(DatasetError, match=r"no camera poses.*python -m patexgs_jax\.sfm"):
         data.load(tmp_path / "photos")
 
 

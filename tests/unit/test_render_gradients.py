@@ -79,7 +79,11 @@ def _chunk_inputs(rng, P, c):
     log_t = np.log(rng.uniform(1e-3, 1.0, P))
     log_t[2] = np.log(2e-4)                                # crosses 1e-4 inside the chunk
     gid = np.arange(c, dtype=np.int32)
-    ctx = dict(rgb_has=jnp.asarray(np.arange(c) % 3 != 1), alpha_has=jnp.asarray(np.arange(c) % 4 != 2))
+    # The chunk reads only the banks' texture flags; the binning fields are a one-tile placeholder.
+    ctx = chunks.CompositeInputs(
+        ids_sorted=jnp.asarray(gid), tile_start=jnp.zeros(1, jnp.int32), binned=jnp.full(1, c, jnp.int32),
+        peak=jnp.ones(c, jnp.float32), flag=jnp.asarray(True),
+        rgb_has=jnp.asarray(np.arange(c) % 3 != 1), alpha_has=jnp.asarray(np.arange(c) % 4 != 2))
     return pk, G, z, offs, a_tex, valid, done, log_t, gid, ctx
 
 
