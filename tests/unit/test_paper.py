@@ -125,8 +125,10 @@ def test_the_settings_table_matches_the_code():
 
 
 def test_results_rows_match_their_benchmark_files():
-    """docs/results.md's side-by-side of the paper read literally and its readings of Eq. 13 are the
-    rows of ``experiments.headline --paper`` and ``experiments.zoom_ab.reading_rows`` of their files."""
+    """docs/results.md's side-by-side of the paper read literally (embedded scene and beer) and its
+    readings of Eq. 13 are the rows of ``experiments.headline --paper`` and
+    ``experiments.zoom_ab.reading_rows`` of their files, and each study's own rows are its lowpass
+    reading."""
     import json
 
     from experiments import headline, zoom_ab
@@ -135,18 +137,21 @@ def test_results_rows_match_their_benchmark_files():
     text = (REPO / "docs" / "results.md").read_text() + "\n## end"
     section = text[text.index("## Results: the paper read literally"):]
     section = section[:section.index("\n## ", 1)]
-    data = json.loads((REPO / "benchmarks" / "paper_tiny.json").read_text())
-    assert data["date"] and data["conditions"] and f"commit `{data['version']['git']}`" in section
-    rows = headline.paper_rows(data, "embedded")
-    assert [r.split(" | ")[1] for r in rows] == ["2dgs", "patexgs", "patexgs-literal"]
-    literal = next(r for r in rows if " patexgs-literal " in r)
-    for row in rows:
-        assert row in section, row
-    readings = json.loads((REPO / "benchmarks" / "eq13_tiny.json").read_text())
-    assert readings["date"] and f"commit `{readings['git'].split('-')[0]}`" in section
-    rows = zoom_ab.reading_rows(readings, "embedded")
-    assert rows and all(r in section for r in rows), rows
-    # The study's own row of the literal model is its lowpass reading.
-    entry = data["results"]["synthetic-v1-seed0"]["patexgs-literal"]
-    own = f"| embedded | patexgs-literal | lowpass | {entry['1']['psnr']:.2f} | "
-    assert own in section and f" | {entry['1']['psnr']:.2f} | " in literal
+    for name, label in (("paper_tiny.json", "embedded"), ("paper_beer.json", "beer")):
+        data = json.loads((REPO / "benchmarks" / name).read_text())
+        assert data["date"] and data["conditions"] and f"`{data['version']['git']}`" in section, name
+        rows = headline.paper_rows(data, label)
+        assert [r.split(" | ")[1] for r in rows] == ["2dgs", "patexgs", "patexgs-literal", "patexgs-paper-sigma"]
+        for row in rows:
+            assert row in section, row
+        # The study's own rows of the literal and 2DGS models are their lowpass reading.
+        per = next(iter(data["results"].values()))
+        for method in ("patexgs-literal",) + (("2dgs",) if label == "beer" else ()):
+            e = per[method]
+            own = f"| {label} | {method} | lowpass | {e['1']['psnr']:.2f} | {e['2']['psnr']:.2f} | "
+            assert own in section, own
+    for name, label in (("eq13_tiny.json", "embedded"), ("eq13_beer.json", "beer"), ("eq13_beer_2dgs.json", "beer")):
+        readings = json.loads((REPO / "benchmarks" / name).read_text())
+        assert readings["date"] and f"`{readings['git'].split('-')[0]}`" in section, name
+        rows = zoom_ab.reading_rows(readings, label)
+        assert rows and all(r in section for r in rows), rows

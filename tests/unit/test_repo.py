@@ -37,7 +37,7 @@ def test_readme_glance_table_matches_its_benchmark_files():
     readme = (ROOT / "README.md").read_text()
     results = (ROOT / "docs" / "results.md").read_text()
     assert headline.GLANCE_HEADER in readme
-    for name, label in (("zoom_tiny.json", "embedded"), ("zoom_beer.json", "beer")):
+    for name, label in (("paper_tiny.json", "embedded"), ("paper_beer.json", "beer")):
         data = headline.read(ROOT / "benchmarks" / name)
         rows = headline.glance_rows(data, label)
         assert [r.split(" | ")[1] for r in rows] == ["`2dgs`", "`patexgs-literal`", "`patexgs`"], rows
