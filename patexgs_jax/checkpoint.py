@@ -101,8 +101,10 @@ class _Encoder:
     part, finding repeated values and zero rows, waits for :meth:`finish`, which numbers the members
     in leaf order (what a background writer runs off the training thread)."""
 
-    def __init__(self, copy: bool = False):
+    def __init__(self, copy: bool = False, pool: dict | None = None):
         self.copy = copy  # host copies the caller may not change: the source may be donated or mutated
+        self.pool = pool if pool is not None else {}  # (shape, dtype) -> free host buffers to copy into
+        self.copies: list[np.ndarray] = []  # the host copies made (a later save's pool)
         self.pending: list[tuple[dict, np.ndarray, bool]] = []  # (node to fill, host array, analyse it)
         self.arrays: list[np.ndarray] = []
         self.kept_rows: dict[int, np.ndarray] = {}  # member -> (R,) mask of the rows it stores
@@ -116,7 +118,16 @@ class _Encoder:
         # A jax array off the CPU arrives as a fresh host buffer; on the CPU it can be a view of the
         # device buffer itself, which a donating step reuses.
         if self.copy and (not isinstance(x, jax.Array) or any(d.platform == "cpu" for d in x.devices())):
-            arr = np.array(arr, copy=True)
+            # Into a buffer of an earlier save where one fits: fresh pages cost more to fault in than
+            # the copy itself (benchmarks.md).
+            free = self.pool.get((arr.shape, arr.dtype.str))
+            if free:
+                buf = free.pop()
+                np.copyto(buf, arr)
+                arr = buf
+            else:
+                arr = np.array(arr, copy=True)
+            self.copies.append(arr)
         return arr
 
     def finish(self) -> None:
@@ -357,16 +368,18 @@ class PreparedCheckpoint:
     spec: dict
 
 
-def prepare_checkpoint(path, tree, metadata: dict | None = None, *, copy: bool = False) -> PreparedCheckpoint:
+def prepare_checkpoint(path, tree, metadata: dict | None = None, *, copy: bool = False,
+                       pool: dict | None = None) -> PreparedCheckpoint:
     """The synchronous half of :func:`save_checkpoint`: ``tree``'s arrays on the host (with ``copy``,
-    host copies nothing else shares, so that the source may be donated or changed at once) and its
-    spec. Raises at once on a leaf or metadata that cannot be checkpointed."""
+    host copies nothing else shares, so that the source may be donated or changed at once; into the
+    buffers of ``pool``, ``{(shape, dtype.str): [arrays]}``, where they fit) and its spec. Raises at
+    once on a leaf or metadata that cannot be checkpointed."""
     path = Path(path)
     try:  # (a JSON round trip: the same text later, whatever the caller does to its dict)
         meta = json.loads(json.dumps(dict(metadata or {}), default=_json_default))
     except (TypeError, ValueError) as e:
         raise TypeError(f"save_checkpoint({path}): metadata is not JSON-serialisable: {e}") from None
-    enc = _Encoder(copy=copy)
+    enc = _Encoder(copy=copy, pool=pool)
     tree_spec = enc.encode(tree)
     return PreparedCheckpoint(path, enc, {"format": FORMAT, "version": VERSION, "metadata": meta, "tree": tree_spec})
 

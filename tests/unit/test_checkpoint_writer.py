@@ -108,7 +108,7 @@ def test_a_second_save_waits_and_order_and_keep_hold(tmp_path):
     assert [p.name for p in list_checkpoints(d)] == ["ckpt_000000002.ckpt", "ckpt_000000003.ckpt"]
     assert load_checkpoint(latest_checkpoint(d))[0] == {"s": 3}
     with pytest.raises(CheckpointError, match="closed"):
-        w.save(checkpoint_path(d, 4), {"s": 4})
+        w.save(checkpoint_path(d, 5), {"s": 5})
 
 
 @pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root ignores permissions")
@@ -207,3 +207,25 @@ def test_a_disk_full_mid_write_is_raised_and_cleaned_up(tmp_path, monkeypatch):
         w.close()
     assert [p.name for p in d.iterdir()] == ["ckpt_000000001.ckpt"]  # no temp file, the old one kept
     np.testing.assert_array_equal(load_checkpoint(latest_checkpoint(d))[0]["a"], np.ones(8))
+
+
+def test_on_written_runs_once_the_file_is_in_place(tmp_path):
+    seen = []
+    with CheckpointWriter() as w:
+        w.save(tmp_path / "x.ckpt", {"s": 1}, on_written=lambda p: seen.append((p, p.exists())))
+    assert seen == [(tmp_path / "x.ckpt", True)]
+
+
+def test_a_later_save_reuses_the_host_copies_and_keeps_each_file_right(tmp_path):
+    w = CheckpointWriter()
+    w.save(tmp_path / "a.ckpt", {"x": jnp.arange(6.0), "y": np.ones(3, np.int32), "z": np.zeros(2)})
+    w.wait()
+    first = {id(b) for b in w._pool[((6,), "<f4")] + w._pool[((3,), "<i4")]}
+    w.save(tmp_path / "b.ckpt", {"x": jnp.arange(6.0) * 2, "y": np.full(3, 7, np.int32), "z": np.zeros(5)})
+    assert first <= {id(b) for b in w._prepared.encoder.copies}  # (the new shape gets a new buffer)
+    w.close()
+    a, b = load_checkpoint(tmp_path / "a.ckpt")[0], load_checkpoint(tmp_path / "b.ckpt")[0]
+    np.testing.assert_array_equal(np.asarray(a["x"]), np.arange(6.0))
+    np.testing.assert_array_equal(np.asarray(b["x"]), np.arange(6.0) * 2)
+    np.testing.assert_array_equal(b["y"], np.full(3, 7)) and np.testing.assert_array_equal(a["y"], np.ones(3))
+    assert b["z"].shape == (5,) and w._pool == {}
