@@ -115,9 +115,11 @@ class _Encoder:
 
     def _host(self, x) -> np.ndarray:
         arr = np.asarray(x)
-        # A jax array off the CPU arrives as a fresh host buffer; on the CPU it can be a view of the
-        # device buffer itself, which a donating step reuses.
-        if self.copy and (not isinstance(x, jax.Array) or any(d.platform == "cpu" for d in x.devices())):
+        # A jax array in an accelerator's memory arrives as a fresh host buffer; on the CPU (or in a
+        # host memory space) it can be a view of the buffer itself, which a donating step reuses.
+        transferred = (isinstance(x, jax.Array) and all(d.platform != "cpu" for d in x.devices())
+                       and getattr(x.sharding, "memory_kind", None) in (None, "device"))
+        if self.copy and not transferred:
             # Into a buffer of an earlier save where one fits: fresh pages cost more to fault in than
             # the copy itself (benchmarks.md).
             free = self.pool.get((arr.shape, arr.dtype.str))
