@@ -29,6 +29,12 @@ Builds a paper-scale state without training it and times each stage of a run on 
   copy of the state that it donates, as the trainer does (the first call compiles its row writes);
   ``densify_again``: a second event on its result (nothing to compile).
 * ``checkpoint_save`` / ``checkpoint_load``: the trainer's checkpoint of this state.
+* ``checkpoint_save_async_first``: the same checkpoint through
+  :class:`~patexgs_jax.checkpoint_writer.CheckpointWriter`, until its first ``save`` returns (the
+  arrays copied to the host, into fresh memory: what the training thread waits for);
+  ``checkpoint_save_async``: the writer's second save, into the first's buffers (a run's 2nd-30th);
+  ``checkpoint_save_async_total``: that save until ``wait`` returns (the whole write; its CPU time
+  counts the writer's thread).
 * ``ply_export`` / ``ply_load``: the PLY and its texture sidecar.
 * ``eval_render_1/2/4/8``: one view rendered at full size and zoomed out by 2, 4, 8 (renders).
 * ``train_step_2dgs`` / ``train_step_textured``: one training step (forward + backward + Adam
@@ -272,6 +278,7 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
         solve_sigma_for_budget,
         total_texels,
     )
+    from patexgs_jax.checkpoint_writer import CheckpointWriter
     from patexgs_jax.densify import DensifyConfig, DensifyStats, densify_and_prune
     from patexgs_jax.export import export_ply, load_ply
     from patexgs_jax.optim import ages_per_slot, make_optimizer, upgrade_state
@@ -406,6 +413,17 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
             with rows.time("checkpoint_load", host=True):
                 loaded, _ = ckpt.load_checkpoint(path)
                 _block((loaded, upgrade_state(loaded["opt_state"])))
+            del loaded
+            async_path = ckpt.checkpoint_path(tmp / "checkpoints_async", 2)
+            with CheckpointWriter() as writer:
+                with rows.time("checkpoint_save_async_first", host=True):
+                    writer.save(ckpt.checkpoint_path(tmp / "checkpoints_async", 1), tree, dict(step=1), keep=2)
+                writer.wait()
+                with rows.time("checkpoint_save_async_total", host=True) as total:
+                    with rows.time("checkpoint_save_async", host=True):
+                        writer.save(async_path, tree, dict(step=2), keep=2)
+                    writer.wait()
+                    total["bytes"] = async_path.stat().st_size
             del tree
         if "ply" not in skip:
             with rows.time("ply_export", host=True) as note:

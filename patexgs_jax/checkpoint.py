@@ -30,7 +30,9 @@ Atomicity
   ``os.replace``-s it onto the final name and fsyncs the directory; an interrupted save leaves the
   previous checkpoint untouched and at most a hidden temp file, which :func:`latest_checkpoint`
   never considers. With ``keep=k`` older ``*.ckpt`` files of the directory are deleted, newest k
-  kept, only after the new one is complete.
+  kept, only after the new one is complete. :class:`patexgs_jax.checkpoint_writer.CheckpointWriter`
+  writes the same file in a background thread (:func:`prepare_checkpoint` on the caller's thread,
+  :func:`write_prepared` on its own).
 
 Naming and order
   :func:`checkpoint_path` gives ``<dir>/ckpt_<step:09d>.ckpt``; "newest" is the largest number in
@@ -58,6 +60,8 @@ import numpy as np
 
 from . import checkpoint_members, checkpoint_rows
 from .checkpoint_members import CheckpointError, CorruptCheckpointError
+from .checkpoint_members import repeated_block as _repeated_block
+from .checkpoint_members import storable as _storable
 
 FORMAT = "patexgs-checkpoint"
 VERSION = 3
@@ -92,45 +96,59 @@ def _is_key_array(x) -> bool:
     return isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
-def _storable(arr: np.ndarray) -> tuple[np.ndarray, str]:
-    """(array numpy can save without pickles, dtype name to restore)."""
-    name = str(arr.dtype)
-    if arr.dtype.kind in "biufc" and arr.dtype.isbuiltin:
-        return arr, name
-    if arr.dtype.kind == "O":
-        raise TypeError("object arrays cannot be checkpointed.")
-    if arr.dtype.kind in "SU":
-        return arr, name
-    # Extension dtypes (bfloat16, float8, ...): raw bits.
-    return arr.view(np.dtype(f"u{arr.dtype.itemsize}")), name
-
-
-_PROBE = 64
-
-
-def _repeated_block(arr: np.ndarray) -> np.ndarray | None:
-    """``arr``'s one value (shape (1, ..., 1)) where it is bitwise one value, else None. The first
-    elements are compared first, so that an array that varies (most parameters and moments) costs
-    one short comparison."""
-    if (arr.ndim == 0 or arr.size < 2 or arr.dtype.kind not in "biuf" or arr.dtype.itemsize not in (1, 2, 4, 8)
-            or not arr.flags.c_contiguous):
-        return None
-    bits = arr.view(np.dtype(f"u{arr.dtype.itemsize}")).reshape(-1)  # (-0.0 is not 0.0, a NaN is its own payload)
-    step = 1 << 24  # compared in chunks of 16M elements
-    chunks = [(0, _PROBE)] + [(i, i + step) for i in range(_PROBE, bits.size, step)]
-    if all(np.all(bits[i:j] == bits[0]) for i, j in chunks):
-        return np.ascontiguousarray(arr.reshape(-1)[:1].reshape((1,) * arr.ndim))
-    return None
-
-
 class _Encoder:
-    def __init__(self):
+    """Walks a tree into its spec (:meth:`encode`), taking each array leaf to the host; the costly
+    part, finding repeated values and zero rows, waits for :meth:`finish`, which numbers the members
+    in leaf order (what a background writer runs off the training thread)."""
+
+    def __init__(self, copy: bool = False, pool: dict | None = None):
+        self.copy = copy  # host copies the caller may not change: the source may be donated or mutated
+        self.pool = pool if pool is not None else {}  # (shape, dtype) -> free host buffers to copy into
+        self.copies: list[np.ndarray] = []  # the host copies made (a later save's pool)
+        self.pending: list[tuple[dict, np.ndarray, bool]] = []  # (node to fill, host array, analyse it)
         self.arrays: list[np.ndarray] = []
         self.kept_rows: dict[int, np.ndarray] = {}  # member -> (R,) mask of the rows it stores
 
     def _add(self, arr: np.ndarray) -> int:
         self.arrays.append(arr)
         return len(self.arrays) - 1
+
+    def _host(self, x) -> np.ndarray:
+        arr = np.asarray(x)
+        # A jax array in an accelerator's memory arrives as a fresh host buffer; on the CPU (or in a
+        # host memory space) it can be a view of the buffer itself, which a donating step reuses.
+        transferred = (isinstance(x, jax.Array) and all(d.platform != "cpu" for d in x.devices())
+                       and getattr(x.sharding, "memory_kind", None) in (None, "device"))
+        if self.copy and not transferred:
+            # Into a buffer of an earlier save where one fits: fresh pages cost more to fault in than
+            # the copy itself (benchmarks.md).
+            free = self.pool.get((arr.shape, arr.dtype.str))
+            if free:
+                buf = free.pop()
+                np.copyto(buf, arr)
+                arr = buf
+            else:
+                arr = np.array(arr, copy=True)
+            self.copies.append(arr)
+        return arr
+
+    def finish(self) -> None:
+        for node, stored, analyse in self.pending:
+            if not analyse:  # a key's data
+                node["i"] = self._add(stored)
+                continue
+            kind, dtype = node.pop("kind"), node.pop("dtype")
+            block = _repeated_block(stored)
+            keep = None if block is not None else checkpoint_rows.zero_rows(stored)
+            if keep is not None:
+                i = self._add(stored)
+                self.kept_rows[i] = keep
+                node.update(i=i, kind=kind, dtype=dtype, shape=list(stored.shape), rows=self._add(np.packbits(keep)))
+            elif block is None:
+                node.update(i=self._add(stored), kind=kind, dtype=dtype)
+            else:
+                node.update(i=self._add(block), kind=kind, dtype=dtype, shape=list(stored.shape))
+        self.pending = []
 
     def encode(self, x, path: str = "tree"):
         if x is None:
@@ -139,25 +157,18 @@ class _Encoder:
             return {"t": "py", "v": x}
         if _is_key_array(x):
             key = cast(jax.Array, x)
-            impl = str(jax.random.key_impl(key))
-            return {"t": "key", "i": self._add(np.asarray(jax.random.key_data(key))), "impl": impl}
+            node = {"t": "key", "i": -1, "impl": str(jax.random.key_impl(key))}
+            self.pending.append((node, self._host(jax.random.key_data(key)), False))
+            return node
         if isinstance(x, (jax.Array, np.ndarray, np.generic)):
             kind = "jax" if isinstance(x, jax.Array) else ("scalar" if isinstance(x, np.generic) else "numpy")
-            arr = np.asarray(x)
             try:
-                stored, dtype = _storable(arr)
+                stored, dtype = _storable(self._host(x))
             except TypeError as e:
                 raise TypeError(f"{path}: {e}") from None
-            block = _repeated_block(stored)
-            keep = None if block is not None else checkpoint_rows.zero_rows(stored)
-            if keep is not None:
-                i = self._add(stored)
-                self.kept_rows[i] = keep
-                return {"t": "array", "i": i, "kind": kind, "dtype": dtype, "shape": list(stored.shape),
-                        "rows": self._add(np.packbits(keep))}
-            if block is None:
-                return {"t": "array", "i": self._add(stored), "kind": kind, "dtype": dtype}
-            return {"t": "array", "i": self._add(block), "kind": kind, "dtype": dtype, "shape": list(stored.shape)}
+            node = {"t": "array", "kind": kind, "dtype": dtype}  # (the member fields follow "t" in finish)
+            self.pending.append((node, stored, True))
+            return node
         if isinstance(x, np.random.Generator):
             bg = x.bit_generator
             return {"t": "np_generator", "bit_generator": type(bg).__name__,
@@ -348,14 +359,41 @@ def save_checkpoint(path, tree, metadata: dict | None = None, *, keep: int | Non
     Returns:
       The path written.
     """
+    return write_prepared(prepare_checkpoint(path, tree, metadata), keep)
+
+
+@dataclasses.dataclass
+class PreparedCheckpoint:
+    """A checkpoint taken to the host (:func:`prepare_checkpoint`), not yet analysed or written."""
+    path: Path
+    encoder: _Encoder
+    spec: dict
+
+
+def prepare_checkpoint(path, tree, metadata: dict | None = None, *, copy: bool = False,
+                       pool: dict | None = None) -> PreparedCheckpoint:
+    """The synchronous half of :func:`save_checkpoint`: ``tree``'s arrays on the host (with ``copy``,
+    host copies nothing else shares, so that the source may be donated or changed at once; into the
+    buffers of ``pool``, ``{(shape, dtype.str): [arrays]}``, where they fit) and its spec. Raises at
+    once on a leaf or metadata that cannot be checkpointed."""
     path = Path(path)
-    enc = _Encoder()
-    spec = {"format": FORMAT, "version": VERSION, "metadata": dict(metadata or {}),
-            "tree": enc.encode(tree)}
-    try:
-        spec_bytes = json.dumps(spec, default=_json_default).encode("utf-8")
+    try:  # (a JSON round trip: the same text later, whatever the caller does to its dict)
+        meta = json.loads(json.dumps(dict(metadata or {}), default=_json_default))
     except (TypeError, ValueError) as e:
         raise TypeError(f"save_checkpoint({path}): metadata is not JSON-serialisable: {e}") from None
+    enc = _Encoder(copy=copy, pool=pool)
+    tree_spec = enc.encode(tree)
+    return PreparedCheckpoint(path, enc, {"format": FORMAT, "version": VERSION, "metadata": meta, "tree": tree_spec})
+
+
+def write_prepared(prepared: PreparedCheckpoint, keep: int | None = None) -> Path:
+    """The rest of :func:`save_checkpoint`: repeated values and zero rows found, the file written,
+    fsynced and renamed into place, then ``keep`` applied."""
+    if keep is not None and keep < 1:
+        raise ValueError(f"keep must be >= 1, got {keep}.")
+    path, enc = prepared.path, prepared.encoder
+    enc.finish()
+    spec_bytes = json.dumps(prepared.spec).encode("utf-8")
 
     directory = path.parent
     directory.mkdir(parents=True, exist_ok=True)
@@ -386,8 +424,6 @@ def save_checkpoint(path, tree, metadata: dict | None = None, *, keep: int | Non
     _fsync_dir(directory)
 
     if keep is not None:
-        if keep < 1:
-            raise ValueError(f"keep must be >= 1, got {keep}.")
         others = [p for p in list_checkpoints(directory) if p.resolve() != path.resolve()]
         for old in others[: max(0, len(others) - (keep - 1))]:
             try:

@@ -12,7 +12,8 @@ import zlib
 
 import numpy as np
 
-__all__ = ["CheckpointError", "CorruptCheckpointError", "npy_view", "stored_member", "write_npy"]
+__all__ = ["CheckpointError", "CorruptCheckpointError", "npy_view", "repeated_block", "storable", "stored_member",
+           "write_npy"]
 
 
 class CheckpointError(Exception):
@@ -72,3 +73,34 @@ def stored_member(mapped, info: zipfile.ZipInfo) -> memoryview:
     if zlib.crc32(view) != info.CRC:
         raise CorruptCheckpointError(f"member {info.filename} fails its CRC check")
     return view
+
+
+def storable(arr: np.ndarray) -> tuple[np.ndarray, str]:
+    """(array numpy can save without pickles, dtype name to restore)."""
+    name = str(arr.dtype)
+    if arr.dtype.kind in "biufc" and arr.dtype.isbuiltin:
+        return arr, name
+    if arr.dtype.kind == "O":
+        raise TypeError("object arrays cannot be checkpointed.")
+    if arr.dtype.kind in "SU":
+        return arr, name
+    # Extension dtypes (bfloat16, float8, ...): raw bits.
+    return arr.view(np.dtype(f"u{arr.dtype.itemsize}")), name
+
+
+_PROBE = 64
+
+
+def repeated_block(arr: np.ndarray) -> np.ndarray | None:
+    """``arr``'s one value (shape (1, ..., 1)) where it is bitwise one value, else None. The first
+    elements are compared first, so that an array that varies (most parameters and moments) costs
+    one short comparison."""
+    if (arr.ndim == 0 or arr.size < 2 or arr.dtype.kind not in "biuf" or arr.dtype.itemsize not in (1, 2, 4, 8)
+            or not arr.flags.c_contiguous):
+        return None
+    bits = arr.view(np.dtype(f"u{arr.dtype.itemsize}")).reshape(-1)  # (-0.0 is not 0.0, a NaN is its own payload)
+    step = 1 << 24  # compared in chunks of 16M elements
+    chunks = [(0, _PROBE)] + [(i, i + step) for i in range(_PROBE, bits.size, step)]
+    if all(np.all(bits[i:j] == bits[0]) for i, j in chunks):
+        return np.ascontiguousarray(arr.reshape(-1)[:1].reshape((1,) * arr.ndim))
+    return None

@@ -112,7 +112,8 @@ def test_bench_scale_times_every_host_stage(tmp_path, capsys):
     rows = {r["event"]: r for r in data["rows"]}
     host = ["build_state", "eq7_allocation", "eq7_budget_solve", "densify", "densify_again", "textures_start",
             "allocation_rebucket", "eq8_10_growth", "rebucket", "rebucket_again", "rebucket_overflow",
-            "checkpoint_save", "checkpoint_load", "ply_export", "ply_load"]
+            "checkpoint_save", "checkpoint_load", "checkpoint_save_async_first", "checkpoint_save_async",
+            "checkpoint_save_async_total", "ply_export", "ply_load"]
     assert list(rows) == host
     for r in rows.values():
         assert r["gaussians"] == 3000 and r["host"] is True
@@ -121,6 +122,7 @@ def test_bench_scale_times_every_host_stage(tmp_path, capsys):
     assert rows["rebucket"]["grown"] > 0 and rows["rebucket"]["layout_changed"] is False
     assert rows["rebucket_overflow"]["layout_changed"] is True and rows["rebucket_overflow"]["path"] == "device"
     assert rows["checkpoint_save"]["bytes"] > 0 and rows["ply_export"]["bytes"] > 0
+    assert rows["checkpoint_save_async_total"]["bytes"] == rows["checkpoint_save"]["bytes"]
     assert rows["densify"]["cloned"] + rows["densify"]["split"] > 0
     assert rows["densify_again"]["cloned"] + rows["densify_again"]["split"] > 0
     assert rows["eq7_allocation"]["texels"] >= 3000  # at least one texel a Gaussian
