@@ -98,13 +98,18 @@ class CheckpointWriter:
                                   f"{type(error).__name__}: {error}") from error
         return self.last_path
 
-    def close(self) -> Path | None:
-        """:meth:`wait`, then refuses further saves."""
-        self._closed = True
+    def release(self) -> Path | None:
+        """:meth:`wait`, then frees the host copies kept for the next save (a later save allocates
+        afresh): the end of a run, whose trainer may outlive it."""
         try:
             return self.wait()
         finally:
             self._pool = {}
+
+    def close(self) -> Path | None:
+        """:meth:`release`, then refuses further saves."""
+        self._closed = True
+        return self.release()
 
     def __enter__(self) -> CheckpointWriter:
         return self

@@ -27,6 +27,7 @@ from .. import checkpoint as ckpt
 from .. import densify as dens
 from .. import interrupt, memory_maps, padding, parallel, progress
 from ..adaptive import TextureScheduleState
+from ..checkpoint_writer import CheckpointWriter
 from ..evaluation import camera_problem, image_problem
 from ..optim import ages_per_slot, make_optimizer, upgrade_state
 from ..render import Capacity, RenderConfig, count_pairs
@@ -92,6 +93,7 @@ class Trainer:
         self.strategies: tuple[Strategy, ...] = (self.densification, SmoothingFilter(config, self.train_views),
                                                  self.textures)
         self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
+        self.writer = CheckpointWriter()  # checkpoints written off the training thread, one at a time
         self.t_start = time.perf_counter()
         self.estimate = Estimate(config, self.train_views, float(getattr(dataset, "factor", 1.0) or 1.0), self.say)
 
@@ -153,11 +155,15 @@ class Trainer:
             parallel.check_same(f"the training state at step {self.step} (a checksum of every array; the host-side "
                                 "work must give the same result on every process)",
                                 [self.step, parallel.tree_checksum(same)])
-        if self.main:
-            path = ckpt.checkpoint_path(self.out / "checkpoints", self.step)
-            ckpt.save_checkpoint(path, tree, dict(config=config_dict(self.cfg), step=self.step), keep=2)
-        self.note_saved(self.step)
+        step = self.step
+        if self.main:  # (the stop message names it once it is on disk)
+            self.writer.save(ckpt.checkpoint_path(self.out / "checkpoints", step), tree, dict(
+                config=config_dict(self.cfg), step=step), keep=2, on_written=lambda _: self.note_saved(step))
+        else:
+            self.note_saved(step)
+        self.saved_step = step  # (now: save_on_stop's age of the newest checkpoint counts the one being written)
         if several:  # the others wait until it is written (a study reads it next)
+            self.writer.wait()
             parallel.check_same(f"the checkpoint of step {self.step} being written", [self.step])
 
     def note_saved(self, step: int) -> None:
@@ -186,8 +192,9 @@ class Trainer:
         self.save()
         if self.main:
             meta = dict(config=config_dict(self.cfg), step=self.step)
-            ckpt.save_checkpoint(ckpt.checkpoint_path(self.out / "checkpoints" / STAGE1_DIR, self.step),
-                                 self.state_tree(), meta, keep=1)
+            self.writer.save(ckpt.checkpoint_path(self.out / "checkpoints" / STAGE1_DIR, self.step),
+                             self.state_tree(), meta, keep=1)
+            self.writer.wait()  # (another method of this process may start from it next)
 
     def stop_at_map_limit(self, maps: tuple[int, int] | None, other: int | None) -> None:
         """Near the memory-map cap even after releasing compiled code (``maps``: this process's
@@ -212,10 +219,6 @@ class Trainer:
     def view(self, step, seed: int | None = None):
         """The training view of ``step`` (:meth:`TrainConfig.view_index`)."""
         return self.train_views[self.cfg.view_index(step, len(self.train_views), seed)]
-
-    def stage_name(self, step: int | None = None) -> str:
-        """:meth:`TrainConfig.stage_name` of ``step`` (default: the current one)."""
-        return self.cfg.stage_name(self.step if step is None else step)
 
     def step_fn(self) -> Callable[..., Any]:
         """The training step of the current scene, stage and capacity (:meth:`.steps.StepProvider.get`)."""
@@ -265,6 +268,7 @@ class Trainer:
         finally:
             bar.close()
             self.ahead.cancel_unclaimed()
+            self.writer.release()  # every checkpoint on disk before the caller reads one or the process ends
 
     def before_step(self, step):
         """Host-side work before the step that starts at ``step``: the stage-1 checkpoint, then the
@@ -285,13 +289,9 @@ class Trainer:
             self.state = strategy.after_step(self.state, step)
         if self.scene.capacity != capacity:  # the scene's shapes changed: refit before the next step
             self.capacity_floor, self.capacity = self.capacity or self.capacity_floor, None
-        if self.refits_at(step):
+        if refits_at(self.cfg, step, self.capacity):
             self.fit_capacity(self.view(step).camera)
         self.ahead.after_step(step, self.state, self.capacity)
-
-    def refits_at(self, step: int) -> bool:
-        """Whether :meth:`after_step` refits the tile capacity after ``step`` steps (:func:`.steps.refits_at`)."""
-        return refits_at(self.cfg, step, self.capacity)
 
     def _views(self, step):
         """The batch of ``step``: its views, images (None where another process loads them) and each

@@ -113,13 +113,13 @@ def test_3dgs_run_names_its_stage_records_its_config_and_writes_no_sidecar(monke
 
     # The stage's name in the time estimate and the phase: the primitive's.
     run = Trainer(ds, cfg, None, verbose=False)
-    assert {run.stage_name(s) for s in (0, 5, 6, 9)} == {"3DGS"}
+    assert {run.cfg.stage_name(s) for s in (0, 5, 6, 9)} == {"3DGS"}
     said.clear()
     for step in range(10):
         run.estimate.measure(step, 0.17)
     assert any("(170 ms a 3DGS step)" in s for s in said) and not any("2DGS" in s for s in said), said
     tex = Trainer(ds, preset_config("tiny", method="patexgs", iters_2dgs=6, iters_tex=4), None, verbose=False)
-    assert [tex.stage_name(s) for s in (5, 6)] == ["2DGS", "textured"]
+    assert [tex.cfg.stage_name(s) for s in (5, 6)] == ["2DGS", "textured"]
 
 
 def test_sidecar_only_with_textures_and_outputs_0644(tmp_path, umask_022):

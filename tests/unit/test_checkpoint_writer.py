@@ -229,3 +229,16 @@ def test_a_later_save_reuses_the_host_copies_and_keeps_each_file_right(tmp_path)
     np.testing.assert_array_equal(np.asarray(b["x"]), np.arange(6.0) * 2)
     np.testing.assert_array_equal(b["y"], np.full(3, 7)) and np.testing.assert_array_equal(a["y"], np.ones(3))
     assert b["z"].shape == (5,) and w._pool == {}
+
+
+def test_release_frees_the_host_copies_and_saves_go_on(tmp_path):
+    """``release`` (the end of a run) waits and frees the kept copies; unlike ``close`` it refuses
+    nothing, so a trainer that runs again writes again."""
+    w = CheckpointWriter()
+    w.save(tmp_path / "a.ckpt", {"x": np.arange(4.0)})
+    assert w.release() == tmp_path / "a.ckpt" and w._pool == {} and not w.in_flight
+    w.save(tmp_path / "b.ckpt", {"x": np.arange(4.0) + 1})
+    w.close()
+    np.testing.assert_array_equal(load_checkpoint(tmp_path / "b.ckpt")[0]["x"], np.arange(4.0) + 1)
+    with pytest.raises(CheckpointError, match="closed"):
+        w.save(tmp_path / "c.ckpt", {"x": np.zeros(1)})
