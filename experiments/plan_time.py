@@ -93,7 +93,7 @@ def main(argv=None) -> int:
                   f"{r['load_end']:.1f} (at most {r['load_max']:.1f}), exit {r['exit_code']}", flush=True)
     if args.json:
         write_benchmark_json(args.json, results, SCHEMA, data=args.data,
-                             provenance="python -m experiments.plan_time: the plan command in fresh processes, "
+                             conditions="python -m experiments.plan_time: the plan command in fresh processes, "
                                         "compile cache empty (cold) then the one it left (warm)")
     return 0 if all(r["exit_code"] == 0 for r in results) else 1
 
