@@ -38,13 +38,13 @@ TRAIN_SCRIPT = textwrap.dedent("""
     scene_dir, out = sys.argv[1], sys.argv[2]
     if os.environ.get("SLOW_CHECKPOINT_WRITES"):
         # Stretch every checkpoint write so that a kill can land inside one (announced on stdout).
-        from patexgs_jax import checkpoint as ckpt_module
-        real = ckpt_module._write_npy  # (each array member of a checkpoint is written by it)
+        from patexgs_jax import checkpoint_members as ckpt_module
+        real = ckpt_module.write_npy  # (each array member of a checkpoint is written by it, in the writer's thread)
         def slow(*a, **k):
             print("WRITING", flush=True)
             time.sleep(0.05)
             return real(*a, **k)
-        ckpt_module._write_npy = slow
+        ckpt_module.write_npy = slow
     cfg = TrainConfig(method="2dgs", iters_2dgs=16, checkpoint_every=2, log_every=2, max_gaussians=300,
                         sh_degree=1, sh_interval=4,
                         densify=DensifyConfig(start=10_000, stop=10_001, opacity_reset_interval=10_000))
