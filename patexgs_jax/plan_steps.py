@@ -28,12 +28,13 @@ class Progress:
     saying what is measured and for how long.
 
     Args:
-      every: seconds between two lines at most.
+      every: seconds of silence after which the phase is said again (default 8: the beat looks once a
+        second and a compile holds the interpreter for a while, so lines land within 10 s).
       say: prints a line (default :func:`patexgs_jax.progress.say`, above any progress bar).
       clock: seconds (default ``time.monotonic``; tests pass their own).
     """
 
-    def __init__(self, every: float = 10.0, say=None, clock=time.monotonic):
+    def __init__(self, every: float = 8.0, say=None, clock=time.monotonic):
         self.every, self.clock = float(every), clock
         self.say = say or bars.say
         self.what: str | None = None
