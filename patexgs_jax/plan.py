@@ -191,11 +191,16 @@ MEASURE_MAX_PIXELS = 1 << 20
 #: Steps timed a stage where the plan extrapolates anyway (the count scaled linearly); its Eq. 7
 #: allocation then runs at the texture stage's start (no warm-up step: one compile less).
 EXTRAPOLATED_STEPS = 2
-#: Where the 2DGS stage's timed steps alone put a CPU run beyond :data:`plan_advice.ABSURD_SECONDS`
-#: (every textured step costs at least a 2DGS one), the plan times nothing else and estimates the
+#: Where the 2DGS stage's timed steps alone put a CPU run beyond :data:`ESTIMATE_BEYOND` (every
+#: textured step costs at least a 2DGS one), the plan times nothing else and estimates the
 #: rest from that stage, at ratios inside the spreads measured on this project's CPU (docs/memory.md,
 #: "The plan's own time"): a textured step over a 2DGS step;
 TEXTURE_STEP_RATIO = 2.0
+#: The run's time here past which the plan estimates the texture stage rather than timing it: the
+#: longest CPU budget the advice names (a night). Beyond it the run fits no budget here, so the
+#: advice does not hang on the texture stage's exact cost; a threshold at a day would flip with the
+#: step's noise on captures near it (a 21 h floor timed the rest, 105 s, where a 29 h one took 29 s).
+ESTIMATE_BEYOND = plan_advice.BUDGETS[-1][0]
 #: the texture stage's compiles (its start, Eq. 6's counter and counts, the allocated layout's
 #: step) over the 2DGS stage's;
 TEXTURE_COMPILE_RATIO = 2.0
@@ -278,7 +283,7 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
 def _measure(dataset, config, n: int, fits: bool, here: Device, steps: int, all_steps: int, pr) -> dict:
     """:func:`measure_steps` as the plan uses it: at the planned count, or, on a CPU above
     :data:`MEASURE_MAX_GAUSSIANS` (or past its memory), at that count scaled linearly, timing the
-    2DGS stage first and, when its steps alone make the run longer than a day here, nothing else
+    2DGS stage first and, when its steps alone make the run longer than a night here, nothing else
     (the texture stage, the evaluation and their compiles then estimated from it)."""
     m_n, scale, note = n, 1.0, ""
     px = max(padded_pixels(v.camera.width, v.camera.height) for v in dataset.train_views)
@@ -295,11 +300,11 @@ def _measure(dataset, config, n: int, fits: bool, here: Device, steps: int, all_
         got = measure_steps(dataset, alone, m_n, steps=timed, stage1_gaussians=mean, quick=quick, progress=pr,
                             evaluate=False)
         floor = got["stage1"] * all_steps  # (unscaled: a step of more Gaussians takes no less)
-        if floor > plan_advice.ABSURD_SECONDS:
+        if floor > ESTIMATE_BEYOND:
             if pr is not None:
                 pr.phase(f"the 2DGS step's {short_seconds(got['stage1'])} makes {all_steps:,} steps at least "
-                         f"{floor / 86400:.1f} days here: nothing else is timed (the texture stage, the evaluation "
-                         "and their compiles are estimated from the 2DGS step)")
+                         f"{hms(floor)} here, past a night: nothing else is timed (the texture stage, the "
+                         "evaluation and their compiles are estimated from the 2DGS step)")
             return dict(_estimated_rest(got, config), gaussians=m_n, scale=scale, note=note)
         if pr is not None:
             pr.phase(f"the run's {all_steps:,} steps take at least {hms(floor)} here (each at least a 2DGS step): "
