@@ -198,8 +198,8 @@ EXTRAPOLATED_STEPS = 2
 TEXTURE_STEP_RATIO = 2.0
 #: The run's time here past which the plan estimates the texture stage rather than timing it: the
 #: longest CPU budget the advice names (a night). Beyond it the run fits no budget here, so the
-#: advice does not hang on the texture stage's exact cost; a threshold at a day would flip with the
-#: step's noise on captures near it (a 21 h floor timed the rest, 105 s, where a 29 h one took 29 s).
+#: advice does not hang on the texture stage's exact cost; a threshold at a day flips with the step's
+#: noise on captures whose floor lies near it (docs/memory.md, "The plan's own time").
 ESTIMATE_BEYOND = plan_advice.BUDGETS[-1][0]
 #: the texture stage's compiles (its start, Eq. 6's counter and counts, the allocated layout's
 #: step) over the 2DGS stage's;
