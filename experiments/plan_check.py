@@ -24,9 +24,12 @@ Gaussians (about 8 minutes on one H200).
 
 On a GPU the peaks are the device's (``peak_bytes_in_use``), which cannot be reset: each stage's
 figure is the peak up to its end (the texture stage's is its own wherever it exceeds stage 1's).
-``--timeout S`` stops a run after S seconds; its row then holds what the run measured until then
-(``incomplete``: the stages' step times so far, the peaks of the stages it finished), written
-every 250 steps by the run's process.
+Each plan and run compiles in an empty compilation cache of its own (``--cache cold``, the
+default: the first run of a command line, whose peak holds its compiles) or in the user's
+(``--cache shared``: the figures then depend on what ran before). ``--timeout S`` stops a run
+after S seconds; its row then holds what the run measured until then (``incomplete``: the
+stages' step times so far, the peaks of the stages it finished), written every 250 steps by the
+run's process.
 """
 
 from __future__ import annotations
@@ -80,6 +83,7 @@ def run_case(argv: list[str], partial: str | None = None) -> dict:
     import statistics
 
     import jax
+    import numpy as np
 
     import patexgs_jax.training.run as run_mod
     from patexgs_jax.training.cli import main
@@ -87,6 +91,7 @@ def run_case(argv: list[str], partial: str | None = None) -> dict:
 
     peaks: dict[str, int] = {}
     stamps: list[tuple[int, int, float]] = []  # (stage, step, time)
+    active: dict[int, int] = {}  # step: active Gaussians (every 50 steps)
     before, after, evaluate = Trainer.before_step, Trainer.after_step, run_mod.evaluate
     t: dict[str, float | None] = {"start": None, "eval": None}
 
@@ -102,6 +107,8 @@ def run_case(argv: list[str], partial: str | None = None) -> dict:
         after(self, step)
         jax.block_until_ready(self.scene.means)
         stamps.append((1 if step <= self.cfg.iters_2dgs else 2, step, time.perf_counter()))
+        if step % 50 == 0:
+            active[step] = int(np.asarray(self.scene.active).sum())
         if partial is not None and len(stamps) % 250 == 0:
             write_json(partial, dict(figures(time.perf_counter()), incomplete=True, peak_bytes_so_far=_peak_bytes()))
 
@@ -120,7 +127,10 @@ def run_case(argv: list[str], partial: str | None = None) -> dict:
                                   for k, v in spans.items()},
                     steps={("stage1" if k == 1 else "texture"): len(v) for k, v in spans.items()},
                     stage_seconds={("stage1" if k == 1 else "texture"): sum(v) for k, v in spans.items()},
-                    train_seconds=sum(spans[1]) + sum(spans[2]), total_seconds=t_end - (t["start"] or t_end))
+                    train_seconds=sum(spans[1]) + sum(spans[2]), total_seconds=t_end - (t["start"] or t_end),
+                    step_ms={("stage1" if k == 1 else "texture"): [round(x * 1e3, 1) for x in v]
+                             for k, v in spans.items()},
+                    active_gaussians=active)
 
     Trainer.before_step, Trainer.after_step, run_mod.evaluate = before_step, after_step, evaluate_
     code = main(argv)
@@ -129,15 +139,26 @@ def run_case(argv: list[str], partial: str | None = None) -> dict:
     return dict(figures(t_end), code=code)
 
 
+#: Whether each plan and run process gets an empty compilation cache of its own (``--cache cold``,
+#: the default) or the user's (``--cache shared``). A CPU run's peak resident memory holds the
+#: compiles it does itself (XLA's compiler in the process): a run whose programs come from the
+#: cache peaked 40% lower on the embedded scene (docs/memory.md), so the figures of a shared cache
+#: follow whatever ran before. Cold is the first run of a command line, the one a memory check guards.
+CACHE_MODES = ("cold", "shared")
+_cache_mode = {"mode": "cold"}
+
+
 def _child(args: list[str], timeout: float | None = None, log: str | None = None) -> tuple[int | None, str, str]:
     """Runs ``python args`` through ``sh``; returns (exit status, None once ``timeout`` seconds
     passed; stdout; stderr). With ``log``, the child's output also goes to ``log``.{out,err} as it
-    runs."""
+    runs. Under ``--cache cold`` the child's compilation cache is an empty folder of its own."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
     # `; exit $?` keeps sh from exec-ing the command in its own process (which keeps the high-water mark).
     cmd = ["sh", "-c", shlex.join([sys.executable, *args]) + "; exit $?"]
     with tempfile.TemporaryDirectory() as tmp:
+        if _cache_mode["mode"] == "cold":
+            env["PATEXGS_COMPILE_CACHE"] = os.path.join(tmp, "xla")
         out_path, err_path = (f"{log}.out", f"{log}.err") if log else (f"{tmp}/out", f"{tmp}/err")
         with open(out_path, "w") as out, open(err_path, "w") as err:
             proc = subprocess.Popen(cmd, stdout=out, stderr=err, text=True, env=env, start_new_session=True)
@@ -186,7 +207,8 @@ def check_case(name: str, beer: str, timeout: float | None = None, logs: str | N
                               time_terms_seconds=plan.get("time_terms_seconds")),
                measured=dict(peak_bytes=run["peak_bytes"], step_seconds=run["step_seconds"],
                              total_seconds=run["total_seconds"], steps=run["steps"],
-                             stage_seconds=run.get("stage_seconds")))
+                             stage_seconds=run.get("stage_seconds"), step_ms=run.get("step_ms"),
+                             active_gaussians=run.get("active_gaussians")))
     if run.get("incomplete"):
         row.update(incomplete=True, stopped_after_seconds=run["stopped_after_seconds"],
                    peak_bytes_so_far=run.get("peak_bytes_so_far"))
@@ -263,12 +285,16 @@ def main(argv=None) -> int:
                     help="stop a case's plan + run after S seconds and keep what the run measured until then")
     ap.add_argument("--logs", default=None, metavar="DIR",
                     help="keep each plan's and run's output in DIR/<case>.{plan,run}.{out,err}")
+    ap.add_argument("--cache", choices=CACHE_MODES, default="cold",
+                    help="cold (default): each plan and run compiles everything, in an empty compilation cache of "
+                    "its own; shared: the user's cache (figures then depend on what ran before)")
     ap.add_argument("--run-case", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--partial", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--replan", default=None, metavar="FILE",
                     help="make FILE's plans again with the current code (each in a fresh process), keep its runs, "
                     "and write the rows to --json (default: FILE); with --cases, those cases' rows only")
     args = ap.parse_args(argv)
+    _cache_mode["mode"] = args.cache
     if args.replan is not None:
         with open(args.replan) as f:
             doc = json.load(f)
@@ -279,7 +305,8 @@ def main(argv=None) -> int:
                 continue
             rows.append(replan(r))
             print(table([rows[-1]]).split("\n", 2)[-1], flush=True)
-        doc = dict(doc, results=rows, replanned=f"plans made again at {git_commit()}; runs from {doc.get('git')}")
+        doc = dict(doc, results=rows, replanned=f"plans made again at {git_commit()}; runs from {doc.get('git')}",
+                   replan_compile_cache=args.cache)
         write_json(args.json or args.replan, doc)
         print(table(rows))
         return 0
@@ -300,7 +327,7 @@ def main(argv=None) -> int:
         rows.append(row)
         print(table([row]).split("\n", 2)[-1], flush=True)
         if args.json:  # after every case: a stopped check keeps what it measured
-            write_benchmark_json(args.json, rows, SCHEMA, mode="plan_check")
+            write_benchmark_json(args.json, rows, SCHEMA, mode="plan_check", compile_cache=args.cache)
     print()
     print(table(rows))
     return 1 if any("error" in r for r in rows) else 0

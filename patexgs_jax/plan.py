@@ -168,7 +168,7 @@ class Plan:
             "padded_size") else ""
         t1, t2 = short_seconds(self.step_seconds["stage1"]), short_seconds(self.step_seconds["texture"])
         tex = "texture" if not m.get("texture_estimated") else "texture (estimated)"
-        lines.append(f"  step time (this device, {m['steps']} timed steps a stage{at}, {m['seconds']:.0f} s): 2DGS "
+        lines.append(f"  step time (this device, {_timed(m)}{at}, {m['seconds']:.0f} s): 2DGS "
                      f"{t1} (at {m.get('stage1_gaussians', m['gaussians']):,} Gaussians, the stage's mean), "
                      f"{tex} {t2} (at {m['gaussians']:,}){'; ' + m['note'] if m.get('note') else ''}")
         tt = self.time_terms
@@ -323,6 +323,18 @@ def _estimated_rest(got: dict, config) -> dict:
                 texture_estimated=textured, eval_estimated=True, eq6_views=0)
 
 
+def _timed(m: dict) -> str:
+    """The steps timed, in words: ``"5 timed steps a stage"``, ``"31 + 12 timed steps"`` (2DGS +
+    texture) or ``"31 timed steps"`` (the 2DGS stage alone)."""
+    k = m.get("timed_steps")
+    if k is None:  # (measured by an older plan, or stubbed: ``steps`` a stage)
+        return f"{m['steps']} timed steps a stage"
+    k1, k2 = k["stage1"], k.get("texture")
+    if not k2:
+        return f"{k1} timed steps"
+    return f"{k1} timed steps a stage" if k1 == k2 else f"{k1} + {k2} timed steps"
+
+
 def _figures(m: dict, *, textured: bool, n: int, n_from: str, sigma_from: str, advice: bool) -> dict:
     """How each figure of the plan was found: ``{name: {"how", "from"}}``."""
     def f(how, words):
@@ -337,7 +349,7 @@ def _figures(m: dict, *, textured: bool, n: int, n_from: str, sigma_from: str, a
         return out
     sc, size = m.get("scale", 1.0), m.get("padded_size")
     at = f"{size[1]}x{size[0]} px" if size else "the views' size"
-    timed = f"median of {m['steps']} steps at {at}"
+    timed = f"median of {_timed(m)} at {at}"
     if sc > 1:
         how, words = "extrapolated", f"{timed}, {m['gaussians']:,} Gaussians timed, scaled x{sc:.3g} to {n:,}"
     else:

@@ -15,11 +15,19 @@ import numpy as np
 from . import adaptive, interrupt
 from . import progress as bars
 
-__all__ = ["EQ6_SAMPLE_VIEWS", "Progress", "eq6_sample", "hms", "measure_steps", "sample_eq6_counts", "short_seconds"]
+__all__ = ["EQ6_SAMPLE_VIEWS", "MAX_TIMED_STEPS", "TIMED_SECONDS", "Progress", "eq6_sample", "hms", "measure_steps",
+           "sample_eq6_counts", "short_seconds"]
 
 #: Training views the plan's Eq. 6 count renders (evenly spaced); Eq. 7's sums over all views are
 #: scaled from them (:func:`sample_eq6_counts`).
 EQ6_SAMPLE_VIEWS = 8
+#: A stage's steps are timed until they add up to this many seconds (at least ``steps`` of them,
+#: at most :data:`MAX_TIMED_STEPS`): on this project's 2-core CPU a run's own step time moves by a
+#: third between stretches of a few seconds, so five steps of 70 ms time one such stretch, and
+#: the median of the steps of a few seconds is the steadier figure (docs/memory.md, "Measured
+#: error (CPU)"). Steps of a second or more are timed ``steps`` times, as before.
+TIMED_SECONDS = 4.0
+MAX_TIMED_STEPS = 40
 
 
 class Progress:
@@ -145,8 +153,9 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     changes), the texture stage's at ``gaussians``.
 
     A scene of ``gaussians`` Gaussians is initialised from the dataset's points (repeated with a
-    small jitter when it has fewer), densification is off, and the run's own loop trains ``steps``
-    steps of each stage after the ones that compile (the texture stage of adaptive methods runs the
+    small jitter when it has fewer), densification is off, and the run's own loop trains at least
+    ``steps`` steps of each stage after the ones that compile, more while they add up to less than
+    :data:`TIMED_SECONDS` (the steps past them are not run) (the texture stage of adaptive methods runs the
     real Eq. 7 allocation on that scene after one warm-up step, its Eq. 6 count on ``eq6_views`` of
     the training views and scaled to all: :func:`sample_eq6_counts`; ``quick``: at the stage's start,
     without the warm-up step, whose layout compiles a step of its own), with nothing compiled in the
@@ -158,8 +167,10 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     leaves the evaluation render untimed (``eval_view`` and ``eval_compile`` None).
 
     Returns:
-      ``stage1``, ``texture``: median seconds of the last ``steps`` steps of each stage, which
-      compile nothing (texture None without textures); ``compile_stage1``, ``compile_texture``:
+      ``stage1``, ``texture``: median seconds of each stage's timed steps, which compile nothing
+      (texture None without textures); ``timed_steps``: how many (``steps``, then more up to
+      :data:`TIMED_SECONDS` of them, at most :data:`MAX_TIMED_STEPS`; ``quick``: ``steps``), and
+      ``step_ms`` each one's milliseconds; ``compile_stage1``, ``compile_texture``:
       seconds the stage's other steps took beyond as many steady ones (compiling);
       ``eval_view``, ``eval_compile``: seconds of one evaluation render and of compiling one
       evaluation; ``steps``; ``seconds``: the time this took (all in seconds); ``padded_size``:
@@ -180,8 +191,10 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     off = DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_interval=10**9)
     allocates = spec.textures == "adaptive"
     warm = 0 if quick else 1
-    n1 = 1 + steps
-    n2 = 0 if not textured else 1 + steps + (warm if allocates else 0)
+    most = steps if quick else max(steps, MAX_TIMED_STEPS)  # (quick: a few slow steps, scaled anyway)
+    n1 = 1 + most
+    first2 = n1 + 1 + (warm if allocates else 0)  # the texture stage's first timed step
+    n2 = 0 if not textured else first2 - n1 + most
     cfg = dataclasses.replace(config, iters_2dgs=n1, iters_tex=max(n2, 2), continue_2dgs=0, warmup_tex=warm,
                               growth_interval=10**9, densify=off, max_gaussians=int(gaussians),
                               checkpoint_every=10**9, log_every=10**9, sh_interval=1, normal_from=0)
@@ -189,18 +202,33 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     size, n_sizes, views = _one_size(dataset.train_views, config)
     ds = dataclasses.replace(dataset, points=pts, colors=cols, train_views=views)
     stamps: list[tuple[int, float]] = []
+    skipped: set[int] = set()  # steps past a stage's timing (not run: the stage has its figure)
+    timed: dict[int, list[float]] = {1: [], 2: []}
     say = progress or _Silent()
     m = int(gaussians) if stage1_gaussians is None else max(1, min(int(stage1_gaussians), int(gaussians)))
     at = f"{size[1]}x{size[0]} px"
+    upto = "" if most == steps else f"{steps} to {most} steps (at least {TIMED_SECONDS:g} s) of"
     phases = {0: f"compiling the 2DGS step ({m:,} active Gaussians of {int(gaussians):,}, {at})",
-              1: f"timing {steps} steps of the 2DGS stage"}
+              1: f"timing {upto or f'{steps} steps of'} the 2DGS stage"}
     if textured:
         phases[n1] = "compiling the texture stage's first step"
-        phases[n1 + n2 - steps] = f"timing {steps} steps of the texture stage ({int(gaussians):,} Gaussians)"
+        phases[first2] = f"timing {upto or f'{steps} steps of'} the texture stage ({int(gaussians):,} Gaussians)"
+
+    def stage_of(step):
+        return 1 if step < n1 else 2
+
+    def timing(step):  # whether the step that starts at ``step`` is one the figures time
+        return 1 <= step < n1 or (textured and step >= first2)
+
+    def enough(k):
+        t = timed[k]
+        return len(t) >= most or (len(t) >= steps and sum(t) >= TIMED_SECONDS)
     # Eq. 6 on a sample of the views of the stepped size, Eq. 7's sums scaled to all the training views.
     sample = eq6_sample(views, eq6_views) if allocates else []
 
     class Run(Trainer):
+        _last: dict | None = None  # the last step's metrics
+
         def before_step(self, step):
             if step in phases:
                 say.phase(phases[step])
@@ -218,10 +246,20 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
             if allocation:
                 say.phase("compiling the texture step of the allocated sizes")
 
+        def train_step(self, step, views, images):
+            if timing(step) and enough(stage_of(step)) and self._last is not None:
+                skipped.add(step)  # (the stage is timed: its last metrics stand in, nothing runs)
+                return self._last
+            self._last = super().train_step(step, views, images)
+            return self._last
+
         def after_step(self, step):
             super().after_step(step)
             jax.block_until_ready(self.scene.means)
-            stamps.append((step, time.perf_counter()))
+            t = time.perf_counter()
+            if timing(step - 1) and step - 1 not in skipped:
+                timed[stage_of(step - 1)].append(t - (stamps[-1][1] if stamps else t0))
+            stamps.append((step, t))
 
     say.phase(f"setting up a scene of {int(gaussians):,} Gaussians on the {len(views)} training views of {at}")
     run = Run(ds, cfg, None, verbose=False)
@@ -239,18 +277,21 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
             os.environ.pop(AHEAD_ENV, None)
         else:
             os.environ[AHEAD_ENV] = saved
-    # The last ``steps`` steps of each stage compile nothing (the schedule puts every compile first:
-    # the first step, the texture stage's start, Eq. 7's allocation); the others' extra time is compiling.
-    spans: dict[int, list[float]] = {1: [], 2: []}
+    # The timed steps compile nothing (the schedule puts every compile first: the first step, the
+    # texture stage's start, Eq. 7's allocation); the other steps' extra time is compiling.
+    untimed: dict[int, list[float]] = {1: [], 2: []}
     prev_t = t0
     for step, t in stamps:
-        spans[1 if step <= n1 else 2].append(t - prev_t)
+        if not timing(step - 1):
+            untimed[stage_of(step - 1)].append(t - prev_t)
         prev_t = t
-    med = {k: (statistics.median(v[-steps:]) if len(v) > steps else None) for k, v in spans.items()}
-    comp = {k: max(0.0, sum(v[:-steps]) - (len(v) - steps) * (med[k] or 0.0)) if med[k] else 0.0
-            for k, v in spans.items()}
+    med = {k: (statistics.median(v) if v else None) for k, v in timed.items()}
+    comp = {k: max(0.0, sum(untimed[k]) - len(untimed[k]) * med[k]) if med[k] else 0.0 for k in timed}
     out = dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
                compile_texture=comp[2] if textured else 0.0, eval_view=None, eval_compile=None, steps=steps,
+               timed_steps=dict(stage1=len(timed[1]), texture=len(timed[2])),
+               step_ms=dict(stage1=[round(x * 1e3, 1) for x in timed[1]],
+                            texture=[round(x * 1e3, 1) for x in timed[2]]),
                padded_size=list(size), padded_sizes=n_sizes, eq6_views=len(sample))
     if not evaluate:
         return dict(out, seconds=time.perf_counter() - t_all)
