@@ -9,12 +9,22 @@ import numpy as np
 from . import adaptive
 from .metrics import mb_to_texels
 
-__all__ = ["GROWTH_SHARE", "UNCAPPED_GAUSSIANS", "eq7_texels", "mean_stage1_gaussians", "planned_gaussians"]
+__all__ = ["GROWTH_SHARE", "UNCAPPED_GAUSSIANS", "densify_events", "eq7_texels", "mean_stage1_gaussians",
+           "planned_gaussians"]
 
 #: Gaussians planned for when the run has no cap (``max_gaussians`` None): densification is then
 #: bounded only by its gradient threshold, and 2DGS on the Mip-NeRF 360 scenes reaches 1 to several
 #: million; ``--max-gaussians`` makes the count a cap.
 UNCAPPED_GAUSSIANS = 3_000_000
+
+
+def densify_events(config) -> list[int]:
+    """The steps after which the 2DGS stage densifies, as the run's densification does
+    (:class:`patexgs_jax.training.strategies.Densification`): ``densify.densify_at(t)``, strictly
+    after ``start``, and before ``iters_2dgs`` (a study's untextured run does not densify in the
+    steps it continues). A 150-step stage with ``start`` 100 and ``interval`` 50 has none."""
+    dc = config.densify
+    return [t for t in range(dc.interval, config.iters_2dgs, dc.interval) if dc.densify_at(t)]
 
 
 def planned_gaussians(config, num_points: int) -> tuple[int, str]:
@@ -26,8 +36,8 @@ def planned_gaussians(config, num_points: int) -> tuple[int, str]:
     Returns:
       (count, a phrase saying which: the cap, or what densification may reach).
     """
-    dc = config.densify
-    densifies = dc.stop > dc.start and config.iters_2dgs > dc.start
+    events = len(densify_events(config))
+    densifies = events > 0
     cap = config.max_gaussians
     if cap is not None:
         if not densifies:
@@ -36,7 +46,6 @@ def planned_gaussians(config, num_points: int) -> tuple[int, str]:
         return cap, f"the cap (max_gaussians {cap:,}): densification fills it"
     if not densifies:
         return num_points, "the initial points (no densification in this schedule, no cap)"
-    events = len(range(dc.start, min(dc.stop, config.iters_2dgs), dc.interval))
     reach = num_points * 2.0 ** events  # each event at most doubles the count
     n = int(min(reach, UNCAPPED_GAUSSIANS))
     return n, (f"no cap: densification may reach {n:,} ({events} events from {num_points:,} points, "
@@ -51,7 +60,7 @@ def mean_stage1_gaussians(config, num_points: int, gaussians: int) -> int:
     dc, steps = config.densify, config.iters_2dgs
     p, n = min(int(num_points), int(gaussians)), int(gaussians)
     start, stop = min(dc.start, steps), min(dc.stop, steps)
-    if stop <= start:
+    if stop <= start or not densify_events(config):
         return p
     extra = config.continue_2dgs if config.spec.textures is None else 0
     total = p * start + 0.5 * (p + n) * (stop - start) + n * (steps - stop) + n * extra

@@ -95,6 +95,36 @@ def test_memory_model_terms():
     assert cpu["eval"] == max(cpu["stage1"], cpu["texture"])  # the allocator keeps what training freed
 
 
+def test_cpu_bases_give_the_peaks_of_the_runs_they_were_calibrated_on():
+    """The CPU bases (2DGS stage, a textured run's 2DGS stage, texture stage) against the runs of
+    ``experiments.plan_check`` on the embedded scene in empty compile caches that set them
+    (docs/memory.md, "Measured error (CPU)"): every stage's peak within 10%."""
+    from pathlib import Path
+
+    calibration = Path(__file__).parents[2] / "benchmarks" / "plan_check_cpu_idle_cold_tiny_498959c.json"
+    doc = json.loads(calibration.read_text())
+    px = plan.padded_pixels(128, 96)
+    for row in doc["results"]:
+        textured = row["texels_eq7"] > 0
+        p = plan.stage_peaks("cpu", train_pixels=px, eval_pixels=px, gaussians=row["gaussians"],
+                             rgba_texels=int(row["texels_eq7"] * 1.1), textured=textured)
+        for stage in ("stage1", "texture") if textured else ("stage1",):
+            assert p[stage] == pytest.approx(row["measured"]["peak_bytes"][stage], rel=0.10), (row["case"], stage)
+
+
+def test_the_plan_says_how_many_steps_it_timed(ds):
+    """Cheap steps are timed until they add up to a few seconds: the plan names the count of each stage."""
+    cfg = preset_config("tiny", method="patexgs", max_gaussians=500)
+    timed = dict(MEASURED, timed_steps=dict(stage1=40, texture=22))
+    assert "40 + 22 timed steps" in plan.make_plan(ds, cfg, measured=timed).text()
+    same = dict(MEASURED, timed_steps=dict(stage1=5, texture=5))
+    assert "5 timed steps a stage" in plan.make_plan(ds, cfg, measured=same).text()
+    assert "3 timed steps a stage" in plan.make_plan(ds, cfg, measured=dict(MEASURED)).text()  # (an older plan's)
+    alone = plan.make_plan(ds, TrainConfig(method="2dgs", max_gaussians=500),
+                           measured=dict(MEASURED, texture=None, timed_steps=dict(stage1=31, texture=0)))
+    assert "31 timed steps at" in alone.figures["step_seconds.stage1"]["from"]
+
+
 @pytest.mark.parametrize("text,kind,size", [("h100-80gb", "gpu", 60e9), ("24GB", "gpu", 24e9),
                                             ("80GiB", "gpu", 80 * 2**30), ("cpu:16e9", "cpu", 16e9),
                                             ("25769803776", "gpu", 25769803776)])
@@ -194,6 +224,23 @@ def test_stage1_is_timed_at_the_mean_of_its_densification_ramp():
     # A study's 2DGS run continues its stage at the final count.
     cont = preset_config("tiny", method="2dgs", continue_2dgs=200)
     assert plan.mean_stage1_gaussians(cont, 3000, 4000) == round((3000 * 100 + 3500 * 350 + 4000 * 350) / 800)
+
+
+def test_a_stage_that_ends_before_its_first_densification_plans_for_its_points():
+    """Densification acts strictly after ``start`` and before the stage's end (as the run's
+    strategy): beer's 150-step check (``cpu`` preset, from step 100 every 50) never densifies, and
+    its run kept its 4,414 points where the plan once planned the 6,000 cap."""
+    from patexgs_jax.plan_counts import densify_events
+
+    short = preset_config("cpu", method="2dgs", iters_2dgs=150, continue_2dgs=400)
+    assert densify_events(short) == []
+    assert plan.planned_gaussians(short, 4414)[0] == 4414
+    assert plan.mean_stage1_gaussians(short, 4414, 4414) == 4414
+    tiny = preset_config("tiny", method="patexgs", iters_2dgs=300)
+    assert densify_events(tiny) == [150, 200, 250]
+    assert plan.planned_gaussians(tiny, 3000)[0] == 4000  # the cap: densification fills it
+    paper = densify_events(preset_config("paper"))  # (500 to 15,000 every 100: 600, ..., 14,900)
+    assert paper[:2] == [600, 700] and len(paper) == 144
 
 
 def test_steps_are_timed_on_views_of_one_padded_size(ds):
