@@ -220,9 +220,9 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     def timing(step):  # whether the step that starts at ``step`` is one the figures time
         return 1 <= step < n1 or (textured and step >= first2)
 
-    def enough(k):
+    def enough(k):  # (by the median: a timed step that compiled, a tile capacity's retry, counts as one step)
         t = timed[k]
-        return len(t) >= most or (len(t) >= steps and sum(t) >= TIMED_SECONDS)
+        return len(t) >= most or (len(t) >= steps and len(t) * statistics.median(t) >= TIMED_SECONDS)
     # Eq. 6 on a sample of the views of the stepped size, Eq. 7's sums scaled to all the training views.
     sample = eq6_sample(views, eq6_views) if allocates else []
 
