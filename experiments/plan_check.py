@@ -202,6 +202,7 @@ def check_case(name: str, beer: str, timeout: float | None = None, logs: str | N
             run = json.loads(out.strip().splitlines()[-1])
     row: dict = dict(case=name, argv=argv, plan_seconds=plan_seconds, gaussians=plan["gaussians"],
                texels_eq7=plan["texels_eq7"], measured_steps=plan["measured"]["steps"],
+               timed_steps=plan["measured"].get("timed_steps"), plan_step_ms=plan["measured"].get("step_ms"),
                predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
                               total_seconds=plan["total_seconds"],
                               time_terms_seconds=plan.get("time_terms_seconds")),
@@ -241,7 +242,8 @@ def replan(row: dict) -> dict:
         with open(plan_json) as f:
             plan = json.load(f)
     row = dict(row, plan_seconds=time.perf_counter() - t, plan_at=git_commit(),
-               measured_steps=plan["measured"]["steps"],
+               measured_steps=plan["measured"]["steps"], timed_steps=plan["measured"].get("timed_steps"),
+               plan_step_ms=plan["measured"].get("step_ms"), plan_gaussians=plan["gaussians"],
                predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
                               total_seconds=plan["total_seconds"]))
     row["relative_error"] = _errors(row)
