@@ -45,7 +45,7 @@ import os
 
 from . import memory, plan_advice
 from .padding import padded_shape
-from .plan_counts import UNCAPPED_GAUSSIANS, eq7_texels, mean_stage1_gaussians, planned_gaussians
+from .plan_counts import UNCAPPED_GAUSSIANS, densify_events, eq7_texels, mean_stage1_gaussians, planned_gaussians
 from .plan_devices import DEVICES, GB, Device, parse_device, this_device
 from .plan_memory import (
     CPU_BASE_BYTES,
@@ -109,6 +109,7 @@ class Plan:
     total_seconds: float | None
     time_terms: dict
     advice: list = dataclasses.field(default_factory=list)  # lines: where the run belongs, what fits here
+    ahead_steps: int = 0  # 2DGS steps beside the texture stage's compile ahead (:func:`ahead_steps`)
     # {figure: {"how": "measured" | "extrapolated" | "estimated" | "modelled" | "not measured", "from": words}}
     figures: dict = dataclasses.field(default_factory=dict)
 
@@ -129,7 +130,7 @@ class Plan:
             device=here["device"], memory_bytes=here["memory_bytes"], peak_bytes=here["peak_bytes"],
             fits=self.fits, fixes=here["fixes"], devices=self.devices, step_seconds=self.step_seconds,
             measured=self.measured, total_seconds=self.total_seconds, time_terms_seconds=self.time_terms,
-            advice=self.advice, figures=self.figures)
+            advice=self.advice, ahead_steps=self.ahead_steps, figures=self.figures)
 
     def text(self) -> str:
         """The plan as lines for a terminal."""
@@ -168,8 +169,10 @@ class Plan:
             "padded_size") else ""
         t1, t2 = short_seconds(self.step_seconds["stage1"]), short_seconds(self.step_seconds["texture"])
         tex = "texture" if not m.get("texture_estimated") else "texture (estimated)"
+        beside = (f"; {self.ahead_steps:,} of its {self.steps['stage1']:,} steps beside the texture stage's compile "
+                  f"ahead, at {AHEAD_SLOWDOWN:g}x") if self.ahead_steps else ""
         lines.append(f"  step time (this device, {_timed(m)}{at}, {m['seconds']:.0f} s): 2DGS "
-                     f"{t1} (at {m.get('stage1_gaussians', m['gaussians']):,} Gaussians, the stage's mean), "
+                     f"{t1} (at {m.get('stage1_gaussians', m['gaussians']):,} Gaussians, the stage's mean{beside}), "
                      f"{tex} {t2} (at {m['gaussians']:,}){'; ' + m['note'] if m.get('note') else ''}")
         tt = self.time_terms
         lines.append(f"  whole run: {hms(self.total_seconds or 0.0)} ({hms(tt['stage1'])} 2DGS + "
@@ -208,6 +211,30 @@ TEXTURE_COMPILE_RATIO = 2.0
 EVAL_STEP_SHARE = 0.3
 #: and its compile over the 2DGS step's.
 EVAL_COMPILE_SHARE = 0.5
+
+
+#: On a CPU a textured run compiles its texture stage's first programs ahead, in the background,
+#: from its 2DGS stage's last densification (:mod:`patexgs_jax.training.compile_ahead`): the 2DGS
+#: steps beside that compile take this many times as long (2.0: the embedded scene's last 50 steps
+#: of stage 1, against the same steps of its ``2dgs`` run, docs/memory.md), and the compile they share
+#: the cores with is not waited for at the texture stage's start.
+AHEAD_SLOWDOWN = 2.0
+
+
+def ahead_steps(config, t1: float | None, compile_seconds: float, kind: str) -> int:
+    """How many 2DGS steps share this device's cores with compiling the texture stage's first
+    programs ahead: from the stage's last densification event (from its start without one) until
+    ``compile_seconds`` of compiling are done, at :data:`AHEAD_SLOWDOWN` x ``t1`` seconds a step.
+    0 on a GPU (the host compiles beside the device's steps), without textures, with a batch, or
+    with compiling ahead off (``PATEXGS_COMPILE_AHEAD=0``)."""
+    from . import background
+
+    if (kind != "cpu" or config.spec.textures is None or config.batch_size != 1 or not background.enabled()
+            or not t1 or compile_seconds <= 0):
+        return 0
+    events = densify_events(config)
+    window = config.iters_2dgs - (events[-1] if events else 0)
+    return int(min(window, compile_seconds / (AHEAD_SLOWDOWN * t1)))
 
 
 def stage1_method(config) -> str | None:
@@ -263,9 +290,15 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     dens = config.densify
     doublings = max(0, math.ceil(math.log2(max(n, 1) / max(len(dataset.points), 1)))) if dens.stop > dens.start else 0
     sizes = measured.get("padded_sizes", 1)  # (each padded size of the training views compiles its steps)
-    terms = dict(stage1=steps1 * (t1 or 0.0), texture=steps2 * (t2 or 0.0),
-                 compile=sizes * (measured["compile_stage1"] * (1 + doublings) + measured["compile_texture"] * 2),
+    # The 2DGS steps beside the texture stage's compile ahead: slower, and that compile is done by the stage's end.
+    k = ahead_steps(config, t1, measured["compile_texture"], here.kind)
+    beside = k * (t1 or 0.0)
+    compiles = sizes * (measured["compile_stage1"] * (1 + doublings) + measured["compile_texture"] * 2)
+    terms = dict(stage1=steps1 * (t1 or 0.0) + beside * (AHEAD_SLOWDOWN - 1), texture=steps2 * (t2 or 0.0),
+                 compile=max(0.0, compiles - beside * AHEAD_SLOWDOWN),
                  eval=n_eval * measured["eval_view"] * sc + 2 * measured.get("eval_compile", 0.0))
+    if t1 is not None and k > config.iters_2dgs / 2:  # (most of the stage's steps: its median step is the slower one)
+        t1 *= AHEAD_SLOWDOWN
     total = None if t1 is None else float(sum(terms.values()))
     advice = []
     if total is not None and here.kind == "cpu" and total > plan_advice.ABSURD_SECONDS:
@@ -277,7 +310,7 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     return Plan(method=config.method, views=views, steps=dict(stage1=steps1, texture=steps2), gaussians=n,
                 gaussians_from=n_from, texels_eq7=texels, texels_max=texels_max, sigma=sigma, sigma_from=sigma_from,
                 devices=plans, step_seconds=dict(stage1=t1, texture=t2), measured=measured,
-                total_seconds=total, time_terms=terms, advice=advice, figures=figures)
+                total_seconds=total, time_terms=terms, advice=advice, ahead_steps=k, figures=figures)
 
 
 def _measure(dataset, config, n: int, fits: bool, here: Device, steps: int, all_steps: int, pr) -> dict:

@@ -7,6 +7,7 @@ Step times are stubbed here (``measured=``): the real steps are timed by the one
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -46,7 +47,9 @@ def test_plan_json_keeps_every_figure_with_its_unit(ds):
     assert doc["step_seconds"] == dict(stage1=0.05, texture=0.08)
     assert isinstance(doc["fits"], bool) and doc["fits"] and doc["fixes"] == []
     t = doc["time_terms_seconds"]
-    assert t["stage1"] == pytest.approx(600 * 0.05) and t["texture"] == pytest.approx(200 * 0.08)
+    k = doc["ahead_steps"]  # (the 2DGS steps beside the texture stage's compile ahead: 2 s of it at 2 x 50 ms)
+    assert k == plan.ahead_steps(cfg, 0.05, 2.0, "cpu") == 20
+    assert t["stage1"] == pytest.approx((600 + k) * 0.05) and t["texture"] == pytest.approx(200 * 0.08)
     assert doc["total_seconds"] == pytest.approx(sum(t.values()))
     assert doc["steps"] == dict(stage1=600, texture=200)
     assert doc["gaussians"] == 500 and "cap" in doc["gaussians_from"]
@@ -110,6 +113,22 @@ def test_cpu_bases_give_the_peaks_of_the_runs_they_were_calibrated_on():
                              rgba_texels=int(row["texels_eq7"] * 1.1), textured=textured)
         for stage in ("stage1", "texture") if textured else ("stage1",):
             assert p[stage] == pytest.approx(row["measured"]["peak_bytes"][stage], rel=0.10), (row["case"], stage)
+
+
+def test_the_2dgs_steps_beside_the_compile_ahead_are_slower(monkeypatch):
+    """A textured run on a CPU compiles its texture stage's first programs ahead from its last
+    densification: its 2DGS steps beside that compile take 2x as long (the plan's stage term), the
+    compile is done by the stage's end (its term less), and where most of the stage shares the cores
+    (beer's 150-step check never densifies: ahead from step 0) the stage's median step is the slower one."""
+    tiny = preset_config("tiny", method="patexgs", iters_2dgs=300)  # last densification at 250: 50 steps at most
+    assert plan.ahead_steps(tiny, 0.08, 30.0, "cpu") == 50
+    assert plan.ahead_steps(tiny, 0.08, 4.0, "cpu") == 25  # 4 s at 2 x 80 ms a step
+    assert plan.ahead_steps(tiny, 0.08, 30.0, "gpu") == 0
+    assert plan.ahead_steps(dataclasses.replace(tiny, method="2dgs"), 0.08, 30.0, "cpu") == 0
+    short = preset_config("cpu", method="patexgs", iters_2dgs=150, iters_tex=100)
+    assert plan.ahead_steps(short, 0.13, 37.0, "cpu") == 142  # 37 s at 2 x 130 ms
+    monkeypatch.setenv("PATEXGS_COMPILE_AHEAD", "0")
+    assert plan.ahead_steps(short, 0.13, 37.0, "cpu") == 0
 
 
 def test_the_plan_says_how_many_steps_it_timed(ds):
@@ -243,7 +262,7 @@ def test_a_stage_that_ends_before_its_first_densification_plans_for_its_points()
     assert paper[:2] == [600, 700] and len(paper) == 144
 
 
-def test_steps_are_timed_on_views_of_one_padded_size(ds):
+def test_steps_are_timed_on_views_of_one_padded_size(ds, monkeypatch):
     """A run compiles its step once per padded size: the plan's timed steps use the views of one
     size (the most common; ties: the largest), else they would time compiles, and the whole run's
     compile term counts every size."""
@@ -261,6 +280,7 @@ def test_steps_are_timed_on_views_of_one_padded_size(ds):
     assert (size, n) == ((48, 64), 3) and [v.camera.width for v in chosen] == [64, 64]
     size, n, chosen = plan_steps._one_size(views[1:3], cfg)  # one view each: the largest
     assert (size, n, len(chosen)) == ((64, 80), 2, 1)
+    monkeypatch.setenv("PATEXGS_COMPILE_AHEAD", "0")  # (no compile ahead beside stage 1: the compiles alone)
     one = plan.make_plan(ds, cfg, measured=dict(MEASURED, padded_sizes=1)).time_terms["compile"]
     three = plan.make_plan(ds, cfg, measured=dict(MEASURED, padded_sizes=3)).time_terms["compile"]
     assert three == pytest.approx(3 * one) and one > 0
