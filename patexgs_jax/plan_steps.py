@@ -286,7 +286,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
             untimed[stage_of(step - 1)].append(t - prev_t)
         prev_t = t
     med = {k: (statistics.median(v) if v else None) for k, v in timed.items()}
-    comp = {k: max(0.0, sum(untimed[k]) - len(untimed[k]) * med[k]) if med[k] else 0.0 for k in timed}
+    comp = {k: max(0.0, sum(untimed[k]) - len(untimed[k]) * (med[k] or 0.0)) if med[k] else 0.0 for k in timed}
     out = dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
                compile_texture=comp[2] if textured else 0.0, eval_view=None, eval_compile=None, steps=steps,
                timed_steps=dict(stage1=len(timed[1]), texture=len(timed[2])),
