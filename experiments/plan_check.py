@@ -245,7 +245,8 @@ def replan(row: dict) -> dict:
                measured_steps=plan["measured"]["steps"], timed_steps=plan["measured"].get("timed_steps"),
                plan_step_ms=plan["measured"].get("step_ms"), plan_gaussians=plan["gaussians"],
                predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
-                              total_seconds=plan["total_seconds"]))
+                              total_seconds=plan["total_seconds"], time_terms_seconds=plan.get("time_terms_seconds"),
+                              ahead_steps=plan.get("ahead_steps")))
     row["relative_error"] = _errors(row)
     return row
 
