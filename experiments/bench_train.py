@@ -117,8 +117,13 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compo
     ds = types.SimpleNamespace(train_views=views, test_views=[], points=None, colors=None,
                                normalization=types.SimpleNamespace(radius=2.0))
     stamps = []
+    traces = {}
 
     class Run(Trainer):
+        def before_step(self, step):
+            traces.setdefault(step, sum(STEP_TRACES.values()))  # (the traces before the step at ``step``)
+            super().before_step(step)
+
         def after_step(self, step):
             super().after_step(step)
             jax.block_until_ready(self.scene.means)
@@ -133,14 +138,6 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compo
     run.stats = DensifyStats.zeros(run.scene.capacity)
     for v in views:  # one capacity that fits every view: no overflow retry inside the timed steps
         run.fit_capacity(v.camera)
-    traces = {}
-    orig = run.step_fn
-
-    def step_fn():
-        traces.setdefault(run.step, sum(STEP_TRACES.values()))
-        return orig()
-
-    run.step_fn = step_fn
     t0 = time.perf_counter()
     run.run()
     first = stamps[0] - t0
@@ -152,7 +149,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compo
                 height=views[0].camera.height,
                 batch_size=batch_size, devices=n_dev, ms_per_step=ms, ms_per_view=ms / batch_size,
                 compile_s=first - ms / 1e3, first_step_s=first, steps=len(steady),
-                recompiles_steady=recompiles, skipped=run.skipped, capacity=run.capacity.pairs)
+                recompiles_steady=recompiles, skipped=run.skipped, capacity=run.tiles.current.pairs)
 
 
 MEMORY_SIZES = [(1152, 864), (2304, 1728), (4032, 3024)]

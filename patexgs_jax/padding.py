@@ -293,6 +293,24 @@ class ViewRenderer:
             key = (cam.height, cam.width)
             self.capacities[key] = Capacity.fit(self._needed(cam), minimum=self.capacities.get(key))
 
+    def compile(self, cameras: Sequence[Camera]) -> dict:
+        """Fits the padded sizes' capacities to ``cameras`` as :meth:`prepare` does, compiling the
+        pair counter and renderer of each size as executables of their own (JAX's caches may release
+        theirs; these live as long as the dict): what ``programs=`` takes, returned."""
+        new = {}
+        for c in cameras:
+            cam = self.camera(c)
+            key = (cam.height, cam.width)
+            if ("count", *key) not in self.programs:
+                self.programs[("count", *key)] = count_pairs.lower(self.scene, cam, config=self.config).compile()
+                new[key] = cam
+            self.capacities[key] = Capacity.fit(self._needed(cam), minimum=self.capacities.get(key))
+        for key, cam in new.items():
+            self.programs[("render", *key, self.capacities[key])] = render_jit.lower(
+                self.scene, cam, config=self.config, capacity=self.capacities[key], active_sh_degree=None,
+                textures=None).compile()
+        return self.programs
+
     def padded(self, camera: Camera):
         """The :class:`RenderOutput` of ``camera`` rendered at its padded size, uncropped (on the
         device; what render timing measures)."""

@@ -240,7 +240,7 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
                 act[m:gaussians] = act[0] if step == n1 else 0
                 self.scene = self.scene.replace(active=jax.numpy.asarray(act))
                 if step == n1:  # more Gaussians, more tile pairs: refit (its counter is compiled) rather than
-                    self.capacity = None  # overflow, retry and compile the step twice
+                    self.tiles.current = None  # overflow, retry and compile the step twice
             allocation = allocates and self.textures.allocates_at(self.state, step)
             if allocation:
                 say.phase(f"Eq. 6 counts on {len(sample)} of the {len(dataset.train_views)} training views "

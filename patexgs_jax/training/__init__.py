@@ -6,8 +6,8 @@ One module a concern:
 - :mod:`.step`: the jitted single-view and batched steps;
 - :mod:`.strategies`: the strategy protocol, densification and the 3D filter, called between steps
   (the texture schedule, also a strategy, is :mod:`patexgs_jax.schedule`);
-- :mod:`.steps`: the step provider, which decides which compiled step runs;
-- :mod:`.compile_ahead`: the texture stage's first programs compiled in the background;
+- :mod:`.steps`: the step provider, which runs the step: the tile capacity, which compiled step runs;
+- :mod:`.compile_ahead`: the texture stage's first programs compiled in the background (a strategy);
 - :mod:`.trainer`: the host loop (:class:`~.trainer.Trainer`);
 - :mod:`.estimate`: the start line, the time estimate, the note on long runs;
 - :mod:`.run`: :func:`train` (resume, stage-1 sharing, outputs);

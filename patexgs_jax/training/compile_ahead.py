@@ -7,10 +7,11 @@ warm-up's layout at the padded size of the stage's first view, at the tile capac
 will fit; for Eq. 7 methods, the allocation's pair counter and renderer, and the textured step for
 the layout a speculative Eq. 7 allocation gives on the warm-up's first state (the real one, 40 steps
 later, usually falls in the same power-of-two buckets). A prediction that does not match what the
-run needs is never used, so results never depend on it. :class:`CompileAhead` is a listener handed
-the state it needs: the trainer calls ``after_step``, ``prepare_others``, ``predict_own_allocation``
-and ``cancel_unclaimed``; the step provider ``claim_step`` and ``take``; the texture schedule
-``claim_eq7``. ``PATEXGS_COMPILE_AHEAD=0`` turns it off.
+run needs is never used, so results never depend on it. :class:`CompileAhead` is the run's last
+strategy (:class:`.strategies.Strategy`: it looks at the state the others made, and reads the tile
+capacity it shares with the trainer), and a listener the step provider asks (``claim_step``,
+``take``), as the texture schedule does (``claim_eq7``); the trainer calls ``cancel_unclaimed`` at
+the run's end. ``PATEXGS_COMPILE_AHEAD=0`` turns it off.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 
 from .. import background, interrupt, padding
 from ..adaptive import ContributionCounts
-from ..render import Capacity, RenderConfig, count_pairs, render_jit
+from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
 from ..schedule import TEXTURE_HEADROOM, TEXTURE_MIN_SPARE, TextureSchedule, TrainState
 from ..textures.rebucket import resize_textures
@@ -37,6 +38,7 @@ from .steps import (
     PROCESS,
     ProcessPrograms,
     StepEntry,
+    TileCapacity,
     layout_of,
     refits_at,
     single_step_jit,
@@ -93,13 +95,15 @@ MAX_PREPARED = 4
 
 class CompileAhead:
     """The compile-ahead work of one run (see the module's docstring). ``shared``: the process's
-    programs, whose ``prepared`` list holds the entries no run claimed yet; ``prepare_for``: configs
+    programs, whose ``prepared`` list holds the entries no run claimed yet; ``tiles``: the run's tile
+    capacity; ``prepare_for``: configs
     of the runs that start from this run's stage-1 checkpoint; ``outcomes``: each program this run
     needed and found compiled ahead (``hit``) or not (``why``), summary.json's ``compile_ahead``."""
 
-    def __init__(self, config: TrainConfig, optimizer, train_views, pad: padding.TrainPadding, *,
-                 say: Callable[[str], None], shared: ProcessPrograms = PROCESS):
+    def __init__(self, config: TrainConfig, optimizer, train_views, pad: padding.TrainPadding, tiles: TileCapacity,
+                 *, say: Callable[[str], None], shared: ProcessPrograms = PROCESS):
         self.cfg, self.optimizer, self.train_views, self.pad, self.say = config, optimizer, train_views, pad, say
+        self.tiles = tiles
         self.prepared = shared.prepared
         self.shared = shared
         self.prepare_for: tuple[TrainConfig, ...] = ()
@@ -108,18 +112,32 @@ class CompileAhead:
         dc = effective_config(config).densify
         self._last_densify = max((t for t in range(1, config.iters_2dgs) if dc.densify_at(t)), default=0)
 
-    def after_step(self, step: int, state: TrainState, capacity: Capacity | None) -> None:
-        """Once densification has stopped, the texture stage's first layout is known: its step is
-        compiled ahead (again after a tile-capacity refit that changed the capacity: the step's
-        program depends on the shapes and the capacity only, so a refit that keeps the capacity
-        would compile the same programs again, every 100 steps, beside the run's own steps)."""
-        if (self._last_densify <= step < self.cfg.iters_2dgs and state.scene.rgb is None
-                and capacity is not None
-                and (self._prepared_own is None
-                     or (refits_at(self.cfg, step, capacity) and capacity != self._prepared_own))):
+    def before_step(self, state: TrainState, step: int) -> TrainState:
+        """At the texture stage's start: the speculative allocation from its first state
+        (:meth:`predict_own_allocation`); an untextured run resumed there prepares the runs that
+        start from its stage-1 checkpoint (:meth:`prepare_others`)."""
+        if step == self.cfg.iters_2dgs:
+            if state.scene.rgb is None:
+                self.prepare_others(state)
+            else:
+                self.predict_own_allocation(state, self.tiles.current)
+        return state
+
+    def after_step(self, state: TrainState, step: int) -> TrainState:
+        """At the end of the 2DGS stage, the runs that start from its state are prepared
+        (:meth:`prepare_others`). Before it, once densification has stopped, the texture stage's
+        first layout is known: its step is compiled ahead, and again when the tile capacity changes
+        (the step's program depends on the shapes and the capacity only, so a refit that keeps the
+        capacity would compile the same programs again beside the run's own steps)."""
+        capacity = self.tiles.current
+        if step == self.cfg.iters_2dgs and state.scene.rgb is None:
+            self.prepare_others(state)
+        elif (self._last_densify < step < self.cfg.iters_2dgs and state.scene.rgb is None
+              and capacity is not None and capacity != self._prepared_own):
             self._prepared_own = capacity
             # (its allocation is predicted at the stage's start, from the warm-up's actual state)
             self.prepare(self.cfg, state, capacity, predict_allocation=False)
+        return state
 
     def cancel_unclaimed(self) -> None:
         """At the run's end: the entries made for it and never claimed are not needed."""
@@ -166,36 +184,22 @@ class CompileAhead:
         args = step_image_args(cam)
 
         def compile_step():
-            done = None
+            done = False
             try:
                 if keep:
-                    prep.capacity = minimum
+                    capacity = minimum
                 else:  # (its own program: the main thread releases the shared jitted ones at will)
                     counter = count_pairs.lower(scene, cam, config=render_cfg, valid_hw=hw).compile()
                     needed, _ = counter(scene, cam, valid_hw=hw)
-                    prep.capacity = pad.capacity(needed, current=minimum)  # (as the run's refit)
-                done = self.shared.step(identity, (render_cfg, prep.capacity), layout, prep.padded)
-                prep.fn = done or single_step_jit(optimizer, render_cfg, prep.capacity, config.lambda_dist > 0)
+                    capacity = pad.capacity(needed, current=minimum)  # (as the run's refit)
+                done = self._take_step(prep, config, capacity)
             finally:
                 prep.counted.set()
-            if done is None:  # (else an earlier run of this process compiled it: the run takes it from there)
+            if not done:
                 prep.fn.lower(scene, opt_state, stats, cam, *args).compile()
 
-        def compile_eq7():
-            programs, caps, cams = {}, {}, {}
-            for v in self.train_views:  # as TextureSchedule.allocate's ViewRenderer pads and counts them
-                c = padding.padded_camera(v.camera, render_cfg.tile_size, padding.EVAL_STEPS_PER_OCTAVE)
-                key = (c.height, c.width)
-                if ("count", *key) not in programs:
-                    programs[("count", *key)] = count_pairs.lower(scene, c, config=render_cfg).compile()
-                    cams[key] = c
-                needed, _ = programs[("count", *key)](scene, c)
-                caps[key] = Capacity.fit(float(needed), minimum=caps.get(key))
-            for key, cap in caps.items():
-                programs[("render", *key, cap)] = render_jit.lower(
-                    scene, cams[key], config=render_cfg, capacity=cap, active_sh_degree=None,
-                    textures=None).compile()
-            return programs
+        def compile_eq7():  # (as TextureSchedule.allocate's ViewRenderer pads and counts the views)
+            return padding.ViewRenderer(scene, render_cfg).compile([v.camera for v in self.train_views])
 
         whose = "" if own else f" of {config.method}"
         prep.step_job = background.submit(f"the textured step{whose} for {cam.width}x{cam.height} px", compile_step,
@@ -231,7 +235,7 @@ class CompileAhead:
         views = self.train_views
 
         def compile_allocation():
-            done = None
+            done = False
             try:
                 cap = capacity()
                 if not eq7_job.ok or cap is None:
@@ -245,12 +249,11 @@ class CompileAhead:
                 sides, _, _ = stage.allocation_sides(counts, np.asarray(scene.active) > 0)
                 new_scene, new_opt, _ = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                                         min_spare=TEXTURE_MIN_SPARE)
-                alloc.capacity, alloc.layout = cap, layout_of(new_scene)
-                done = self.shared.step(identity, (render_cfg, cap), alloc.layout, alloc.padded)
-                alloc.fn = done or single_step_jit(self.optimizer, render_cfg, cap, config.lambda_dist > 0)
+                alloc.layout = layout_of(new_scene)
+                done = self._take_step(alloc, config, cap)
             finally:
                 alloc.counted.set()
-            if done is None:
+            if not done:
                 alloc.fn.lower(new_scene, new_opt, stats, cam, *args).compile()
 
         alloc.step_job = background.submit(f"the textured step{whose} for Eq. 7's predicted layout", compile_allocation,
@@ -259,6 +262,15 @@ class CompileAhead:
             return None
         self.prepared.append(alloc)
         return alloc
+
+    def _take_step(self, entry: Prepared, config: TrainConfig, capacity: Capacity | None) -> bool:
+        """Sets ``entry``'s capacity and jitted step; True where an earlier run of this process has
+        compiled that step for ``entry``'s padded size (the run takes it from there), else the
+        caller compiles it."""
+        entry.capacity = capacity
+        done = self.shared.step(entry.identity, (entry.render_cfg, capacity), entry.layout, entry.padded)
+        entry.fn = done or single_step_jit(self.optimizer, entry.render_cfg, capacity, config.lambda_dist > 0)
+        return done is not None
 
     def predict_own_allocation(self, state: TrainState, capacity: Capacity | None) -> None:
         """At the texture stage's start of a run through both stages: the speculative allocation (see
@@ -381,24 +393,20 @@ class CompileAhead:
         prep.drop()
         return prep.eq7_job.value if self.take(prep.eq7_job, what, step) else None
 
-    def wait(self, job: background.Job, step: int) -> None:
-        """Waits for a background compile the step needs (a stop signal still stops the run)."""
-        if job.done:
-            return
-        interrupt.set_phase(f"waiting for the background compile of {job.what}")
-        interrupt.set_step(step, self.cfg.total_steps)
-        self.say(f"[compile ahead] waiting for {job.what} ({time.monotonic() - (job.started or 0):.0f} s "
-                 "into its compile)")
-        job.wait(poll=interrupt.check)
-
     def take(self, job: background.Job | None, what: str, step: int) -> bool:
         """Whether ``what``, needed at ``step``, was compiled ahead by ``job`` (waited for if still
-        compiling); False (the caller compiles it) if the job failed or had not started."""
+        compiling; a stop signal still stops the run); False (the caller compiles it) if the job
+        failed or had not started."""
         if job is None:
             return False
         if job.cancel():
             self.record(step, what, False, "its background compile had not started")
             return False
-        self.wait(job, step)
+        if not job.done:
+            interrupt.set_phase(f"waiting for the background compile of {job.what}")
+            interrupt.set_step(step, self.cfg.total_steps)
+            self.say(f"[compile ahead] waiting for {job.what} ({time.monotonic() - (job.started or 0):.0f} s "
+                     "into its compile)")
+            job.wait(poll=interrupt.check)
         self.record(step, what, job.ok, "" if job.ok else "its background compile failed")
         return job.ok

@@ -92,7 +92,7 @@ def load_stage1(run: Trainer, path: Path, config: TrainConfig) -> None:
                          f"{config.spec.stage1_name} stage (step {config.iters_2dgs}).")
     tree, _ = ckpt.load_checkpoint(path)
     run.load_state(tree)
-    run.capacity = run.capacity_floor = None  # refit for this method's render configuration, from none
+    run.tiles.current = run.tiles.floor = None  # refit for this method's render configuration, from none
     run.say(f"stage 1 from {path} ({run.t_train:.0f} s of {run.spec.stage1_name} training)")
 
 

@@ -1,14 +1,16 @@
-"""Which compiled training step runs: the :class:`StepProvider` of a run.
+"""Which compiled training step runs, and running it: the :class:`StepProvider` of a run.
 
-A run's step is one jitted function per (render config, tile capacity[, batch size]) and scene
-layout, with one program per padded view size (:mod:`patexgs_jax.padding`). The provider gives the
-step (:meth:`StepProvider.get`) from the run's cache, the process's (:class:`ProcessPrograms`: a
-resumed run or a study's next run call what an earlier run compiled), a compile-ahead listener
-(:mod:`.compile_ahead`) or a fresh jit; it announces and counts compiles (:class:`Compiles`: a call
-compiles when its padded size is new to its step and no background compile made it) and guards the
-memory-map cap (:mod:`patexgs_jax.memory_maps`). A layout once left is rarely met again (the
-Gaussian capacity only grows; texture buckets are sized afresh when one overflows), so leaving one
-in a process past :data:`~patexgs_jax.memory_maps.KEEP_SHARE` of its cap releases its programs.
+The provider runs each step (:meth:`StepProvider.run`) at the run's tile capacity
+(:class:`TileCapacity`: fitted where unset, grown on overflow). A run's step is one jitted function
+per (render config, tile capacity[, batch size]) and scene layout, with one program per padded view
+size (:mod:`patexgs_jax.padding`). The provider gives the step (:meth:`StepProvider.get`) from the
+run's cache, the process's (:class:`ProcessPrograms`: a resumed run or a study's next run call what
+an earlier run compiled), a compile-ahead listener (:mod:`.compile_ahead`) or a fresh jit; it
+announces and counts compiles (:class:`Compiles`: a call compiles when its padded size is new to its
+step and no background compile made it) and guards the memory-map cap
+(:mod:`patexgs_jax.memory_maps`). A layout once left is rarely met again (the Gaussian capacity only
+grows; texture buckets are sized afresh when one overflows), so leaving one in a process past
+:data:`~patexgs_jax.memory_maps.KEEP_SHARE` of its cap releases its programs.
 """
 
 from __future__ import annotations
@@ -24,14 +26,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import interrupt, memory_maps, padding, parallel
-from ..optim import RATE_NAMES, step_rates
-from ..render import Capacity, RenderConfig
+from ..optim import RATE_NAMES
+from ..render import Capacity, RenderConfig, count_pairs
 from ..scene import Scene
-from .config import TrainConfig
+from .config import TrainConfig, effective_config
 from .step import batch_step, single_view_step
 
-__all__ = ["PROCESS", "Compiles", "ProcessPrograms", "StepEntry", "StepProvider", "layout_of", "refits_at",
-           "single_step_jit", "step_args", "step_identity", "step_image_args"]
+__all__ = ["PROCESS", "Compiles", "ProcessPrograms", "StepEntry", "StepProvider", "TileCapacity", "layout_of",
+           "refits_at", "single_step_jit", "step_args", "step_identity", "step_image_args"]
 
 #: Jitted steps (capacities) a run keeps for one scene layout.
 _MAX_STEP_FNS = 4
@@ -54,6 +56,39 @@ def refits_at(config: TrainConfig, step: int, capacity: Capacity | None) -> bool
     return step <= config.iters_2dgs and capacity is not None and step % 100 == 0
 
 
+@dataclasses.dataclass
+class TileCapacity:
+    """A run's tile capacity: ``current``, the tile-Gaussian pairs its step is compiled for (None:
+    fitted before the next step), and ``floor``, the capacity before the scene last grew, under
+    which a refit never goes (more Gaussians do not need fewer pairs; a smaller capacity would
+    overflow and compile the step again for every padded size). ``pad`` sizes both."""
+
+    pad: padding.TrainPadding
+    current: Capacity | None = None
+    floor: Capacity | None = None
+
+    def fit(self, scene: Scene, camera, render_cfg: RenderConfig, batch: bool) -> None:
+        """Fits ``current`` to ``camera``'s pairs (at the step's padded size, on the view's own tiles:
+        the step's count, one program a size; ``batch``: the batch step's unpadded size)."""
+        interrupt.set_phase("counting the tile pairs of a view (the counter compiles once per size)")
+        hw = None if batch else np.array([camera.height, camera.width], np.int32)
+        camera = camera if batch else self.pad.camera(camera, render_cfg.tile_size)
+        needed, _ = count_pairs(scene, camera, render_cfg, hw)
+        # (None after the scene grew: the step compiles anyway, so the fit takes the full headroom)
+        self.current = self.pad.capacity(needed, minimum=self.floor, current=self.current)
+
+    def overflowed(self, metrics: dict) -> Capacity | None:
+        """After a step: the capacity it overflowed, now grown to fit (the step is retried), or None."""
+        if not (bool(metrics["overflow"]) and np.isfinite(float(metrics["pairs_needed"]))):
+            return None
+        old, self.current = self.current, self.pad.capacity(metrics["pairs_needed"], current=self.current)
+        return old
+
+    def scene_grew(self) -> None:
+        """The scene's shapes changed (densification): refit before the next step, from this floor."""
+        self.floor, self.current = self.current or self.floor, None
+
+
 def step_identity(config: TrainConfig) -> tuple:
     """What defines a run's step program besides its render config, tile capacity and layout (the
     key a step compiled ahead, or shared between runs, is matched by): whether the distortion loss
@@ -62,12 +97,11 @@ def step_identity(config: TrainConfig) -> tuple:
     return ("distortion" if config.lambda_dist > 0 else "no distortion",)
 
 
-def step_args(radius: float, config: TrainConfig) -> dict:
-    """The traced settings of a run's step, its ``hp``: the learning rates
+def step_args(rates: dict, config: TrainConfig) -> dict:
+    """The traced settings of a run's step, its ``hp``: the learning ``rates``
     (:func:`patexgs_jax.optim.step_rates`; the means' decay over the 2DGS stage, for every method)
     and the loss weights, () float32 each."""
-    return dict(rates=step_rates(dataclasses.replace(config.lr, means_steps=config.iters_2dgs), radius),
-                lambda_dssim=np.float32(config.lambda_dssim), lambda_dist=np.float32(config.lambda_dist))
+    return dict(rates=rates, lambda_dssim=np.float32(config.lambda_dssim), lambda_dist=np.float32(config.lambda_dist))
 
 
 def step_image_args(cam) -> tuple:
@@ -110,7 +144,7 @@ class ProcessPrograms:
         self.steps: collections.OrderedDict[tuple, StepEntry] = collections.OrderedDict()
         self.prepared: list[Any] = []
 
-    def step(self, identity: tuple, key, layout: tuple, padded: tuple[int, int]) -> Callable | None:
+    def step(self, identity: tuple, key, layout: tuple | None, padded: tuple[int, int]) -> Callable | None:
         """The jitted step an earlier run shared for this identity, key and layout, if it has compiled
         the padded size ``padded`` (else None); safe from compile-ahead's thread (a lookup)."""
         entry = self.steps.get((identity, key, layout))
@@ -160,18 +194,21 @@ class AheadListener(Protocol):
 
 class StepProvider:
     """The compiled steps of one run (see the module's docstring). ``pad``: the run's padding;
-    ``ahead``: the compile-ahead listener, or None; ``on_map_limit(maps, process)``, called past the
+    ``tiles``: the run's tile capacity; ``ahead``: the compile-ahead listener, or None; ``say``:
+    where a capacity overflow is told; ``on_map_limit(maps, process)``, called past the
     ``map_guard``'s stop share (``maps`` this process's (count, cap), or None when another
     ``process`` hit it), saves and raises; ``shared``: the process's programs."""
 
-    def __init__(self, config: TrainConfig, optimizer, radius: float, pad: padding.TrainPadding, *,
-                 ahead: AheadListener | None, map_guard: memory_maps.MapGuard,
+    def __init__(self, config: TrainConfig, optimizer, rates: dict, pad: padding.TrainPadding, tiles: TileCapacity, *,
+                 ahead: AheadListener | None, say: Callable[[str], None], map_guard: memory_maps.MapGuard,
                  on_map_limit: Callable[[tuple[int, int] | None, int | None], None],
                  shared: ProcessPrograms = PROCESS):
-        self.cfg, self.optimizer, self.pad, self.ahead = config, optimizer, pad, ahead
+        self.cfg, self.optimizer, self.pad, self.tiles, self.ahead, self.say = config, optimizer, pad, tiles, ahead, say
+        # (effective_config: no normal loss for 3D Gaussians, which have no surface normal)
+        self.lambda_normal = effective_config(config).lambda_normal
         self.map_guard, self.on_map_limit, self.shared = map_guard, on_map_limit, shared
         self.identity = step_identity(config)
-        self.hp = jax.device_put(step_args(radius, config))
+        self.hp = jax.device_put(step_args(rates, config))
         self.entries: dict[Any, StepEntry] = {}
         self.layout: tuple | None = None
         self.compiles = Compiles()
@@ -208,6 +245,31 @@ class StepProvider:
     def clear(self) -> None:
         """Forgets this run's steps (near the memory-map cap, with JAX's caches)."""
         self.entries.clear()
+
+    def run(self, state, step: int, views, images, render_cfg: RenderConfig) -> tuple[Any, dict | None]:
+        """Runs the step that starts at ``step`` on its ``views`` (``images``: theirs, None where
+        another process loads them) from ``state`` (a :class:`~patexgs_jax.schedule.TrainState`,
+        donated), fitting the tile capacity first where it is unset. Returns the new state and the
+        step's metrics, or None for them when the capacity overflowed: it has grown, and the step is
+        to run again (on the returned state, which the step left unchanged)."""
+        cfg = self.cfg
+        if self.tiles.current is None:
+            for v in views:
+                self.tiles.fit(state.scene, v.camera, render_cfg, batch=cfg.batch_size > 1)
+        fn = self.get(layout_of(state.scene), render_cfg, self.tiles.current)
+        active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
+        w_normal = jnp.float32(self.lambda_normal if step >= cfg.normal_from else 0.0)
+        if cfg.batch_size == 1:
+            data = (views[0].camera, images[0])
+        else:
+            state, data = self.batch_inputs(state, views, images)
+        scene, opt_state, stats, m = fn(*state, *data, active_sh, w_normal)
+        state = type(state)(scene, opt_state, stats)
+        old = self.tiles.overflowed(m)
+        if old is None:
+            return state, m
+        self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.tiles.current} and retrying")
+        return state, None
 
     def get(self, layout: tuple, render_cfg: RenderConfig, capacity: Capacity | None) -> Callable[..., Any]:
         """The training step for the scene layout ``layout`` as ``fn(scene, opt_state, stats,

@@ -1,26 +1,27 @@
 """The host loop of a run (:class:`Trainer`): views, the jitted step, strategies, checkpoints.
 
 Each step: the strategies' ``before_step`` (:mod:`.strategies`; the texture stage,
-:mod:`patexgs_jax.schedule`), the step the provider gives (:mod:`.steps`: which compiled program
-runs, compile-ahead's claims, compile counts, the memory-map guard), a retry at a grown tile
-capacity on overflow or a skipped update on a non-finite loss or gradient (never applied;
-``max_bad_steps`` in a row stop the run), the strategies' ``after_step``, the log line and the
-checkpoint. The data order is a per-epoch permutation seeded by (seed, epoch) and every random
-choice is seeded by (seed, step), so ``resume`` reaches the same result as an uninterrupted run.
+:mod:`patexgs_jax.schedule`; compile-ahead, :mod:`.compile_ahead`), the step the provider runs
+(:mod:`.steps`: the tile capacity, which compiled program runs, compile counts, the memory-map
+guard), a retry at a grown tile capacity on overflow or a skipped update on a non-finite loss or
+gradient (never applied; ``max_bad_steps`` in a row stop the run), the strategies' ``after_step``,
+the capacity's refit, the log line and the checkpoint. The data order is a per-epoch permutation
+seeded by (seed, epoch) and every random choice is seeded by (seed, step), so ``resume`` reaches the
+same result as an uninterrupted run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .. import checkpoint as ckpt
@@ -29,13 +30,13 @@ from .. import interrupt, memory_maps, padding, parallel, progress
 from ..adaptive import TextureScheduleState
 from ..checkpoint_writer import CheckpointWriter
 from ..evaluation import camera_problem, image_problem
-from ..optim import ages_per_slot, make_optimizer, upgrade_state
-from ..render import Capacity, RenderConfig, count_pairs
+from ..optim import ages_per_slot, make_optimizer, step_rates, upgrade_state
+from ..render import Capacity, RenderConfig
 from ..schedule import TextureSchedule, TrainState
 from .compile_ahead import CompileAhead
-from .config import TrainConfig, config_dict, effective_config
+from .config import TrainConfig, config_dict
 from .estimate import Estimate, StepWindow
-from .steps import StepProvider, layout_of, refits_at
+from .steps import StepProvider, TileCapacity, layout_of, refits_at
 from .strategies import Densification, SmoothingFilter, Strategy, init_scene
 
 __all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
@@ -48,50 +49,47 @@ class Trainer:
     """The mutable host-side state of one run (everything a checkpoint holds) and its loop.
 
     ``scene``, ``opt_state`` and ``stats`` (together :attr:`state`) are what the jitted step updates;
-    :attr:`strategies` (densification, the 3D filter, then the texture stage) rewrite them between
-    steps; :attr:`steps` (a :class:`~.steps.StepProvider`) says which compiled step runs, and
-    :attr:`ahead` compiles the texture stage's first programs in the background.
+    :attr:`strategies` (densification, the 3D filter, the texture stage, then :attr:`ahead`, which
+    compiles the texture stage's first programs in the background) rewrite them between steps;
+    :attr:`steps` (a :class:`~.steps.StepProvider`) runs the step at the tile capacity of
+    :attr:`tiles`.
     """
 
     def __init__(self, dataset, config: TrainConfig, out_dir: Path | None, verbose: bool,
                  map_guard: memory_maps.MapGuard | None = None):
         self.ds, self.cfg, self.out, self.verbose = dataset, config, out_dir, verbose
+        # With several processes (jax.distributed) only process 0 writes and prints progress.
+        self.main = jax.process_index() == 0
         self.train_views = list(dataset.train_views)
         if not self.train_views:
             raise ValueError("the dataset has no training views.")
         self.radius = float(dataset.normalization.radius)
         self.spec = config.spec
-        self.lambda_normal = effective_config(config).lambda_normal
         self.render_cfgs = (config.render_config(stage=1), config.render_config(stage=2))
         # The position learning rate decays over the 2DGS stage for every method, so stage 1 is the
         # same run whatever the method (and can be shared: ``train(..., stage1=)``, see .run).
         self.lr = dataclasses.replace(config.lr, means_steps=config.iters_2dgs)
         self.optimizer = make_optimizer(self.radius, self.lr)
+        rates = step_rates(self.lr, self.radius)  # (the step's arguments: one program serves every scene)
         # How the views are padded and the tile capacity sized (TrainConfig.padding; batches have one size).
         self.pad = padding.TrainPadding(config.padding if config.batch_size == 1 else "per-size",
                                         [v.camera for v in self.train_views])
-        self.capacity = None
-        # The tile capacity before the scene last grew: a refit after densification never goes below
-        # it (more Gaussians do not need fewer pairs; a smaller capacity would overflow and compile
-        # the step again for every padded size).
-        self.capacity_floor = None
+        self.tiles = TileCapacity(self.pad)
         self.step = 0
         self.bad_streak = 0
         self.skipped = 0
         self.t_train = 0.0
         self.stage1_saved = False
-        # With several processes (jax.distributed) only process 0 writes and prints progress.
-        self.main = jax.process_index() == 0
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
-        self.ahead = CompileAhead(config, self.optimizer, self.train_views, self.pad, say=self.say)
-        self.steps = StepProvider(config, self.optimizer, self.radius, self.pad, ahead=self.ahead,
+        self.ahead = CompileAhead(config, self.optimizer, self.train_views, self.pad, self.tiles, say=self.say)
+        self.steps = StepProvider(config, self.optimizer, rates, self.pad, self.tiles, ahead=self.ahead, say=self.say,
                                   map_guard=map_guard if map_guard is not None else memory_maps.MapGuard(),
                                   on_map_limit=self.stop_at_map_limit)
-        self.densification = Densification(config, self.radius)
+        self.densification, smoothing = Densification(config, self.radius), SmoothingFilter(config, self.train_views)
         self.textures = TextureSchedule(config, self.optimizer, self.train_views, self.render_cfgs[1],
                                         log=self.log, say=self.say, programs=self.ahead.claim_eq7)
-        self.strategies: tuple[Strategy, ...] = (self.densification, SmoothingFilter(config, self.train_views),
-                                                 self.textures)
+        # (compiling ahead last: it looks at the state the others made)
+        self.strategies: tuple[Strategy, ...] = (self.densification, smoothing, self.textures, self.ahead)
         self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
         self.writer = CheckpointWriter()  # checkpoints written off the training thread, one at a time
         self.t_start = time.perf_counter()
@@ -123,8 +121,8 @@ class Trainer:
                     tex_counters=None if tex is None else np.array(
                         [tex.last_growth_step, tex.num_growth_events, tex.num_grown]),
                     # None (refit before the next step) after a densification that grew the scene: 0.
-                    capacity=np.array([0 if self.capacity is None else self.capacity.pairs]),
-                    capacity_floor=np.array([0 if self.capacity_floor is None else self.capacity_floor.pairs]),
+                    capacity=np.array([0 if self.tiles.current is None else self.tiles.current.pairs]),
+                    capacity_floor=np.array([0 if self.tiles.floor is None else self.tiles.floor.pairs]),
                     counters=np.array([self.step, self.skipped, self.steps.compiles.count]),
                     t_train=np.array(self.t_train), allocation=self.textures.allocation,
                     growth_events=list(self.textures.growth_events))
@@ -137,9 +135,9 @@ class Trainer:
             c = tree["tex_counters"]
             tex = TextureScheduleState(np.asarray(tree["tex_sizes"]), int(c[0]), int(c[1]), int(c[2]))
         self.textures.load(tex, tree.get("allocation"), tree.get("growth_events"))
-        self.capacity = Capacity(int(tree["capacity"][0])) if int(tree["capacity"][0]) > 0 else None
+        self.tiles.current = Capacity(int(tree["capacity"][0])) if int(tree["capacity"][0]) > 0 else None
         floor = int(tree["capacity_floor"][0]) if tree.get("capacity_floor") is not None else 0
-        self.capacity_floor = Capacity(floor) if floor > 0 else None
+        self.tiles.floor = Capacity(floor) if floor > 0 else None
         self.step, self.skipped, self.steps.compiles.count = (int(v) for v in tree["counters"])
         self.t_train = float(tree["t_train"])
 
@@ -222,20 +220,19 @@ class Trainer:
 
     def step_fn(self) -> Callable[..., Any]:
         """The training step of the current scene, stage and capacity (:meth:`.steps.StepProvider.get`)."""
-        return self.steps.get(layout_of(self.scene), self.render_cfg, self.capacity)
+        return self.steps.get(layout_of(self.scene), self.render_cfg, self.tiles.current)
 
     def data_mesh(self):
         """The device mesh of the data-parallel step (``batch_size`` > 1)."""
         return self.steps.data_mesh()
 
     def fit_capacity(self, camera):
-        interrupt.set_phase("counting the tile pairs of a view (the counter compiles once per size)")
-        # Counted at the step's padded size, on the view's own tiles (the step's count), one program a size.
-        hw = None if self.cfg.batch_size > 1 else np.array([camera.height, camera.width], np.int32)
-        camera = camera if self.cfg.batch_size > 1 else self.pad.camera(camera, self.render_cfg.tile_size)
-        needed, _ = count_pairs(self.scene, camera, self.render_cfg, hw)
-        # (None after the scene grew: the step compiles anyway, so the fit takes the full headroom)
-        self.capacity = self.pad.capacity(needed, minimum=self.capacity_floor, current=self.capacity)
+        """Fits the tile capacity to ``camera``'s view of the scene (:meth:`.steps.TileCapacity.fit`)."""
+        self.tiles.fit(self.scene, camera, self.render_cfg, batch=self.cfg.batch_size > 1)
+
+    def say(self, msg):
+        if self.verbose and self.main:
+            progress.say(msg)
 
     def log(self, record):
         """Appends ``record`` to ``log.jsonl`` with its wall-clock time (UTC, ISO 8601) and the
@@ -247,39 +244,14 @@ class Trainer:
             with open(self.log_path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
-    def say(self, msg):
-        if self.verbose and self.main:
-            progress.say(msg)
-
     # -- main loop -------------------------------------------------------------------------------
-    def run(self):
-        """Trains to ``cfg.total_steps``. On a stop signal (:mod:`patexgs_jax.interrupt`) it stops
-        between two steps, writes a checkpoint if the newest is too old (:meth:`save_on_stop`) and
-        raises :class:`~patexgs_jax.interrupt.Interrupted`."""
-        bar = progress.bar(self.cfg.total_steps, f"train {self.cfg.method}", initial=self.step,
-                           show=self.verbose and self.main)
-        try:
-            self._run(bar)
-            if self.step == self.cfg.iters_2dgs and self.scene.rgb is None:  # (a run of stage 1 alone)
-                self.ahead.prepare_others(self.state)
-        except interrupt.Interrupted:
-            self.save_on_stop()
-            raise
-        finally:
-            bar.close()
-            self.ahead.cancel_unclaimed()
-            self.writer.release()  # every checkpoint on disk before the caller reads one or the process ends
-
     def before_step(self, step):
         """Host-side work before the step that starts at ``step``: the stage-1 checkpoint, then the
         strategies (the texture stage's start and Eq. 7 allocation)."""
         if step == self.cfg.iters_2dgs and self.scene.rgb is None and not self.stage1_saved:
             self.save_stage1()
-            self.ahead.prepare_others(self.state)
         for strategy in self.strategies:
             self.state = strategy.before_step(self.state, step)
-        if step == self.cfg.iters_2dgs and self.scene.rgb is not None:
-            self.ahead.predict_own_allocation(self.state, self.capacity)
 
     def after_step(self, step):
         """Host-side work between steps (``step`` counts completed steps, from 1): the strategies,
@@ -288,10 +260,9 @@ class Trainer:
         for strategy in self.strategies:
             self.state = strategy.after_step(self.state, step)
         if self.scene.capacity != capacity:  # the scene's shapes changed: refit before the next step
-            self.capacity_floor, self.capacity = self.capacity or self.capacity_floor, None
-        if refits_at(self.cfg, step, self.capacity):
+            self.tiles.scene_grew()
+        elif refits_at(self.cfg, step, self.tiles.current):
             self.fit_capacity(self.view(step).camera)
-        self.ahead.after_step(step, self.state, self.capacity)
 
     def _views(self, step):
         """The batch of ``step``: its views, images (None where another process loads them) and each
@@ -315,33 +286,6 @@ class Trainer:
                                                  np.float32), None
         return views, images, problems
 
-    def train_step(self, step: int, views, images) -> dict:
-        """Runs the step that starts at ``step`` on its views and updates the state; returns its metrics."""
-        cfg = self.cfg
-        if self.capacity is None:
-            for v in views:
-                self.fit_capacity(v.camera)
-        fn = self.step_fn()
-        active_sh = jnp.int32(min(step // cfg.sh_interval, cfg.sh_degree))
-        # (effective_config: no normal loss for 3D Gaussians, which have no surface normal)
-        w_normal = jnp.float32(self.lambda_normal if step >= cfg.normal_from else 0.0)
-        if cfg.batch_size == 1:
-            data = (views[0].camera, images[0])
-        else:
-            self.state, data = self.steps.batch_inputs(self.state, views, images)
-        scene, opt_state, stats, m = fn(self.scene, self.opt_state, self.stats, *data, active_sh, w_normal)
-        self.state = TrainState(scene, opt_state, stats)
-        return m
-
-    def overflowed(self, step: int, m: dict) -> bool:
-        """Whether the step's tile capacity overflowed (it then grows, and the step is retried)."""
-        if not (bool(m["overflow"]) and np.isfinite(float(m["pairs_needed"]))):
-            return False
-        old = self.capacity
-        self.capacity = self.pad.capacity(m["pairs_needed"], current=old)
-        self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.capacity} and retrying")
-        return True
-
     def skip(self, step: int, view, problem: str) -> None:
         """A step whose update is skipped (never applied); it still counts, and its scheduled host-side
         work, log line and checkpoint happen as usual. Too many in a row stop the run."""
@@ -352,41 +296,62 @@ class Trainer:
             raise FloatingPointError(f"{self.bad_streak} consecutive non-finite steps up to step {step}; stopping. "
                                      "The last good checkpoint is kept in the output directory.")
 
-    def _run(self, bar):
+    def run(self):
+        """Trains to ``cfg.total_steps``. On a stop signal (:mod:`patexgs_jax.interrupt`) it stops
+        between two steps, writes a checkpoint if the newest is too old (:meth:`save_on_stop`) and
+        raises :class:`~patexgs_jax.interrupt.Interrupted`."""
         cfg, total = self.cfg, self.cfg.total_steps
         window = StepWindow(cfg.log_every)
-        while self.step < total:
-            step = self.step
-            self.steps.begin(step)  # (a stop signal, the heartbeat, the memory-map guard)
-            self.before_step(step)
-            views, images, problems = self._views(step)
-            bad = next((i for i, p in enumerate(problems) if p is not None), 0)
-            problem = problems[bad]
-            if problem is None:
-                t0 = time.perf_counter()
-                m = self.train_step(step, views, images)
-                if self.overflowed(step, m):
-                    continue
-                if not bool(m["ok"]):
-                    bad_groups = [k for k, v in m["finite"].items() if not bool(v)]
-                    problem = f"non-finite loss or gradient (groups: {bad_groups or ['loss']})"
-            if problem is not None:
-                self.skip(step, views[bad], problem)
-            else:
-                self.bad_streak = 0
-                seconds = time.perf_counter() - t0
-                self.t_train += seconds
-                if not self.steps.compiled_now:
-                    self.estimate.measure(step, seconds)
-                window.add(m)
-            self.step += 1
-            interrupt.set_step(self.step, total)
-            bar.update(1)
-            self.after_step(step + 1)
-            if self.step % cfg.log_every == 0 or self.step == total:
-                self.log_progress(window, bar)
-            if (self.step % cfg.checkpoint_every == 0 or self.step == total) and self.bad_streak == 0:
-                self.save()  # (not during a non-finite streak: the last good checkpoint stays the newest)
+        with self._session() as bar:
+            while self.step < total:
+                step = self.step
+                self.steps.begin(step)  # (a stop signal, the heartbeat, the memory-map guard)
+                self.before_step(step)
+                views, images, problems = self._views(step)
+                bad = next((i for i, p in enumerate(problems) if p is not None), 0)
+                problem, m, seconds = problems[bad], None, 0.0
+                if problem is None:
+                    t0 = time.perf_counter()
+                    self.state, m = self.steps.run(self.state, step, views, images, self.render_cfg)
+                    if m is None:  # the tile capacity overflowed: it has grown, and the step runs again
+                        continue
+                    seconds = time.perf_counter() - t0
+                    if not bool(m["ok"]):
+                        bad_groups = [k for k, v in m["finite"].items() if not bool(v)]
+                        problem = f"non-finite loss or gradient (groups: {bad_groups or ['loss']})"
+                if problem is not None or m is None:
+                    self.skip(step, views[bad], str(problem))
+                else:
+                    self.bad_streak = 0
+                    self.t_train += seconds
+                    if not self.steps.compiled_now:
+                        self.estimate.measure(step, seconds)
+                    window.add(m)
+                self.step += 1
+                interrupt.set_step(self.step, total)
+                bar.update(1)
+                self.after_step(step + 1)
+                if self.step % cfg.log_every == 0 or self.step == total:
+                    self.log_progress(window, bar)
+                if (self.step % cfg.checkpoint_every == 0 or self.step == total) and self.bad_streak == 0:
+                    self.save()  # (not during a non-finite streak: the last good checkpoint stays the newest)
+
+    @contextlib.contextmanager
+    def _session(self) -> Iterator[Any]:
+        """The loop's progress bar; on a stop signal, the checkpoint :meth:`save_on_stop` calls for;
+        at the end, the programs compiled ahead for nothing cancelled and every checkpoint on disk
+        (before the caller reads one or the process ends)."""
+        bar = progress.bar(self.cfg.total_steps, f"train {self.cfg.method}", initial=self.step,
+                           show=self.verbose and self.main)
+        try:
+            yield bar
+        except interrupt.Interrupted:
+            self.save_on_stop()
+            raise
+        finally:
+            bar.close()
+            self.ahead.cancel_unclaimed()
+            self.writer.release()
 
     def log_progress(self, window: StepWindow, bar) -> None:
         """The progress line and ``log.jsonl`` record of the steps since the last one."""

@@ -109,7 +109,7 @@ def _start(run, scene, capacity):
     run.scene = jax_copy(scene)
     run.opt_state = run.optimizer.init(run.scene)
     run.stats = DensifyStats.zeros(scene.capacity)
-    run.capacity = Capacity(capacity)
+    run.tiles.current = Capacity(capacity)
     return jnp.int32(1), jnp.float32(0.05)
 
 
@@ -171,28 +171,29 @@ def check_training(run, scene):
     import jax
 
     from patexgs_jax.training.step import STEP_TRACES
-    from patexgs_jax.training.trainer import Trainer
+    from patexgs_jax.training.steps import StepProvider
+
     _start(run, scene, 256)
     n = len(run.train_views)
     bad = [s for s in range(run.cfg.total_steps)  # steps whose batch holds the non-finite view 5
            if any(run.train_views[np.random.default_rng([run.cfg.seed, k // n]).permutation(n)[k % n]].name == "v5"
                   for k in range(4 * s, 4 * s + 4))]
     calls = []
-    orig = Trainer.step_fn
+    orig = StepProvider.run
 
-    def step_fn(self):
-        calls.append((self.step, self.capacity.pairs))
-        return orig(self)
+    def run_step(self, state, step, *args):
+        calls.append((step, self.tiles.current.pairs))
+        return orig(self, state, step, *args)
 
-    Trainer.step_fn = step_fn
+    StepProvider.run = run_step
     traces = sum(STEP_TRACES.values())
     try:
         run.run()
     finally:
-        Trainer.step_fn = orig
+        StepProvider.run = orig
     moved = float(np.max(np.abs(np.asarray(run.scene.means) - np.asarray(scene.means))))
     return dict(steps=run.step, skipped=run.skipped, expected_skipped=len(bad), bad_steps=bad,
-                traces=sum(STEP_TRACES.values()) - traces, calls=calls, capacity=run.capacity.pairs,
+                traces=sum(STEP_TRACES.values()) - traces, calls=calls, capacity=run.tiles.current.pairs,
                 mesh=len(run.data_mesh().devices.flat), moved=moved,
                 finite=bool(all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(run.scene))),
                 stats_count=float(np.sum(np.asarray(run.stats.count))))

@@ -40,7 +40,7 @@ from patexgs_jax.schedule import TextureSchedule, growth_schedule, growth_steps
 from patexgs_jax.training.config import FIXED_SIZES, PRESETS, Method, TrainConfig, preset_config
 from patexgs_jax.training.run import stage1_checkpoint, train
 from patexgs_jax.training.step import AHEAD_STEP_TRACES, STEP_TRACES
-from patexgs_jax.training.steps import PROCESS
+from patexgs_jax.training.steps import PROCESS, StepProvider
 from patexgs_jax.training.trainer import STAGE1_DIR, Trainer, init_scene
 from train_configs import tiny_config
 
@@ -87,11 +87,6 @@ def all_finite(tree) -> bool:
     return all(np.all(np.isfinite(x)) for x in jax.tree_util.tree_leaves(host(tree)))
 
 
-def shape_key(*trees):
-    leaves, treedef = jax.tree_util.tree_flatten(trees)
-    return str(treedef), tuple((tuple(np.shape(x)), str(x.dtype)) for x in leaves)
-
-
 def alignment_problems(scene, opt_state) -> list[str]:
     """Adam moments laid out like the scene, and zero on inactive slots."""
     problems = []
@@ -131,19 +126,19 @@ def dataset(synthetic_scene_dir, tmp_path_factory):
 @pytest.fixture(scope="module")
 def run_p(dataset, tmp_path_factory):
     """The main run (uninterrupted), instrumented: PSNR before training and at the end of stage 1,
-    every (capacity, shapes) key the jitted step is called with, moment alignment after every
+    every (capacity, scene layout) key the provider gives a step for, moment alignment after every
     step's host-side work (densification, growth), pruned slots."""
     cfg = tiny_config()
     out = tmp_path_factory.mktemp("run_p")
     rec = dict(keys=set(), problems=[], capacities=set(), pruned=0, checks=0, traced=[], resizes=[])
     init = init_scene(dataset.points, dataset.colors, cfg)
     rec["psnr_init"] = evaluate(init, dataset.train_views, cfg.render_config())["psnr"]
-    orig_step_fn, orig_after, orig_start = Trainer.step_fn, Trainer.after_step, TextureSchedule.start
+    orig_get, orig_after, orig_start = StepProvider.get, Trainer.after_step, TextureSchedule.start
     orig_resize = texture_schedule.resize_textures
 
-    def step_fn(self):
-        rec["keys"].add((self.capacity, shape_key(self.scene, self.opt_state, self.stats)))
-        return orig_step_fn(self)
+    def get_step(self, layout, render_cfg, capacity):  # (the provider's step for the scene's shapes)
+        rec["keys"].add((capacity, layout))
+        return orig_get(self, layout, render_cfg, capacity)
 
     def after_step(self, step):
         if sum(STEP_TRACES.values()) > rec.setdefault("seen", traces):  # the step just run traced
@@ -169,7 +164,7 @@ def run_p(dataset, tmp_path_factory):
 
     traces, ahead_traces = sum(STEP_TRACES.values()), sum(AHEAD_STEP_TRACES.values())
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(Trainer, "step_fn", step_fn)
+        mp.setattr(StepProvider, "get", get_step)
         mp.setattr(Trainer, "after_step", after_step)
         mp.setattr(TextureSchedule, "start", start_textures)
         mp.setattr(texture_schedule, "resize_textures", resize)

@@ -224,10 +224,11 @@ def test_too_little_space_for_checkpoints_fails_before_training(tmp_path, monkey
     assert calls == []
 
 
-def test_compile_ahead_prepares_again_only_when_a_refit_changed_the_capacity():
+def test_compile_ahead_prepares_again_only_when_the_capacity_changed():
     """After densification stops, the texture stage's first step is compiled ahead once; a 100-step
     refit that keeps the tile capacity leaves that program valid (it depends on shapes and capacity
-    only), so only a refit that changed the capacity prepares it again."""
+    only), so only a capacity change prepares it again (seen at the step after the refit: compiling
+    ahead is the last strategy, the trainer refits after the strategies)."""
     from types import SimpleNamespace
 
     from patexgs_jax.render import Capacity
@@ -235,12 +236,16 @@ def test_compile_ahead_prepares_again_only_when_a_refit_changed_the_capacity():
 
     ahead = object.__new__(CompileAhead)
     ahead.cfg, ahead._last_densify, ahead._prepared_own = SimpleNamespace(iters_2dgs=1000), 500, None
-    prepared = []
-    ahead.prepare = lambda config, state, capacity, predict_allocation=True: prepared.append(capacity)
+    ahead.tiles = SimpleNamespace(current=None)
+    prepared, at = [], []
+    ahead.prepare = lambda config, state, capacity, predict_allocation=True: (prepared.append(capacity),
+                                                                              at.append(step))
     state = SimpleNamespace(scene=SimpleNamespace(rgb=None))
-    capacity = Capacity(1 << 16)
     for step in range(1, 1000):
-        if step == 800:
-            capacity = Capacity(1 << 17)  # the refit after step 800 grew it
-        ahead.after_step(step, state, capacity)
+        if step == 501:
+            ahead.tiles.current = Capacity(1 << 16)  # fitted at the first step after densification
+        if step == 801:
+            ahead.tiles.current = Capacity(1 << 17)  # the refit after step 800 grew it
+        assert ahead.after_step(state, step) is state
     assert prepared == [Capacity(1 << 16), Capacity(1 << 17)]
+    assert at == [501, 801]
