@@ -230,8 +230,6 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     sample = eq6_sample(views, eq6_views) if allocates else []
 
     class Run(Trainer):
-        _last: dict | None = None  # the last step's metrics
-
         def before_step(self, step):
             if step in phases:
                 say.phase(phases[step])
@@ -249,13 +247,6 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
             if allocation:
                 say.phase("compiling the texture step of the allocated sizes")
 
-        def train_step(self, step, views, images):
-            if timing(step) and enough(stage_of(step)) and self._last is not None:
-                skipped.add(step)  # (the stage is timed: its last metrics stand in, nothing runs)
-                return self._last
-            self._last = super().train_step(step, views, images)
-            return self._last
-
         def after_step(self, step):
             super().after_step(step)
             jax.block_until_ready(self.scene.means)
@@ -266,6 +257,19 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
 
     say.phase(f"setting up a scene of {int(gaussians):,} Gaussians on the {len(views)} training views of {at}")
     run = Run(ds, cfg, None, verbose=False)
+    step_run, last = run.steps.run, {}
+
+    def run_step(state, step, views, images, render_cfg):
+        # Past a stage's timing nothing runs: the state stays, the last metrics stand in.
+        if timing(step) and enough(stage_of(step)) and "m" in last:
+            skipped.add(step)
+            return state, last["m"]
+        state, m = step_run(state, step, views, images, render_cfg)
+        if m is not None:
+            last["m"] = m
+        return state, m
+
+    run.steps.run = run_step
     if allocates:
         sample_eq6_counts(run.textures, dataset.train_views, sample)
     run.fresh()
