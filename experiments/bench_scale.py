@@ -368,7 +368,8 @@ def run(n: int, width: int, height: int, num_views: int, eq7_views: int, steps: 
                                                  min_spare=TEXTURE_MIN_SPARE, on_device=rebucket_path == "device")
         _block((scene, opt_state))
         note["texels"] = int(total_texels(sides, active))
-        prepare_growth(scene)  # as the schedule does: the growth events' programs, in the background
+        # As the schedule does: the growth events' programs, in the background.
+        prepare_growth(scene, headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
     scene, opt_state = _as_trained(scene, opt_state, rng)
 
     schedule = GrowthSchedule(t0=1000, t_final=20_000)

@@ -41,10 +41,10 @@ Naming and order
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import importlib
 import json
-import mmap
 import os
 import re
 import shutil
@@ -58,7 +58,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import checkpoint_members, checkpoint_rows
+from . import checkpoint_io, checkpoint_members, checkpoint_rows
+from .checkpoint_io import fsync_dir as _fsync_dir
+from .checkpoint_io import make_public
 from .checkpoint_members import CheckpointError, CorruptCheckpointError
 from .checkpoint_members import repeated_block as _repeated_block
 from .checkpoint_members import storable as _storable
@@ -205,8 +207,25 @@ def _resolve_class(name: str) -> Any:
 
 
 class _Decoder:
-    def __init__(self, arrays: dict):
+    def __init__(self, arrays: dict, pool: concurrent.futures.Executor | None = None):
         self.arrays = arrays
+        self.pool = pool
+        self.filled: dict = {}  # member -> Future of its array with the zero rows put back
+
+    def prefill(self, node) -> None:
+        """Starts, on the pool, the fill of every array stored without its zero rows under ``node``."""
+        if isinstance(node, list):
+            for v in node:
+                self.prefill(v)
+        elif isinstance(node, dict):
+            if node.get("t") == "array" and "rows" in node and self.pool is not None:
+                i, r = node.get("i"), node.get("rows")
+                if i in self.arrays and r in self.arrays:
+                    self.filled[i] = self.pool.submit(checkpoint_rows.fill_rows, self.arrays[i], self.arrays[r],
+                                                      tuple(node["shape"]))
+            for k in ("v", "f", "state"):
+                if k in node:
+                    self.prefill(list(node[k].values()) if isinstance(node[k], dict) else node[k])
 
     def _array(self, i):
         if i not in self.arrays:
@@ -223,7 +242,9 @@ class _Decoder:
             arr = self._array(node["i"])
             if "rows" in node:  # stored without its zero rows
                 try:
-                    arr = checkpoint_rows.fill_rows(arr, self._array(node["rows"]), tuple(node["shape"]))
+                    fill = self.filled.get(node["i"])
+                    arr = (fill.result() if fill is not None
+                           else checkpoint_rows.fill_rows(arr, self._array(node["rows"]), tuple(node["shape"])))
                 except ValueError as e:
                     raise CorruptCheckpointError(f"array member {node['i']}: {e}") from None
             elif "shape" in node:  # a repeated block (see the module docstring)
@@ -231,8 +252,13 @@ class _Decoder:
                 if arr.ndim != len(shape) or any(b not in (1, s) for b, s in zip(arr.shape, shape)):
                     raise CorruptCheckpointError(f"array member {node['i']} of shape {arr.shape} is not a block "
                                                  f"of shape {shape}")
-                if node["kind"] == "jax":  # broadcast on the device: no host copy of the whole array
+                if node["kind"] == "jax":
                     dtype = np.dtype(jnp.dtype(node["dtype"]))
+                    if jax.default_backend() == "cpu" and not arr.view(np.uint8).any():
+                        # Zeros: untouched pages, which the CPU client aliases (the device broadcast
+                        # compiled a program a shape: 1.5 s of a 1M load).
+                        return jax.device_put(checkpoint_rows.aligned_zeros(shape, dtype))
+                    # Broadcast on the device: no host copy of the whole array.
                     return jnp.broadcast_to(jax.device_put(arr if arr.dtype == dtype else arr.view(dtype)), shape)
                 arr = np.array(np.broadcast_to(arr, shape))
             dtype = np.dtype(jnp.dtype(node["dtype"]))
@@ -293,41 +319,6 @@ def _json_default(o):
 
 
 # ------------------------------------------------------------------------------------------------
-def _umask() -> int:
-    """The process's umask, read without changing it where the kernel says it (``/proc/self/status``,
-    Linux 4.7+; elsewhere set and restored at once)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("Umask:"):
-                return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def make_public(fd: int) -> None:
-    """Gives the file open as ``fd`` the mode ``open()`` would have created it with (0666 less the
-    umask: 0644 under the usual 022), where :func:`tempfile.mkstemp` makes it 0600. Outputs written
-    through a temporary file and a rename (checkpoints, PLY, summaries) are then as readable in a
-    shared results folder as any other file."""
-    os.fchmod(fd, 0o666 & ~_umask())
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return  # e.g. platforms without directory fds
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def _sort_key(p: Path):
     nums = re.findall(r"\d+", p.stem)
     try:
@@ -402,15 +393,20 @@ def write_prepared(prepared: PreparedCheckpoint, keep: int | None = None) -> Pat
     try:
         with os.fdopen(fd, "wb") as f:
             make_public(f.fileno())
-            with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
-                zf.writestr("spec.json", spec_bytes)
-                for i, arr in enumerate(enc.arrays):
-                    with zf.open(f"arrays/{i}.npy", "w", force_zip64=arr.nbytes > (1 << 30)) as m:
-                        if i in enc.kept_rows:
-                            checkpoint_rows.write_rows(m, arr, enc.kept_rows[i])
-                        else:
-                            checkpoint_members.write_npy(m, arr)
-            f.flush()
+            out = checkpoint_io.BackgroundFile(f.fileno())  # (the CRCs here, the page-cache copies there)
+            try:
+                with zipfile.ZipFile(cast(Any, out), "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+                    zf.writestr("spec.json", spec_bytes)
+                    for i, arr in enumerate(enc.arrays):
+                        with zf.open(f"arrays/{i}.npy", "w", force_zip64=arr.nbytes > (1 << 30)) as m:
+                            if i in enc.kept_rows:
+                                checkpoint_rows.write_rows(m, arr, enc.kept_rows[i])
+                            else:
+                                checkpoint_members.write_npy(m, arr)
+            except BaseException:
+                out.close(raise_error=False)
+                raise
+            out.close()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException as e:
@@ -433,36 +429,18 @@ def write_prepared(prepared: PreparedCheckpoint, keep: int | None = None) -> Pat
     return path
 
 
-def _read(path: Path, with_arrays: bool = True):
-    """(spec dict, {index: array}); raises CorruptCheckpointError naming the file. Stored members
-    (every one this module writes) are read as views of the memory-mapped file."""
+def _read(path: Path, with_arrays: bool = True, pool=None):
+    """(spec dict, {index: array}, CRC checks to ``verify``: see
+    :func:`patexgs_jax.checkpoint_io.read_archive`); raises CorruptCheckpointError naming the file."""
     if not path.exists():
         raise FileNotFoundError(f"checkpoint {path} does not exist.")
+    return _named(path, lambda: checkpoint_io.read_archive(path, FORMAT, READABLE_VERSIONS, with_arrays, pool))
+
+
+def _named(path: Path, fn):
+    """``fn()``, any error of a damaged file raised as CorruptCheckpointError naming ``path``."""
     try:
-        with open(path, "rb") as f, zipfile.ZipFile(f, "r") as zf:
-            names = set(zf.namelist())
-            if "spec.json" not in names:
-                raise CorruptCheckpointError("no spec.json member")
-            spec = json.loads(zf.read("spec.json").decode("utf-8"))
-            if not isinstance(spec, dict) or spec.get("format") != FORMAT:
-                raise CorruptCheckpointError("not a patexgs checkpoint")
-            if spec.get("version") not in READABLE_VERSIONS:
-                raise CorruptCheckpointError(f"unsupported format version {spec.get('version')!r} "
-                                             f"(this code reads versions {READABLE_VERSIONS})")
-            arrays = {}
-            if with_arrays:
-                mapped = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)  # (kept open by its views)
-                for info in zf.infolist():
-                    m = re.fullmatch(r"arrays/(\d+)\.npy", info.filename)
-                    if m is None:
-                        continue
-                    data = (checkpoint_members.stored_member(mapped, info) if info.compress_type == zipfile.ZIP_STORED
-                            else zf.read(info.filename))  # (checks the CRC)
-                    arrays[int(m.group(1))] = checkpoint_members.npy_view(data)
-            else:
-                bad = zf.testzip()
-                if bad is not None:
-                    raise CorruptCheckpointError(f"member {bad} fails its CRC check")
+        return fn()
     except CorruptCheckpointError as e:
         raise CorruptCheckpointError(f"checkpoint {path} is corrupt: {e}") from None
     except (OSError, MemoryError) as e:
@@ -472,7 +450,6 @@ def _read(path: Path, with_arrays: bool = True):
     except Exception as e:  # zipfile, json, npy parsing: anything means a damaged file
         raise CorruptCheckpointError(f"checkpoint {path} is truncated or corrupt "
                                      f"({type(e).__name__}: {e}).") from e
-    return spec, arrays
 
 
 def _leaf_desc(x) -> str:
@@ -494,14 +471,22 @@ def load_checkpoint(path, template=None, *, check_shapes: bool = True):
       (tree, metadata dict).
     """
     path = Path(path)
-    spec, arrays = _read(path)
-    try:
-        tree = _Decoder(arrays).decode(spec["tree"])
-    except CheckpointError as e:
-        raise type(e)(f"checkpoint {path}: {e}") from None
-    except (KeyError, TypeError, ValueError, AttributeError) as e:
-        raise CorruptCheckpointError(f"checkpoint {path} has an invalid tree description "
-                                     f"({type(e).__name__}: {e}).") from e
+    # The members' CRCs and zero-row fills on two threads beside the decoding (numpy and zlib release
+    # the interpreter lock); nothing is returned before every CRC has matched.
+    with concurrent.futures.ThreadPoolExecutor(2, thread_name_prefix="checkpoint-read") as pool:
+        spec, arrays, checks = _read(path, pool=pool)
+        try:
+            decoder = _Decoder(arrays, pool)
+            decoder.prefill(spec["tree"])
+            tree = decoder.decode(spec["tree"])
+        except CheckpointError as e:
+            _named(path, checks.verify)  # (a damaged member: its CRC names it)
+            raise type(e)(f"checkpoint {path}: {e}") from None
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            _named(path, checks.verify)
+            raise CorruptCheckpointError(f"checkpoint {path} has an invalid tree description "
+                                         f"({type(e).__name__}: {e}).") from e
+        _named(path, checks.verify)
     metadata = spec.get("metadata", {})
     if template is None:
         return tree, metadata
@@ -531,7 +516,7 @@ def load_checkpoint(path, template=None, *, check_shapes: bool = True):
 
 def read_metadata(path) -> dict:
     """The metadata of a checkpoint (reads only its spec; the CRCs are checked too)."""
-    spec, _ = _read(Path(path), with_arrays=False)
+    spec, _, _ = _read(Path(path), with_arrays=False)
     return spec.get("metadata", {})
 
 

@@ -7,13 +7,11 @@ load copies each array once, into its JAX buffer.
 from __future__ import annotations
 
 import io
-import zipfile
-import zlib
 
 import numpy as np
 
-__all__ = ["CheckpointError", "CorruptCheckpointError", "npy_view", "repeated_block", "storable", "stored_member",
-           "write_npy"]
+__all__ = ["CheckpointError", "CorruptCheckpointError", "npy_view", "repeated_block", "storable",
+           "write_chunked", "write_npy"]
 
 
 class CheckpointError(Exception):
@@ -35,7 +33,20 @@ def write_npy(f, arr: np.ndarray) -> None:
         np.lib.format.write_array_header_1_0(f, header)
     except ValueError:  # a header of over 64 KiB (never for this package's shapes)
         np.lib.format.write_array_header_2_0(f, header)
-    f.write(arr.data.cast("B"))
+    write_chunked(f, arr.data)
+
+
+#: Bytes handed to an archive member at a time (:mod:`patexgs_jax.checkpoint_io` CRCs one chunk while
+#: the one before is written).
+CHUNK = 16 << 20
+
+
+def write_chunked(f, data) -> None:
+    """``f.write(data)`` (a contiguous buffer) in chunks of :data:`CHUNK` bytes."""
+    mv = memoryview(data)
+    mv = mv if mv.format == "B" and mv.ndim == 1 else mv.cast("B")
+    for i in range(0, max(1, len(mv)), CHUNK):
+        f.write(mv[i:i + CHUNK])
 
 
 def npy_view(data) -> np.ndarray:
@@ -57,22 +68,6 @@ def npy_view(data) -> np.ndarray:
     count = int(np.prod(shape, dtype=np.int64))
     arr = np.frombuffer(mv, dtype=dtype, count=count, offset=fp.tell())
     return arr.reshape(shape[::-1]).T if fortran else arr.reshape(shape)
-
-
-def stored_member(mapped, info: zipfile.ZipInfo) -> memoryview:
-    """The bytes of an uncompressed member as a view of the mapped file, CRC-checked (no copy: the
-    pages are the page cache's own, where ``ZipFile.read`` copies every member into fresh memory)."""
-    start = info.header_offset
-    local = bytes(mapped[start:start + 30])
-    if len(local) < 30 or local[:4] != b"PK\x03\x04":
-        raise CorruptCheckpointError(f"member {info.filename} has no local header")
-    start += 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
-    if start + info.compress_size > len(mapped):
-        raise CorruptCheckpointError(f"member {info.filename} is truncated")
-    view = memoryview(mapped)[start:start + info.compress_size]
-    if zlib.crc32(view) != info.CRC:
-        raise CorruptCheckpointError(f"member {info.filename} fails its CRC check")
-    return view
 
 
 def storable(arr: np.ndarray) -> tuple[np.ndarray, str]:

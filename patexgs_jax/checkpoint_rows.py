@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MIN_BYTES", "MIN_ZERO_SHARE", "fill_rows", "write_rows", "zero_rows"]
+from .checkpoint_members import write_chunked
+
+__all__ = ["MIN_BYTES", "MIN_ZERO_SHARE", "aligned_zeros", "fill_rows", "write_rows", "zero_rows"]
 
 #: Smallest array (bytes) whose zero rows are looked for.
 MIN_BYTES = 1 << 20
@@ -58,12 +60,23 @@ def write_rows(f, arr: np.ndarray, keep: np.ndarray) -> None:
     flat = arr.reshape(arr.shape[0], -1)
     if int(keep.sum()) * flat.shape[1] * arr.itemsize >= (1 << 16) * (edges.size // 2):  # runs of 64 KiB on average
         for a, b in zip(edges[::2], edges[1::2]):
-            f.write(flat[a:b].data.cast("B"))
+            write_chunked(f, flat[a:b].data)
         return
     rows = np.flatnonzero(keep)
     step = max(1, _CHUNK // max(1, flat.shape[1] * arr.itemsize))
     for i in range(0, rows.size, step):
         f.write(flat[rows[i:i + step]].data.cast("B"))
+
+
+def aligned_zeros(shape: tuple, dtype) -> np.ndarray:
+    """``np.zeros(shape, dtype)`` at a 64-byte aligned address: the CPU client's ``jax.device_put``
+    then aliases the array instead of copying it into fresh memory (``np.zeros``' large arrays sit
+    16 bytes past a page start); its untouched pages stay the kernel's zero pages until written."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    buf = np.zeros(n + 64, np.uint8)
+    at = -buf.ctypes.data % 64
+    return buf[at:at + n].view(dtype).reshape(shape)
 
 
 def fill_rows(rows: np.ndarray, mask_bits: np.ndarray, shape: tuple) -> np.ndarray:
@@ -74,7 +87,7 @@ def fill_rows(rows: np.ndarray, mask_bits: np.ndarray, shape: tuple) -> np.ndarr
     if rows.shape != (int(keep.sum()),) + tuple(shape[1:]):
         raise ValueError(f"{rows.shape[0]} stored rows of shape {rows.shape[1:]} do not fill the "
                          f"{int(keep.sum())} flagged rows of an array of shape {tuple(shape)}")
-    out = np.zeros(shape, rows.dtype)
+    out = aligned_zeros(shape, rows.dtype)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], keep.view(np.int8), [0]])))
     flat, src = out.reshape(shape[0], -1), rows.reshape(rows.shape[0], -1)
     if src.size * rows.itemsize < (1 << 16) * (edges.size // 2):  # short runs: one masked assignment

@@ -184,7 +184,7 @@ class TextureSchedule:
         scene, opt_state, _ = resize_textures(scene, state.opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                               min_spare=TEXTURE_MIN_SPARE)
         if self.spec.grows and self.spec.size is None:  # the growth events' programs, compiled meanwhile
-            prepare_growth(scene)
+            prepare_growth(scene, headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
         self.texel_budget = budget
         self.allocation = dict(step=step, sigma=None if sigma is None else float(sigma), sigma_from=sigma_from,
                                texels=_texels(sides, act), budget_texels=None if budget is None else 2 * budget,
@@ -248,9 +248,9 @@ class TextureSchedule:
             # (the trainer drops the old state: the kept layout is written in place)
             scene, opt_state, info = resize_textures(scene, opt_state, sides, sides, headroom=TEXTURE_HEADROOM,
                                                      min_spare=TEXTURE_MIN_SPARE, donate=True)
-            # (layout_changed: a bucket overflowed and every bucket was sized afresh; the step recompiles)
+            # (layout_changed: a bucket overflowed and was sized afresh; the step recompiles)
             if info.shapes_changed and step + self.schedule.interval <= self.schedule.t_final:
-                prepare_growth(scene)
+                prepare_growth(scene, headroom=TEXTURE_HEADROOM, min_spare=TEXTURE_MIN_SPARE)
             event = dict(step=step, grown=int(np.sum(sides[act] > before[act])),
                          texels_added=_texels(sides, act) - _texels(before, act), texels=_texels(sides, act),
                          layout_changed=bool(info.shapes_changed))

@@ -19,19 +19,24 @@ Re-bucketing (:func:`resize_textures`)
   capacities are kept and slots are stable: a Gaussian whose bucket does not change keeps its slot
   (if its side is unchanged its whole slot, padding included, is copied bit-exactly) and one
   changing bucket takes the lowest free slot of its new bucket after all departures are freed. When
-  some bucket overflows (or a bank or bucket appears), the step recompiles anyway, so every bucket
-  is sized afresh: the power of two at or above its count plus ``headroom`` (a share of the count,
-  at least ``min_spare`` slots), never above the scene's capacity; buckets that emptied shrink and
-  stayers beyond the new capacity move to free slots (a copy). A growth event moves a few Gaussians
-  a bucket up, so with headroom most events fit the layout they find and compile nothing. Buckets
-  are never removed. :class:`ResizeInfo` says when the shapes changed.
+  some bucket overflows (or a bank or bucket appears), the layout is made anew: each bucket that
+  overflows (or appears) is sized afresh, the power of two at or above its count plus ``headroom``
+  (a share of the count, at least ``min_spare`` slots), never above the scene's capacity; a bucket
+  whose textures fit keeps its capacity unless that is over :data:`KEEP_WITHIN` times its afresh
+  size (it mostly emptied: it shrinks, and stayers beyond the new capacity move to free slots, a
+  copy). So an event that overflows one bucket changes that bucket's shape alone, and the programs
+  it runs for it are compiled ahead (:func:`prepare_growth`). A growth event moves a few Gaussians a
+  bucket up, so with headroom most events fit the layout they find and compile nothing. Buckets are
+  never removed. :class:`ResizeInfo` says when the shapes changed.
 
 The buckets stay on the device: only the old slots of the textures that are resampled come to the
 host, and the new blocks and the zeros of the slots left go back (:mod:`.rebucket_device`). Where
 the layout is kept they are written in place with ``donate`` (the layout's programs compiled ahead
-by :func:`prepare_growth`); where it is made afresh, the buckets whose capacity changes are made anew
-on the device first (the slots that stay, and the textures moved past a shrunk capacity, copied
-there), while the new layout's write program compiles in the background. The resampling is
+by :func:`prepare_growth`); where it is made anew, the slots below both capacities are written
+through the old layout's program, the buckets whose capacity changes are made anew on the device
+(the slots that stay, and the textures moved past a shrunk capacity, copied there) and a grown
+bucket's arrivals written through its own program (compiled ahead for the capacity it overflows
+to). The resampling is
 host-side float64 numpy either way; ``on_device=False`` makes every bucket on the host instead (the
 reference, bit for bit the same). Between jitted steps; every function is pure but for
 ``donate``. Which sizes to give is decided by :mod:`patexgs_jax.adaptive` (the paper's Eqs. 6-10).
@@ -49,6 +54,7 @@ import numpy as np
 from ..scene import Scene
 from . import rebucket_device as rd
 from .bank import TextureBank, bucket_of
+from .resample import resample_matrix, resample_texture
 
 __all__ = [
     "ALPHA_NEUTRAL",
@@ -68,79 +74,6 @@ MAX_TEXTURE_SIZE = 512
 RGB_NEUTRAL = 0.0
 ALPHA_NEUTRAL = 1.0
 _BANKS = ("rgb", "alpha")
-
-
-# =============================================================================================
-# Resampling
-# =============================================================================================
-def _hat_integral(x: np.ndarray) -> np.ndarray:
-    """``F(x) = integral_{-inf}^{x} max(0, 1 - |s|) ds``: the antiderivative of a unit hat."""
-    x = np.clip(x, -1.0, 1.0)
-    return np.where(x <= 0.0, 0.5 * (x + 1.0) ** 2, 1.0 - 0.5 * (1.0 - x) ** 2)
-
-
-def resample_matrix(n_in: int, n_out: int) -> np.ndarray:
-    """(n_out, n_in) float64 resampling matrix: non-negative weights, each row summing to one.
-
-    Growing or keeping the side (``n_out >= n_in``): row j holds the bilinear weights of the old
-    texels at new texel j's position ``-3 + 6 j / (n_out - 1)``, with the renderer's edge clamp
-    (the renderer's own sampling; exact integer arithmetic for the positions).
-
-    Shrinking (``n_out < n_in``): an area filter. New texel j is the mean of the old texture's
-    bilinear interpolant over its cell, ``[-3 + 6 (j - 1/2) / (n_out - 1), -3 + 6 (j + 1/2) /
-    (n_out - 1)]`` cut to [-3, 3] (the whole square when ``n_out == 1``). The cells tile the square
-    with the widths the new interpolant's trapezoid rule gives its texels, so the interpolant's mean
-    over the square is kept exactly: a texture that shrinks keeps its mean colour and coverage, and
-    every old texel contributes (point-sampling a 5 x 5 texture at side 2 would read only its corners).
-    """
-    n_in, n_out = int(n_in), int(n_out)
-    if n_in < 1 or n_out < 1:
-        raise ValueError(f"resample sizes must be >= 1, got {n_in} -> {n_out}.")
-    R = np.zeros((n_out, n_in))
-    if n_in == 1:
-        R[:, 0] = 1.0
-        return R
-    if n_out < n_in:
-        # In old-grid units t in [0, n_in - 1]: old texel a is the hat max(0, 1 - |t - a|).
-        last = n_in - 1.0
-        if n_out == 1:
-            lo, hi = np.array([0.0]), np.array([last])
-        else:
-            h = last / (n_out - 1)
-            c = np.arange(n_out) * h
-            lo, hi = np.maximum(c - h / 2, 0.0), np.minimum(c + h / 2, last)
-        a = np.arange(n_in)[None, :]
-        R = (_hat_integral(hi[:, None] - a) - _hat_integral(lo[:, None] - a)) / (hi - lo)[:, None]
-        return R / R.sum(axis=1, keepdims=True)  # (sums are one up to rounding; make them exact-er)
-    for j in range(n_out):
-        # Old-grid coordinate t = j (n_in - 1) / (n_out - 1) = a0 + f.
-        num, den = j * (n_in - 1), n_out - 1
-        a0, rem = divmod(num, den)
-        f = rem / den
-        if a0 >= n_in - 1:  # the last texel: clamp like the renderer (a0 = n - 2, f = 1)
-            a0, f = n_in - 2, 1.0
-        R[j, a0] += 1.0 - f
-        R[j, a0 + 1] += f
-    return R
-
-
-def resample_texture(tex, n_out: int) -> np.ndarray:
-    """Resamples textures to side ``n_out`` (float64 math, float32 result).
-
-    Args:
-      tex: (..., n, n, ch) textures.
-      n_out: new side m >= 1.
-    Returns:
-      (..., m, m, ch) float32.
-    """
-    tex = np.asarray(tex, np.float64)
-    if tex.ndim < 3 or tex.shape[-3] != tex.shape[-2]:
-        raise ValueError(f"textures must have shape (..., n, n, ch), got {tex.shape}.")
-    R = resample_matrix(tex.shape[-3], n_out)
-    # R X R^T per texture and channel as two batched matmuls with the channel axis moved ahead
-    # (np.einsum's contraction path took 1.1-2x as long on a million textures; the same products).
-    rows = np.matmul(R, np.moveaxis(tex, -1, -3))  # (..., ch, m, n)
-    return np.moveaxis(np.matmul(rows, R.T), -3, -1).astype(np.float32)
 
 
 # =============================================================================================
@@ -228,6 +161,19 @@ def _capacity(count: int, headroom: float, min_spare: int, min_capacity: int, li
     return max(min(_next_pow2(max(count + spare, min_capacity)), limit), _next_pow2(count))
 
 
+#: A new layout keeps a bucket whose textures fit unless its capacity is over this many times the
+#: one it would be sized afresh to (the bucket mostly emptied: it shrinks).
+KEEP_WITHIN = 4
+
+
+def _new_capacity(count: int, old: int, headroom: float, min_spare: int, min_capacity: int, limit: int) -> int:
+    """A bucket's capacity in a new layout: kept where its ``count`` textures fit and it is at most
+    :data:`KEEP_WITHIN` times its afresh size (so that an event that overflows one bucket changes
+    that bucket's shape alone, whose programs are compiled ahead), else sized afresh."""
+    fresh = _capacity(count, headroom, min_spare, min_capacity, limit)
+    return old if count <= old <= KEEP_WITHIN * fresh else fresh
+
+
 def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: float = 0.0,
           min_spare: int = 0) -> _BankPlan:
     old_size, old_bucket, old_slot = _bank_indices(bank)
@@ -240,8 +186,9 @@ def _plan(bank: TextureBank, new_size: np.ndarray, min_capacity: int, headroom: 
     counts = np.bincount(new_bucket[new_bucket >= 0], minlength=nb)
     if all(int(c) <= cap for c, cap in zip(counts, old_caps)):
         caps = old_caps
-    else:  # the shapes change anyway: every bucket sized afresh (see the module docstring)
-        caps = [_capacity(int(c), headroom, min_spare, min_capacity, _next_pow2(C)) for c in counts]
+    else:  # the shapes change anyway: the buckets that overflow sized afresh (see the module docstring)
+        caps = [_new_capacity(int(c), int(cap), headroom, min_spare, min_capacity, _next_pow2(C))
+                for c, cap in zip(counts, old_caps)]
     cap_of = np.asarray(list(caps) + [0], np.int64)[np.maximum(old_bucket, 0)]  # (C,) the old bucket's new capacity
     stay = (new_size > 0) & (new_bucket == old_bucket) & (old_slot < cap_of)
     new_slot = np.where(stay, old_slot, 0)
@@ -395,8 +342,10 @@ def _apply_plan_device(plan: _BankPlan, old_buckets, fresh_value, moves: _Moves,
         blocks[b_new][pos, :m, :m] = _new_texels(n, m, got[b_old][rows, :n, :n], fresh_value)
     for m, b_new, pos in moves.fresh:
         blocks[b_new][pos, :m, :m] = np.asarray(fresh_value, np.float32)
-    buckets = rd.relayout(old_buckets, plan.capacities, moves.copies, ch)
-    return rd.write_slots(buckets, {b: (s, blocks[b]) for b, s in moves.writes.items()}, donate)
+    writes = {b: (s, blocks[b]) for b, s in moves.writes.items()}
+    if _layout_kept(plan, old_buckets):
+        return rd.write_slots(old_buckets, writes, donate)
+    return rd.relayout_and_write(old_buckets, plan.capacities, moves.copies, ch, writes, donate)
 
 
 def _bank_from_plan(plan: _BankPlan, buckets, with_indices: bool, old: TextureBank | None = None) -> TextureBank:
@@ -488,10 +437,6 @@ def resize_textures(scene: Scene, opt_state, rgb_sizes, alpha_sizes, *, min_capa
     moves = {name: _moves(plan) for name, plan in plans.items()
              if on_device and (_few_change(plan) or _layout_kept(plan, getattr(scene, name).buckets))}
     donate = bool(donate) and rd.can_donate([b for t in trees for name in moves for b in getattr(t, name).buckets])
-    for name in moves:  # a new layout's write program, compiled while the host resamples
-        if not _layout_kept(plans[name], getattr(scene, name).buckets):
-            rd.prepare(rd.layout_shapes(plans[name].capacities, plans[name].channels,
-                                         getattr(scene, name).buckets), donate=donate, kinds=("write",))
 
     def apply(s: Scene, is_params: bool) -> Scene:
         kw = {}
@@ -589,12 +534,18 @@ def add_textures(scene: Scene, opt_state, optimizer, rgb_sizes, alpha_sizes, rgb
     return new_scene, jax.tree_util.tree_unflatten(old_def, merged), info
 
 
-def prepare_growth(scene: Scene) -> None:
-    """Compiles, in a background thread, the programs with which :func:`resize_textures` (``donate=True``)
-    writes ``scene``'s bucket layout in place (:func:`patexgs_jax.textures.rebucket_device.prepare`):
-    called when a layout is made and growth events will follow, so that the first of them compiles
-    nothing."""
+def prepare_growth(scene: Scene, *, min_capacity: int = 1, headroom: float = 0.0, min_spare: int = 0) -> None:
+    """Compiles, in a background thread, the programs with which :func:`resize_textures` (``donate=True``,
+    with these layout arguments) writes ``scene``'s bucket layout in place
+    (:func:`patexgs_jax.textures.rebucket_device.prepare`), and those an event that overflows one
+    bucket runs for that bucket (:func:`~patexgs_jax.textures.rebucket_device.prepare_overflow`: the
+    capacity the bucket takes when one texture more than it holds arrives): called when a layout is
+    made and growth events will follow, so that the events compile nothing."""
+    limit = _next_pow2(scene.capacity)
     for name in _BANKS:
         bank = getattr(scene, name)
         if bank is not None:
             rd.prepare(bank.buckets, donate=True)
+            caps = bank.capacities
+            rd.prepare_overflow(bank.buckets, lambda b, caps=caps: _new_capacity(
+                int(caps[b]) + 1, int(caps[b]), headroom, min_spare, min_capacity, limit))

@@ -6,8 +6,11 @@ resampled are read (:func:`read_slots`), the host resamples them, and the new bl
 in the slots left, are written (:func:`write_slots`); every other slot stays where it is, bit for
 bit. With ``donate`` the buckets are written in place (their old buffers are reused: the caller must
 not read them again); without it, each call copies the bank. An event that overflows a bucket
-sizes every bucket afresh: :func:`relayout` makes the buckets whose capacity changes anew on the
-device (one program a bank for all of them), and the same reads and writes follow.
+makes a new layout (that bucket grown, the others mostly kept): :func:`relayout_and_write` writes
+the slots below both capacities through the old layout's program, :func:`relayout` makes the buckets
+whose capacity changes anew (one program a bucket) and the grown buckets' arrivals are written
+through their own programs, which :func:`prepare_overflow` compiles ahead for the capacity each
+bucket takes when it overflows.
 
 Shapes. Each bucket is read and written in chunks of :func:`chunk_slots` slots (about
 :data:`CHUNK_TEXELS` texels; the index padded past the capacity, which writes nothing), every bucket
@@ -26,8 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["CHUNK_TEXELS", "can_donate", "chunk_slots", "layout_shapes", "prepare", "read_slots", "relayout",
-           "write_slots"]
+__all__ = ["CHUNK_TEXELS", "can_donate", "chunk_slots", "layout_shapes", "prepare", "prepare_overflow", "read_slots",
+           "relayout", "relayout_and_write", "write_slots"]
 
 #: Texels a bucket's chunk holds (its slots: this over the slot's texels, at least one, at most the
 #: capacity): a chunk's padding costs at most this many texels a bucket and a call.
@@ -54,7 +57,7 @@ _scatter_donated = jax.jit(_scatter, donate_argnums=0)
 _ahead: dict = {}  # program key -> Future of its compiled program
 _ahead_lock = threading.Lock()
 _pool: concurrent.futures.ThreadPoolExecutor | None = None
-_KEEP = 16  # layouts whose programs are kept (a run makes a handful)
+_KEEP = 64  # programs kept (a layout has a few a bank, and one or two a bucket for its overflow)
 
 
 def _live(buckets: Sequence) -> list:
@@ -224,6 +227,18 @@ def _relayout(olds, caps, src, dst):
 _relayout_jit = jax.jit(_relayout, static_argnums=1)
 
 
+def _relayout_program(old, cap: int, src, dst):
+    """The program that makes one bucket anew (prepared ahead by :func:`prepare_overflow`, else the
+    jitted function, compiled at first use)."""
+    key = ("relayout", tuple(old.shape), str(old.dtype), getattr(old, "sharding", None), int(cap),
+           None if src is None else (int(src.shape[0]),))
+    with _ahead_lock:
+        fut = _ahead.get(key)
+    if fut is not None:
+        return fut.result()
+    return lambda olds, s, d: _relayout_jit(olds, (int(cap),), s, d)
+
+
 def relayout(buckets: Sequence, capacities: Sequence[int], copies: dict, channels: int) -> list:
     """A bank's buckets in a new layout, made on the device (a layout made afresh: some bucket
     overflowed, so every bucket was sized again; see :mod:`patexgs_jax.textures.rebucket`).
@@ -238,11 +253,11 @@ def relayout(buckets: Sequence, capacities: Sequence[int], copies: dict, channel
     Returns:
       The new buckets (a list): a bucket whose capacity is unchanged is the old array itself (it has
       nothing to copy); a changed one holds the old slots below both capacities and the copies,
-      zeros elsewhere (one program for all of them); a new bucket is zeros. Slots whose texture
-      changes are the caller's to write (:func:`write_slots`).
+      zeros elsewhere (one program a bucket, so that a bucket's program serves every layout it
+      appears in); a new bucket is zeros. Slots whose texture changes are the caller's to write
+      (:func:`write_slots`).
     """
     new: list = []
-    redo = []
     for b, cap in enumerate(int(c) for c in capacities):
         old = buckets[b] if b < len(buckets) else None
         if old is not None and int(old.shape[0]) == cap:
@@ -250,24 +265,68 @@ def relayout(buckets: Sequence, capacities: Sequence[int], copies: dict, channel
                 raise ValueError(f"relayout: bucket {b} keeps its capacity and cannot move textures")
             new.append(old)
         elif old is not None and int(old.shape[0]) > 0 and cap > 0:
-            redo.append(b)
-            new.append(None)
+            s, d = (np.asarray(x, np.int32) for x in copies.get(b, ((), ())))
+            src = dst = None
+            if s.size:
+                k = _pow8(s.size)  # (bounded shapes: few programs a run)
+                src, dst = jax.device_put((np.concatenate([s, np.zeros(k - s.size, np.int32)]),
+                                           np.concatenate([d, cap + np.arange(k - d.size, dtype=np.int32)])))
+            new.append(_relayout_program(old, cap, src, dst)((old,), (src,), (dst,))[0])
         else:
             new.append(jnp.zeros((cap, 1 << b, 1 << b, int(channels)), jnp.float32))
-    if redo:
-        src, dst = [], []
-        for b in redo:
-            s, d = (np.asarray(x, np.int32) for x in copies.get(b, ((), ())))
-            if not s.size:
-                src.append(None)
-                dst.append(None)
-                continue
-            k = _pow8(s.size)  # (bounded shapes: few programs a run)
-            src.append(np.concatenate([s, np.zeros(k - s.size, np.int32)]))
-            dst.append(np.concatenate([d, int(capacities[b]) + np.arange(k - d.size, dtype=np.int32)]))
-        src, dst = jax.device_put((src, dst))
-        out = _relayout_jit(tuple(buckets[b] for b in redo), tuple(int(capacities[b]) for b in redo),
-                            tuple(src), tuple(dst))
-        for b, o in zip(redo, out):
-            new[b] = o
     return new
+
+
+def relayout_and_write(buckets: Sequence, capacities: Sequence[int], copies: dict, channels: int, writes: dict,
+                       donate: bool) -> list:
+    """:func:`relayout` and :func:`write_slots` in the order that needs no program of the new
+    layout's whole bank: the writes below both capacities first, through the old layout's program
+    (compiled ahead for its growth events), then each changed bucket made anew, then the writes past
+    its old capacity (a grown bucket's arrivals) through that bucket's own program (compiled ahead for
+    the capacity it takes when it overflows: :func:`prepare_overflow`). The writes and the copies
+    touch different slots, so the order leaves every slot as :func:`relayout` then :func:`write_slots`
+    would."""
+    old_caps = [int(x.shape[0]) for x in buckets] + [0] * (len(capacities) - len(buckets))
+    first, rest = {}, {}
+    for b, (s, v) in writes.items():
+        s = np.asarray(s)
+        below = s < min(old_caps[b], int(capacities[b]))
+        if below.any():
+            first[b] = (s[below], v[below])
+        if not below.all():
+            rest[b] = (s[~below], v[~below])
+    new = write_slots(buckets, first, donate) if first else list(buckets)
+    new = relayout(new, capacities, copies, channels)
+    for b, w in rest.items():  # (the new arrays are this call's own: written in place)
+        new[b] = write_slots([new[b]], {0: w}, donate=True)[0]
+    return new
+
+
+def prepare_overflow(buckets: Sequence, capacity_of) -> None:
+    """Compiles, in the background, the programs an event that overflows one of these buckets runs
+    for it (single-device banks only): bucket b made anew at ``capacity_of(b)`` (the capacity the
+    layout rule gives it when it overflows) and its writes there. With the layout rule keeping the
+    buckets that fit, those are the only new shapes of such an event."""
+    global _pool
+    live = [b for b in buckets if b.shape[0] > 0]
+    if not live or not _single_device(live):
+        return
+    with _ahead_lock:
+        if _pool is None:
+            _pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="rebucket-compile")
+        for i, old in enumerate(buckets):
+            cap = int(capacity_of(i))
+            if old.shape[0] == 0 or cap <= old.shape[0]:
+                continue
+            spec = jax.ShapeDtypeStruct(tuple(old.shape), old.dtype, sharding=old.sharding)
+            key = ("relayout", tuple(old.shape), str(old.dtype), old.sharding, cap, None)
+            if key not in _ahead:
+                _ahead[key] = _pool.submit(lambda spec=spec, cap=cap: _relayout_jit.lower(
+                    (spec,), (cap,), (None,), (None,)).compile())
+        while len(_ahead) > 2 * _KEEP:
+            _ahead.pop(next(iter(_ahead)))
+    for i, old in enumerate(buckets):
+        cap = int(capacity_of(i))
+        if old.shape[0] > 0 and cap > old.shape[0]:
+            prepare([jax.ShapeDtypeStruct((cap,) + tuple(old.shape[1:]), old.dtype, sharding=old.sharding)],
+                    donate=True, kinds=("write",))

@@ -133,6 +133,40 @@ def test_prepared_programs_are_the_ones_used(monkeypatch):
     assert all(np.array_equal(np.asarray(g), w) for g, w in zip(new.rgb.buckets, want))
 
 
+def test_an_overflowing_event_runs_programs_compiled_ahead(monkeypatch):
+    """prepare_growth also compiles, for every bucket, what an event that overflows it runs for it
+    (the bucket made anew at the capacity it overflows to, its writes there); such an event keeps
+    the other buckets' capacities, compiles nothing, and writes what the host path writes."""
+    monkeypatch.setattr(rb, "DEVICE_MAX_SHARE", 1.0)  # (a few textures of 64 are over 5%)
+    scene, state, _ = _random_state(17, 64)
+    rb.prepare_growth(scene, headroom=1.0, min_spare=4)
+    for fut in list(rd._ahead.values()):
+        fut.result()
+    used = []
+    program, relayout_program = rd._program, rd._relayout_program
+    monkeypatch.setattr(rd, "_program", lambda kind, donate, buckets: used.append(
+        type(p := program(kind, donate, buckets)).__name__) or p)
+    monkeypatch.setattr(rd, "_relayout_program", lambda *a: used.append(
+        type(p := relayout_program(*a)).__name__) or p)
+    sides = np.asarray(scene.rgb.size).astype(int)
+    caps, counts = scene.rgb.capacities, np.bincount([(int(n) - 1).bit_length() for n in sides if n > 0])
+    counts = np.concatenate([counts, np.zeros(len(caps) - counts.size, int)])
+    # The bucket that the fewest textures grown by one texel from the bucket below overflow.
+    b, need = min(((b, caps[b] - counts[b] + 1) for b in range(1, len(caps))
+                   if caps[b] and np.count_nonzero(sides == 1 << (b - 1)) >= caps[b] - counts[b] + 1),
+                  key=lambda x: x[1])
+    grown = sides.copy()
+    grown[np.flatnonzero(sides == 1 << (b - 1))[:need]] += 1
+    host_scene, host_state, host_info = rb.resize_textures(_copy(scene), _copy(state), grown, None, headroom=1.0,
+                                                           min_spare=4, on_device=False)
+    new, new_state, info = rb.resize_textures(scene, state, grown, None, headroom=1.0, min_spare=4, donate=True)
+    assert info == host_info and info.shapes_changed
+    changed = [i for i, (x, y) in enumerate(zip(caps, new.rgb.capacities)) if x != y]
+    assert changed == [b] and new.rgb.capacities[b] > caps[b]
+    assert used and set(used) == {"Compiled"}, used
+    _assert_trees_equal((new, new_state), (host_scene, host_state))
+
+
 def _copy(tree):
     return jax.tree_util.tree_map(lambda x: jax.device_put(np.array(x)) if isinstance(x, jax.Array) else x, tree)
 
