@@ -141,6 +141,10 @@ class DensifyConfig:
         """Whether to call :func:`densify_and_prune` after this step."""
         return self.start < step < self.stop and step % self.interval == 0
 
+    def densify_steps(self, until: int) -> list[int]:
+        """The steps before ``until`` after which :meth:`densify_at` densifies, in order."""
+        return [t for t in range(self.interval, until, self.interval) if self.densify_at(t)]
+
     def reset_opacity_at(self, step: int) -> bool:
         """Whether to call :func:`reset_opacity` after this step (after densifying, if both)."""
         return 0 < step < self.stop and step % self.opacity_reset_interval == 0

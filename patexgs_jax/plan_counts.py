@@ -23,8 +23,7 @@ def densify_events(config) -> list[int]:
     (:class:`patexgs_jax.training.strategies.Densification`): ``densify.densify_at(t)``, strictly
     after ``start``, and before ``iters_2dgs`` (a study's untextured run does not densify in the
     steps it continues). A 150-step stage with ``start`` 100 and ``interval`` 50 has none."""
-    dc = config.densify
-    return [t for t in range(dc.interval, config.iters_2dgs, dc.interval) if dc.densify_at(t)]
+    return config.densify.densify_steps(config.iters_2dgs)
 
 
 def planned_gaussians(config, num_points: int) -> tuple[int, str]:

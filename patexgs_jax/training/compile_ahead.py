@@ -109,8 +109,7 @@ class CompileAhead:
         self.prepare_for: tuple[TrainConfig, ...] = ()
         self.outcomes: list[dict] = []
         self._prepared_own: Capacity | None = None  # the capacity this run's own step was prepared for
-        dc = effective_config(config).densify
-        self._last_densify = max((t for t in range(1, config.iters_2dgs) if dc.densify_at(t)), default=0)
+        self._last_densify = max(effective_config(config).densify.densify_steps(config.iters_2dgs), default=0)
 
     def before_step(self, state: TrainState, step: int) -> TrainState:
         """At the texture stage's start: the speculative allocation from its first state
