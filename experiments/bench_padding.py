@@ -57,7 +57,7 @@ def main(argv=None) -> int:
             run.pad.headroom = float(variant.split("@")[1])
         run.fresh()
         for v in run.train_views:
-            run.fit_capacity(v.camera)
+            run.tiles.fit(run.scene, v.camera, run.render_cfg, batch=False)
         runs[variant] = run
     views = ds.train_views[: args.views]
     sh, wn = jnp.int32(0), jnp.float32(0.0)

@@ -108,6 +108,7 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compo
     from patexgs_jax.densify import DensifyConfig, DensifyStats
     from patexgs_jax.training import TrainConfig
     from patexgs_jax.training.step import STEP_TRACES
+    from patexgs_jax.training.strategies import TileRefit
     from patexgs_jax.training.trainer import Trainer
 
     tex, mip, coverage = CONFIGS[name]
@@ -133,11 +134,14 @@ def bench(name, n, views, steps, batch_size=1, devices=None, on_step=None, compo
 
     run = Run(ds, cfg, None, verbose=False)
     run.render_cfgs = (RenderConfig(mip=mip, coverage=coverage, compositor=compositor),) * 2
+    for strategy in run.strategies:  # (the tile refits count pairs as the steps render)
+        if isinstance(strategy, TileRefit):
+            strategy.render_cfgs = run.render_cfgs
     run.scene = make_scene(n, tex) if scene is None else scene
     run.opt_state = run.optimizer.init(run.scene)
     run.stats = DensifyStats.zeros(run.scene.capacity)
     for v in views:  # one capacity that fits every view: no overflow retry inside the timed steps
-        run.fit_capacity(v.camera)
+        run.tiles.fit(run.scene, v.camera, run.render_cfg, batch=batch_size > 1)
     t0 = time.perf_counter()
     run.run()
     first = stamps[0] - t0

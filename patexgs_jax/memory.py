@@ -26,6 +26,7 @@ __all__ = [
     "available_bytes",
     "plan_training_memory",
     "check_training_memory",
+    "cached_image_bytes",
 ]
 
 GiB = float(1 << 30)
@@ -153,6 +154,15 @@ def _cache_bytes(cache, image_bytes: int, num_images: int) -> int:
     if cache is not None and cache.max_bytes is not None:
         total = min(total, cache.max_bytes)
     return total
+
+
+def cached_image_bytes(dataset) -> int:
+    """Bytes of decoded images ``dataset`` may hold during a run: its training and test views
+    (float32 RGB at the largest training view's size), within its image cache's bounds."""
+    views = list(dataset.train_views)
+    w, h = max(((v.camera.width, v.camera.height) for v in views), key=lambda s: s[0] * s[1])
+    count = len(views) + len(getattr(dataset, "test_views", ()))
+    return _cache_bytes(getattr(dataset, "image_cache", None), w * h * 12, count)
 
 
 def plan_training_memory(sizes, gaussians: int, textured: bool, cache=None,

@@ -272,7 +272,8 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
             ph, pw = padded_shape(h, w)
             views.append(dict(name=v.name, split=split, width=w, height=h, padded_width=pw, padded_height=ph))
     here = this_device()
-    plans = [memory_plan(dataset, config, n, texels_max, d) for d in (here, *devices)]
+    images = memory.cached_image_bytes(dataset)
+    plans = [memory_plan(dataset, config, n, texels_max, d, images) for d in (here, *devices)]
     steps1 = config.iters_2dgs + (config.continue_2dgs if spec.textures is None else 0)
     steps2 = config.iters_tex if spec.textures is not None else 0
     if measured is None and measure:
@@ -406,9 +407,11 @@ def _figures(m: dict, *, textured: bool, n: int, n_from: str, sigma_from: str, a
 
 
 def check_fits(dataset, config, gaussians: int, device: Device | None = None) -> dict:
-    """Raises :class:`patexgs_jax.memory.NotEnoughMemory` when a stage of the run (2DGS, texture,
-    evaluation) would not fit on ``device`` (default :func:`this_device`), with the flags of
-    :func:`fixes`; ``PATEXGS_SKIP_MEMORY_CHECK=1`` skips it.
+    """Raises :class:`patexgs_jax.memory.NotEnoughMemory` when the run would not fit: on this
+    process's CPU (``device`` None), its step beside what the process holds already
+    (:func:`patexgs_jax.memory.check_training_memory`); then on ``device`` (default
+    :func:`this_device`, CPU or GPU), a stage of the run (2DGS, texture, evaluation) at its peak,
+    with the flags of :func:`fixes`. ``PATEXGS_SKIP_MEMORY_CHECK=1`` skips both.
 
     Args:
       dataset, config: the run's.
@@ -416,12 +419,15 @@ def check_fits(dataset, config, gaussians: int, device: Device | None = None) ->
     Returns:
       :func:`memory_plan`'s dict.
     """
-    device = device or this_device()
     spec = config.spec
+    if device is None:
+        memory.check_training_memory(dataset, gaussians=gaussians, textured=spec.textures is not None)
+    images = memory.cached_image_bytes(dataset)
+    device = device or this_device()
     texels = 0
     if spec.textures is not None:
         texels = eq7_texels([v.camera.width * v.camera.height for v in dataset.train_views], gaussians, config)[1]
-    mp = memory_plan(dataset, config, gaussians, texels, device)
+    mp = memory_plan(dataset, config, gaussians, texels, device, images)
     if mp["fits"] or os.environ.get(memory._ENV_SKIP, "") not in ("", "0"):
         return mp
     stage, peak = max(mp["peak_bytes"].items(), key=lambda kv: kv[1])

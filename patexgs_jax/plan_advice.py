@@ -99,7 +99,7 @@ def advice_lines(dataset, config, measured, total, *, n, steps1, steps2, n_eval,
     gpu = h100_run_seconds(steps1=steps1, stage1_gaussians=mean_stage1_gaussians(config, points, n), steps2=steps2,
                            gaussians=n, pixels=px, sizes=sizes)
     h100 = DEVICES["h100-80gb"]
-    fit = memory_plan(dataset, config, n, texels, h100)
+    fit = memory_plan(dataset, config, n, texels, h100, 0)  # (the images are in host memory there)
     lines.append(f"on one {h100.name.split(' (')[0]} (NVIDIA H100): about {hms(gpu['total'])} ({hms(gpu['stage1'])} "
                  f"2DGS + {hms(gpu['texture'])} textures + {hms(gpu['compile'])} compiling; from its measured "
                  f"steps at 1M and 3M Gaussians, {H100_STEPS.source}), "

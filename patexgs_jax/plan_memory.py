@@ -197,19 +197,17 @@ def padded_pixels(width: int, height: int, tile_size: int = 16) -> int:
     return h * w
 
 
-def memory_plan(dataset, config, gaussians: int, rgba_texels: int, device: Device) -> dict:
+def memory_plan(dataset, config, gaussians: int, rgba_texels: int, device: Device, image_bytes: int) -> dict:
     """This run's peaks on ``device`` and whether they fit: ``{"device", "kind", "memory_bytes",
-    "peak_bytes", "fits", "fixes"}`` (bytes)."""
+    "peak_bytes", "fits", "fixes"}`` (bytes). ``image_bytes``: the decoded images the dataset may
+    hold (:func:`patexgs_jax.memory.cached_image_bytes`), counted on a CPU, whose memory they share."""
     spec = config.spec
     tests = list(getattr(dataset, "test_views", ()))
     sizes = [(v.camera.width, v.camera.height) for v in dataset.train_views]
     evals = [(v.camera.width, v.camera.height) for v in tests + list(dataset.train_views)[:32]]
     train_px = max(padded_pixels(w, h) for w, h in sizes)
     eval_px = max(padded_pixels(w, h) for w, h in evals)
-    images = 0
-    if device.kind == "cpu":
-        w, h = max(sizes, key=lambda s: s[0] * s[1])
-        images = memory._cache_bytes(getattr(dataset, "image_cache", None), w * h * 12, len(sizes) + len(tests))
+    images = image_bytes if device.kind == "cpu" else 0
     textured = spec.textures is not None
     mip = spec.mip != "none"
     peaks = stage_peaks(device.kind, train_pixels=train_px, eval_pixels=eval_px, gaussians=gaussians,

@@ -9,7 +9,7 @@ the layout a speculative Eq. 7 allocation gives on the warm-up's first state (th
 later, usually falls in the same power-of-two buckets). A prediction that does not match what the
 run needs is never used, so results never depend on it. :class:`CompileAhead` is the run's last
 strategy (:class:`.strategies.Strategy`: it looks at the state the others made, and reads the tile
-capacity it shares with the trainer), and a listener the step provider asks (``claim_step``,
+capacity that the provider and the refit strategy keep), and a listener the step provider asks (``claim_step``,
 ``take``), as the texture schedule does (``claim_eq7``); the trainer calls ``cancel_unclaimed`` at
 the run's end. ``PATEXGS_COMPILE_AHEAD=0`` turns it off.
 """

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 
 from .. import checkpoint as ckpt
-from .. import interrupt, memory_maps, parallel
+from .. import interrupt, memory_maps, parallel, progress
 from ..evaluation import evaluate
 from ..metrics import scene_storage
 from ..scene import Scene
@@ -123,9 +123,9 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         follows); with ``end_distributed`` ``jax.distributed`` is shut down once training is done,
         so the other processes can exit while process 0 evaluates and writes (the command line's
         choice; nothing cross-process can follow).
-      check_memory: before the first step, compare the step's estimated memory with the memory
-        available (:func:`patexgs_jax.memory.check_training_memory` on a CPU, then every stage's
-        peak on this device, CPU or GPU: :func:`patexgs_jax.plan.check_fits`).
+      check_memory: before the first step, compare the run's estimated memory with the memory
+        available (:func:`patexgs_jax.plan.check_fits`: the step beside what the process holds on a
+        CPU, then every stage's peak on this device, CPU or GPU).
       preset: the name of the preset ``config`` was made from, for the start line.
       prepare: configs of runs this process will start from this run's stage-1 checkpoint
         (``stage1=``): when this run reaches the end of its 2DGS stage, their texture stage's first
@@ -178,19 +178,19 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         else:
             run.fresh()
     if out is not None and main:  # fail now if checkpoints cannot fit (two kept + one being written), not hours later
+        # (about a checkpoint's size: it holds these arrays, the texels' optimiser ages one per slot)
         ckpt.check_writable(out / "checkpoints", required_bytes=3 * sum(
-            np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state_tree())))
+            np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(run.state)))
     if jax.process_count() > 1:  # every process starts from the same state (data; checkpoint when resuming)
         parallel.check_same("the starting state (step and a checksum of the scene); every process needs the same "
                             "--data and, to resume, must see process 0's --out folder (a shared filesystem)",
                             [run.step, parallel.tree_checksum(run.scene)])
-    if check_memory:  # a clear stop now rather than the kernel's OOM kill mid-step
-        from .. import memory, plan
+    if check_memory:  # a clear stop now rather than the kernel's OOM kill mid-step (on a GPU too)
+        from .. import plan
 
-        slots = max(run.scene.capacity, config.max_gaussians or 0)
-        memory.check_training_memory(dataset, gaussians=slots, textured=run.spec.textures is not None)
-        plan.check_fits(dataset, config, slots)  # every stage, on a GPU too
-    run.say(start_line(dataset, config, run.step, preset))
+        plan.check_fits(dataset, config, max(run.scene.capacity, config.max_gaussians or 0))
+    if verbose and main:
+        progress.say(start_line(dataset, config, run.step, preset))
     xla_before = memory_maps.xla_compiles()
     run.run()
     xla_programs, xla_seconds = (a - b for a, b in zip(memory_maps.xla_compiles(), xla_before, strict=True))

@@ -51,8 +51,8 @@ def layout_of(scene: Scene) -> tuple:
 
 
 def refits_at(config: TrainConfig, step: int, capacity: Capacity | None) -> bool:
-    """Whether the trainer refits the tile capacity after ``step`` steps: every 100 steps of the 2DGS
-    stage, up to and including its end, once a capacity was fitted."""
+    """Whether the tile capacity is refitted after ``step`` steps (:class:`.strategies.TileRefit`):
+    every 100 steps of the 2DGS stage, up to and including its end, once a capacity was fitted."""
     return step <= config.iters_2dgs and capacity is not None and step % 100 == 0
 
 
@@ -192,18 +192,27 @@ class AheadListener(Protocol):
     def take(self, job, what: str, step: int) -> bool: ...
 
 
+class StepTimes(Protocol):
+    """Where the provider reports the duration of a step that compiled nothing and whose update
+    was applied (:class:`.estimate.Estimate`)."""
+
+    def measure(self, step: int, seconds: float) -> None: ...
+
+
 class StepProvider:
     """The compiled steps of one run (see the module's docstring). ``pad``: the run's padding;
-    ``tiles``: the run's tile capacity; ``ahead``: the compile-ahead listener, or None; ``say``:
-    where a capacity overflow is told; ``on_map_limit(maps, process)``, called past the
-    ``map_guard``'s stop share (``maps`` this process's (count, cap), or None when another
-    ``process`` hit it), saves and raises; ``shared``: the process's programs."""
+    ``tiles``: the run's tile capacity; ``ahead``: the compile-ahead listener, or None; ``times``:
+    told each clean step's duration, or None; ``say``: where a capacity overflow is told;
+    ``on_map_limit(maps, process)``, called past the ``map_guard``'s stop share (``maps`` this
+    process's (count, cap), or None when another ``process`` hit it), saves and raises; ``shared``:
+    the process's programs."""
 
     def __init__(self, config: TrainConfig, optimizer, rates: dict, pad: padding.TrainPadding, tiles: TileCapacity, *,
-                 ahead: AheadListener | None, say: Callable[[str], None], map_guard: memory_maps.MapGuard,
-                 on_map_limit: Callable[[tuple[int, int] | None, int | None], None],
+                 ahead: AheadListener | None, times: StepTimes | None, say: Callable[[str], None],
+                 map_guard: memory_maps.MapGuard, on_map_limit: Callable[[tuple[int, int] | None, int | None], None],
                  shared: ProcessPrograms = PROCESS):
         self.cfg, self.optimizer, self.pad, self.tiles, self.ahead, self.say = config, optimizer, pad, tiles, ahead, say
+        self.times = times
         # (effective_config: no normal loss for 3D Gaussians, which have no surface normal)
         self.lambda_normal = effective_config(config).lambda_normal
         self.map_guard, self.on_map_limit, self.shared = map_guard, on_map_limit, shared
@@ -246,13 +255,15 @@ class StepProvider:
         """Forgets this run's steps (near the memory-map cap, with JAX's caches)."""
         self.entries.clear()
 
-    def run(self, state, step: int, views, images, render_cfg: RenderConfig) -> tuple[Any, dict | None]:
+    def run(self, state, step: int, views, images, render_cfg: RenderConfig) -> tuple[Any, dict | None, float]:
         """Runs the step that starts at ``step`` on its ``views`` (``images``: theirs, None where
         another process loads them) from ``state`` (a :class:`~patexgs_jax.schedule.TrainState`,
-        donated), fitting the tile capacity first where it is unset. Returns the new state and the
-        step's metrics, or None for them when the capacity overflowed: it has grown, and the step is
-        to run again (on the returned state, which the step left unchanged)."""
+        donated), fitting the tile capacity first where it is unset. Returns the new state, the
+        step's metrics and its seconds (a step that compiled nothing and whose update is applied
+        is told to ``times``); or None for the metrics when the capacity overflowed: it has grown,
+        and the step is to run again (on the returned state, which the step left unchanged)."""
         cfg = self.cfg
+        t0 = time.perf_counter()
         if self.tiles.current is None:
             for v in views:
                 self.tiles.fit(state.scene, v.camera, render_cfg, batch=cfg.batch_size > 1)
@@ -265,11 +276,14 @@ class StepProvider:
             state, data = self.batch_inputs(state, views, images)
         scene, opt_state, stats, m = fn(*state, *data, active_sh, w_normal)
         state = type(state)(scene, opt_state, stats)
-        old = self.tiles.overflowed(m)
+        old = self.tiles.overflowed(m)  # (reads the metrics: the step is done)
+        seconds = time.perf_counter() - t0
         if old is None:
-            return state, m
+            if self.times is not None and not self.compiled_now and bool(m["ok"]):
+                self.times.measure(step, seconds)
+            return state, m, seconds
         self.say(f"[step {step}] tile capacity {old} overflowed; growing to {self.tiles.current} and retrying")
-        return state, None
+        return state, None, seconds
 
     def get(self, layout: tuple, render_cfg: RenderConfig, capacity: Capacity | None) -> Callable[..., Any]:
         """The training step for the scene layout ``layout`` as ``fn(scene, opt_state, stats,

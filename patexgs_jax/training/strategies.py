@@ -1,6 +1,6 @@
-"""The host-side schedule of a training run as strategies: densification (stage 1) and Mip-Splatting's
-3D filter here, and the texture schedule (stage 2, :class:`patexgs_jax.schedule.TextureSchedule`);
-and where stage 1 starts from (:func:`init_scene`).
+"""The host-side schedule of a training run as strategies: densification (stage 1), Mip-Splatting's
+3D filter and the tile capacity's refits here, and the texture schedule (stage 2,
+:class:`patexgs_jax.schedule.TextureSchedule`); and where stage 1 starts from (:func:`init_scene`).
 
 A strategy (:class:`Strategy`) is a host-side object called between jitted steps, as gsplat's
 densification strategies are: ``before_step(state, step)`` and ``after_step(state, step)`` take the
@@ -17,11 +17,13 @@ import numpy as np
 
 from .. import densify as dens
 from .. import filter3d
+from ..render import RenderConfig
 from ..scene import Scene
 from ..schedule import TrainState
 from .config import TrainConfig, effective_config
+from .steps import TileCapacity, refits_at
 
-__all__ = ["Densification", "SmoothingFilter", "Strategy", "init_scene"]
+__all__ = ["Densification", "SmoothingFilter", "Strategy", "TileRefit", "init_scene"]
 
 
 class Strategy(Protocol):
@@ -92,6 +94,34 @@ class SmoothingFilter:
         if not self.on or not self.recomputes_at(step):
             return state
         return state._replace(scene=filter3d.with_filter(state.scene, self.cameras))
+
+
+class TileRefit:
+    """Keeps the run's tile capacity (:class:`~.steps.TileCapacity`) fitted to its scene: after a
+    densification that changed the scene's shapes, a refit before the next step from the capacity it
+    had (then its floor); every 100 steps of the 2DGS stage (:func:`~.steps.refits_at`), a refit to
+    the next step's view. It runs after the strategies that change the scene and before compiling
+    ahead, which prepares the texture stage's first step at the capacity it leaves. ``render_cfgs``:
+    the two stages' render configurations."""
+
+    def __init__(self, config: TrainConfig, tiles: TileCapacity, views,
+                 render_cfgs: tuple[RenderConfig, RenderConfig]):
+        self.cfg, self.tiles, self.views, self.render_cfgs = config, tiles, views, render_cfgs
+        self.capacity: int | None = None  # the scene's Gaussian capacity before this step
+
+    def before_step(self, state: TrainState, step: int) -> TrainState:
+        self.capacity = state.scene.capacity
+        return state
+
+    def after_step(self, state: TrainState, step: int) -> TrainState:
+        cfg = self.cfg
+        if state.scene.capacity != self.capacity:
+            self.tiles.scene_grew()
+        elif refits_at(cfg, step, self.tiles.current):
+            view = self.views[cfg.view_index(step, len(self.views))]
+            self.tiles.fit(state.scene, view.camera, self.render_cfgs[0 if step < cfg.iters_2dgs else 1],
+                           batch=cfg.batch_size > 1)
+        return state
 
 
 def init_scene(points, colors, config: TrainConfig, capacity: int | None = None) -> Scene:

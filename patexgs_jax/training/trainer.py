@@ -1,11 +1,12 @@
 """The host loop of a run (:class:`Trainer`): views, the jitted step, strategies, checkpoints.
 
-Each step: the strategies' ``before_step`` (:mod:`.strategies`; the texture stage,
-:mod:`patexgs_jax.schedule`; compile-ahead, :mod:`.compile_ahead`), the step the provider runs
-(:mod:`.steps`: the tile capacity, which compiled program runs, compile counts, the memory-map
-guard), a retry at a grown tile capacity on overflow or a skipped update on a non-finite loss or
+Each step: the strategies' ``before_step`` (:mod:`.strategies`: densification, the 3D filter, the
+tile capacity's refits; the texture stage, :mod:`patexgs_jax.schedule`; compile-ahead,
+:mod:`.compile_ahead`), the step the provider runs and times (:mod:`.steps`: the tile capacity,
+which compiled program runs, compile counts, the memory-map guard, the time estimate's clean
+steps), a retry at a grown tile capacity on overflow or a skipped update on a non-finite loss or
 gradient (never applied; ``max_bad_steps`` in a row stop the run), the strategies' ``after_step``,
-the capacity's refit, the log line and the checkpoint. The data order is a per-epoch permutation
+the log line and the checkpoint. The data order is a per-epoch permutation
 seeded by (seed, epoch) and every random choice is seeded by (seed, step), so ``resume`` reaches the
 same result as an uninterrupted run.
 """
@@ -36,8 +37,8 @@ from ..schedule import TextureSchedule, TrainState
 from .compile_ahead import CompileAhead
 from .config import TrainConfig, config_dict
 from .estimate import Estimate, StepWindow
-from .steps import StepProvider, TileCapacity, layout_of, refits_at
-from .strategies import Densification, SmoothingFilter, Strategy, init_scene
+from .steps import StepProvider, TileCapacity, layout_of
+from .strategies import Densification, SmoothingFilter, Strategy, TileRefit, init_scene
 
 __all__ = ["STAGE1_DIR", "Trainer", "init_scene"]
 
@@ -82,18 +83,22 @@ class Trainer:
         self.stage1_saved = False
         self.log_path = None if out_dir is None else out_dir / "log.jsonl"
         self.ahead = CompileAhead(config, self.optimizer, self.train_views, self.pad, self.tiles, say=self.say)
-        self.steps = StepProvider(config, self.optimizer, rates, self.pad, self.tiles, ahead=self.ahead, say=self.say,
+        self.estimate = Estimate(config, self.train_views, float(getattr(dataset, "factor", 1.0) or 1.0), self.say)
+        self.steps = StepProvider(config, self.optimizer, rates, self.pad, self.tiles, ahead=self.ahead,
+                                  times=self.estimate, say=self.say,
                                   map_guard=map_guard if map_guard is not None else memory_maps.MapGuard(),
                                   on_map_limit=self.stop_at_map_limit)
+        # The positions in each batch of the views this process loads (all of them with one process).
+        self.share = self.steps.batch_share() if config.batch_size > 1 else range(1)
         self.densification, smoothing = Densification(config, self.radius), SmoothingFilter(config, self.train_views)
+        refit = TileRefit(config, self.tiles, self.train_views, self.render_cfgs)
         self.textures = TextureSchedule(config, self.optimizer, self.train_views, self.render_cfgs[1],
                                         log=self.log, say=self.say, programs=self.ahead.claim_eq7)
-        # (compiling ahead last: it looks at the state the others made)
-        self.strategies: tuple[Strategy, ...] = (self.densification, smoothing, self.textures, self.ahead)
+        # (compiling ahead last: it looks at the state and the tile capacity the others made)
+        self.strategies: tuple[Strategy, ...] = (self.densification, smoothing, self.textures, refit, self.ahead)
         self.saved_step = 0  # the newest checkpoint's step (0: the initial state, which is reproducible)
         self.writer = CheckpointWriter()  # checkpoints written off the training thread, one at a time
         self.t_start = time.perf_counter()
-        self.estimate = Estimate(config, self.train_views, float(getattr(dataset, "factor", 1.0) or 1.0), self.say)
 
     @property
     def render_cfg(self) -> RenderConfig:
@@ -226,10 +231,6 @@ class Trainer:
         """The device mesh of the data-parallel step (``batch_size`` > 1)."""
         return self.steps.data_mesh()
 
-    def fit_capacity(self, camera):
-        """Fits the tile capacity to ``camera``'s view of the scene (:meth:`.steps.TileCapacity.fit`)."""
-        self.tiles.fit(self.scene, camera, self.render_cfg, batch=self.cfg.batch_size > 1)
-
     def say(self, msg):
         if self.verbose and self.main:
             progress.say(msg)
@@ -254,15 +255,9 @@ class Trainer:
             self.state = strategy.before_step(self.state, step)
 
     def after_step(self, step):
-        """Host-side work between steps (``step`` counts completed steps, from 1): the strategies,
-        then (stage 1) a tile-capacity refit every 100 steps."""
-        capacity = self.scene.capacity
+        """Host-side work between steps (``step`` counts completed steps, from 1): the strategies."""
         for strategy in self.strategies:
             self.state = strategy.after_step(self.state, step)
-        if self.scene.capacity != capacity:  # the scene's shapes changed: refit before the next step
-            self.tiles.scene_grew()
-        elif refits_at(self.cfg, step, self.tiles.current):
-            self.fit_capacity(self.view(step).camera)
 
     def _views(self, step):
         """The batch of ``step``: its views, images (None where another process loads them) and each
@@ -272,7 +267,7 @@ class Trainer:
         views = [self.view(step * cfg.batch_size + j) for j in range(cfg.batch_size)]
         # Each process loads only its share of the batch (all of it with one process); the
         # cameras, known to every process, are checked everywhere.
-        share = self.steps.batch_share() if cfg.batch_size > 1 else range(1)
+        share = self.share
         images = [views[j].image if j in share else None for j in range(len(views))]
         problems = [camera_problem(v.camera) for v in views]
         for j in share:
@@ -311,11 +306,9 @@ class Trainer:
                 bad = next((i for i, p in enumerate(problems) if p is not None), 0)
                 problem, m, seconds = problems[bad], None, 0.0
                 if problem is None:
-                    t0 = time.perf_counter()
-                    self.state, m = self.steps.run(self.state, step, views, images, self.render_cfg)
+                    self.state, m, seconds = self.steps.run(self.state, step, views, images, self.render_cfg)
                     if m is None:  # the tile capacity overflowed: it has grown, and the step runs again
                         continue
-                    seconds = time.perf_counter() - t0
                     if not bool(m["ok"]):
                         bad_groups = [k for k, v in m["finite"].items() if not bool(v)]
                         problem = f"non-finite loss or gradient (groups: {bad_groups or ['loss']})"
@@ -324,8 +317,6 @@ class Trainer:
                 else:
                     self.bad_streak = 0
                     self.t_train += seconds
-                    if not self.steps.compiled_now:
-                        self.estimate.measure(step, seconds)
                     window.add(m)
                 self.step += 1
                 interrupt.set_step(self.step, total)

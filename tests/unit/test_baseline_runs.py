@@ -17,6 +17,7 @@ import pytest
 
 from data_builders import make_colmap_scene
 from patexgs_jax import checkpoint as ckpt
+from patexgs_jax import progress
 from patexgs_jax.data import load
 from patexgs_jax.export import export_ply, load_ply, sidecar_path
 from patexgs_jax.training import cli as train_cli
@@ -88,7 +89,7 @@ def _stub_training(monkeypatch, measured=None):
     monkeypatch.setattr(Trainer, "run", lambda self: None)
     monkeypatch.setattr(run_module, "evaluate", lambda *a, **k: dict(psnr=0.0, ssim=0.0))
     if measured is not None:
-        monkeypatch.setattr(Trainer, "say", lambda self, msg: measured.append(msg))
+        monkeypatch.setattr(progress, "say", lambda msg: measured.append(msg))
 
 
 def test_3dgs_run_names_its_stage_records_its_config_and_writes_no_sidecar(monkeypatch, scene_dir, tmp_path,
@@ -112,7 +113,7 @@ def test_3dgs_run_names_its_stage_records_its_config_and_writes_no_sidecar(monke
         assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
 
     # The stage's name in the time estimate and the phase: the primitive's.
-    run = Trainer(ds, cfg, None, verbose=False)
+    run = Trainer(ds, cfg, None, verbose=True)
     assert {run.cfg.stage_name(s) for s in (0, 5, 6, 9)} == {"3DGS"}
     said.clear()
     for step in range(10):

@@ -203,7 +203,7 @@ def test_training_refuses_before_step_one_with_the_plans_advice(ds, tmp_path, mo
     monkeypatch.setattr(plan, "this_device", lambda: tight)
     monkeypatch.delenv("PATEXGS_SKIP_MEMORY_CHECK", raising=False)
     cfg = TrainConfig(method="2dgs", iters_2dgs=5, max_gaussians=400_000, checkpoint_every=1)
-    advice = plan.memory_plan(ds, cfg, 400_000, 0, tight)["fixes"]
+    advice = plan.memory_plan(ds, cfg, 400_000, 0, tight, 0)["fixes"]
     assert advice
     with pytest.raises(memory.NotEnoughMemory) as err:
         train(ds, cfg, tmp_path / "run", verbose=False)
