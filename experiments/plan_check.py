@@ -136,7 +136,30 @@ def run_case(argv: list[str], partial: str | None = None) -> dict:
     code = main(argv)
     t_end = time.perf_counter()
     peaks["eval"] = _peak_bytes()
-    return dict(figures(t_end), code=code)
+    return dict(figures(t_end), code=code, compiles=_run_compiles(argv))
+
+
+def _run_compiles(argv: list[str]) -> dict | None:
+    """The run's compile record from its ``summary.json`` (in its ``--out`` folder): the step
+    programs it compiled (``step_programs``, the seconds those steps took), the steps at which they
+    compiled, the Eq. 7 allocation's step and the growth events (with ``layout_changed``: a bucket
+    overflowed, the step recompiled), and what it compiled ahead; None without a summary."""
+    if "--out" not in argv:
+        return None
+    path = os.path.join(argv[argv.index("--out") + 1], "summary.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        s = json.load(f)
+    alloc = s.get("allocation") or {}
+    return dict(step_programs=(s.get("compiles") or {}).get("step_programs"),
+                step_compile_seconds=(s.get("compiles") or {}).get("step_seconds"),
+                xla_programs=(s.get("compiles") or {}).get("xla_programs"),
+                xla_seconds=(s.get("compiles") or {}).get("xla_seconds"),
+                compiled_at_steps=s.get("compiled_at_steps"), allocation_step=alloc.get("step"),
+                growth_events=[dict(step=e["step"], grown=e["grown"], layout_changed=e["layout_changed"])
+                               for e in s.get("growth_events") or []],
+                compile_ahead=s.get("compile_ahead"))
 
 
 #: Whether each plan and run process gets an empty compilation cache of its own (``--cache cold``,
@@ -203,18 +226,28 @@ def check_case(name: str, beer: str, timeout: float | None = None, logs: str | N
     row: dict = dict(case=name, argv=argv, plan_seconds=plan_seconds, gaussians=plan["gaussians"],
                texels_eq7=plan["texels_eq7"], measured_steps=plan["measured"]["steps"],
                timed_steps=plan["measured"].get("timed_steps"), plan_step_ms=plan["measured"].get("step_ms"),
+               plan_measured=_plan_measured(plan),
                predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
                               total_seconds=plan["total_seconds"],
-                              time_terms_seconds=plan.get("time_terms_seconds")),
+                              time_terms_seconds=plan.get("time_terms_seconds"), ahead_steps=plan.get("ahead_steps")),
                measured=dict(peak_bytes=run["peak_bytes"], step_seconds=run["step_seconds"],
                              total_seconds=run["total_seconds"], steps=run["steps"],
                              stage_seconds=run.get("stage_seconds"), step_ms=run.get("step_ms"),
-                             active_gaussians=run.get("active_gaussians")))
+                             active_gaussians=run.get("active_gaussians"), compiles=run.get("compiles")))
     if run.get("incomplete"):
         row.update(incomplete=True, stopped_after_seconds=run["stopped_after_seconds"],
                    peak_bytes_so_far=run.get("peak_bytes_so_far"))
     row["relative_error"] = _errors(row)
     return row
+
+
+def _plan_measured(plan: dict) -> dict:
+    """The plan's measured compile and evaluation seconds (what its time terms are made of) and its
+    Gaussian counts timed."""
+    m = plan["measured"]
+    keys = ("compile_stage1", "compile_texture", "eval_view", "eval_compile", "gaussians", "stage1_gaussians",
+            "scale", "padded_sizes", "seconds")
+    return {k: m.get(k) for k in keys}
 
 
 def _errors(row) -> dict:
@@ -244,6 +277,7 @@ def replan(row: dict) -> dict:
     row = dict(row, plan_seconds=time.perf_counter() - t, plan_at=git_commit(),
                measured_steps=plan["measured"]["steps"], timed_steps=plan["measured"].get("timed_steps"),
                plan_step_ms=plan["measured"].get("step_ms"), plan_gaussians=plan["gaussians"],
+               plan_measured=_plan_measured(plan),
                predicted=dict(peak_bytes=plan["peak_bytes"], step_seconds=plan["step_seconds"],
                               total_seconds=plan["total_seconds"], time_terms_seconds=plan.get("time_terms_seconds"),
                               ahead_steps=plan.get("ahead_steps")))

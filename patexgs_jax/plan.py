@@ -110,6 +110,9 @@ class Plan:
     time_terms: dict
     advice: list = dataclasses.field(default_factory=list)  # lines: where the run belongs, what fits here
     ahead_steps: int = 0  # 2DGS steps beside the texture stage's compile ahead (:func:`ahead_steps`)
+    # the texture stage's step programs: {"layouts", "growth_events", "growth_layouts", "seconds_each",
+    # "warmup_ahead_steps"} (:func:`texture_layouts`, :func:`growth_layouts`)
+    compiles: dict = dataclasses.field(default_factory=dict)
     # {figure: {"how": "measured" | "extrapolated" | "estimated" | "modelled" | "not measured", "from": words}}
     figures: dict = dataclasses.field(default_factory=dict)
 
@@ -130,7 +133,7 @@ class Plan:
             device=here["device"], memory_bytes=here["memory_bytes"], peak_bytes=here["peak_bytes"],
             fits=self.fits, fixes=here["fixes"], devices=self.devices, step_seconds=self.step_seconds,
             measured=self.measured, total_seconds=self.total_seconds, time_terms_seconds=self.time_terms,
-            advice=self.advice, ahead_steps=self.ahead_steps, figures=self.figures)
+            advice=self.advice, ahead_steps=self.ahead_steps, compiles=self.compiles, figures=self.figures)
 
     def text(self) -> str:
         """The plan as lines for a terminal."""
@@ -171,13 +174,20 @@ class Plan:
         tex = "texture" if not m.get("texture_estimated") else "texture (estimated)"
         beside = (f"; {self.ahead_steps:,} of its {self.steps['stage1']:,} steps beside the texture stage's compile "
                   f"ahead, at {AHEAD_SLOWDOWN:g}x") if self.ahead_steps else ""
+        trained = (f"; a mean step: its first {m['settled_steps']:,} as the plan trained its scene untimed, "
+                   "then the timed ones") if m.get("settled_steps") else ""
         lines.append(f"  step time (this device, {_timed(m)}{at}, {m['seconds']:.0f} s): 2DGS "
-                     f"{t1} (at {m.get('stage1_gaussians', m['gaussians']):,} Gaussians, the stage's mean{beside}), "
+                     f"{t1} (at {m.get('stage1_gaussians', m['gaussians']):,} Gaussians, the stage's mean"
+                     f"{trained}{beside}), "
                      f"{tex} {t2} (at {m['gaussians']:,}){'; ' + m['note'] if m.get('note') else ''}")
-        tt = self.time_terms
+        tt, c = self.time_terms, self.compiles
         lines.append(f"  whole run: {hms(self.total_seconds or 0.0)} ({hms(tt['stage1'])} 2DGS + "
                      f"{hms(tt['texture'])} textures + {hms(tt['compile'])} compiling + "
                      f"{hms(tt['eval'])} evaluation)")
+        if c.get("growth_events"):
+            lines.append(f"  texture step compiles: {c['layouts']} layouts and {c['growth_layouts']:.1f} new ones "
+                         f"from {c['growth_events']} growth events ({GROWTH_LAYOUT_SHARE:.0%} of them overflow a "
+                         f"bucket), {short_seconds(c['seconds_each'])} each")
         return lines
 
     def _figure_lines(self) -> list[str]:
@@ -204,8 +214,8 @@ TEXTURE_STEP_RATIO = 2.0
 #: advice does not hang on the texture stage's exact cost; a threshold at a day flips with the step's
 #: noise on captures whose floor lies near it (docs/memory.md, "The plan's own time").
 ESTIMATE_BEYOND = plan_advice.BUDGETS[-1][0]
-#: the texture stage's compiles (its start, Eq. 6's counter and counts, the allocated layout's
-#: step) over the 2DGS stage's;
+#: a texture layout's compiles (its step; at the allocation, Eq. 6's counter and counts too) over
+#: the 2DGS stage's;
 TEXTURE_COMPILE_RATIO = 2.0
 #: an evaluation render (a forward pass of the textured scene) over a 2DGS step;
 EVAL_STEP_SHARE = 0.3
@@ -219,6 +229,47 @@ EVAL_COMPILE_SHARE = 0.5
 #: of stage 1, against the same steps of its ``2dgs`` run, docs/memory.md), and the compile they share
 #: the cores with is not waited for at the texture stage's start.
 AHEAD_SLOWDOWN = 2.0
+
+
+#: The share of a run's Eqs. 8-10 growth events that overflow a texture bucket: the layout is made
+#: anew and the textured step compiles again, in the main thread (docs/memory.md, "Measured error
+#: (CPU)": the calibration runs' events, counted from their ``summary.json``).
+GROWTH_LAYOUT_SHARE = 0.14
+
+
+def texture_layouts(config) -> int:
+    """The texture stage's layouts whose textured step a run compiles, growth aside: its start's
+    (5x5 alpha and 1x1 RGB, or a fixed method's N x N) and, for an adaptive method with a warm-up,
+    Eq. 7's allocation's (without a warm-up the allocation runs at the start: one layout). 0 without
+    textures."""
+    spec = config.spec
+    if spec.textures is None:
+        return 0
+    return 2 if spec.textures == "adaptive" and config.warmup_tex > 0 else 1
+
+
+def growth_layouts(config) -> tuple[int, float]:
+    """(the run's Eqs. 8-10 growth events, the new layouts they are expected to make:
+    :data:`GROWTH_LAYOUT_SHARE` of them); (0, 0.0) for a method that does not grow."""
+    from .schedule import growth_steps
+
+    if not config.spec.grows:
+        return 0, 0.0
+    events = len(growth_steps(config))
+    return events, GROWTH_LAYOUT_SHARE * events
+
+
+def warmup_ahead_steps(config, t2: float | None, compile_seconds: float, kind: str) -> int:
+    """How many texture warm-up steps share this device's cores with compiling the step of Eq. 7's
+    predicted layout ahead (from the stage's start until ``compile_seconds`` of compiling are done, at
+    :data:`AHEAD_SLOWDOWN` x ``t2`` a step; at most the warm-up): as :func:`ahead_steps`, for an
+    adaptive method with a warm-up."""
+    from . import background
+
+    if (kind != "cpu" or texture_layouts(config) < 2 or config.batch_size != 1 or not background.enabled()
+            or not t2 or compile_seconds <= 0):
+        return 0
+    return int(min(config.warmup_tex, compile_seconds / (AHEAD_SLOWDOWN * t2)))
 
 
 def ahead_steps(config, t1: float | None, compile_seconds: float, kind: str) -> int:
@@ -291,13 +342,29 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     dens = config.densify
     doublings = max(0, math.ceil(math.log2(max(n, 1) / max(len(dataset.points), 1)))) if dens.stop > dens.start else 0
     sizes = measured.get("padded_sizes", 1)  # (each padded size of the training views compiles its steps)
-    # The 2DGS steps beside the texture stage's compile ahead: slower, and that compile is done by the stage's end.
-    k = ahead_steps(config, t1, measured["compile_texture"], here.kind)
-    beside = k * (t1 or 0.0)
-    compiles = sizes * (measured["compile_stage1"] * (1 + doublings) + measured["compile_texture"] * 2)
-    terms = dict(stage1=steps1 * (t1 or 0.0) + beside * (AHEAD_SLOWDOWN - 1), texture=steps2 * (t2 or 0.0),
-                 compile=max(0.0, compiles - beside * AHEAD_SLOWDOWN),
+    # The texture stage's step compiles: the measured compile of one layout (the plan times one or two:
+    # ``texture_layouts``, one where older or stubbed) for each layout the run makes, growth's included.
+    each = measured["compile_texture"] / max(int(measured.get("texture_layouts") or 1), 1)
+    events, grown = growth_layouts(config)
+    layouts = texture_layouts(config) + grown
+    # The 2DGS steps beside the start's compile ahead and the warm-up's beside the Eq. 7 layout's: slower,
+    # and those compiles are done by the stages' ends.
+    k = ahead_steps(config, t1, each, here.kind)
+    k2 = warmup_ahead_steps(config, t2, each, here.kind)
+    beside, beside2 = k * (t1 or 0.0), k2 * (t2 or 0.0)
+    compiles = sizes * (measured["compile_stage1"] * (1 + doublings) + each * layouts)
+    # The run's first 2DGS steps as the plan trained its scene before timing it (``settled_ms``: a scene's
+    # steps get cheaper as it trains), the others at the timed step; the stage's step is their mean.
+    first = [x * 1e-3 * sc for x in (measured.get("settled_ms") or [])][:steps1]
+    stage1 = sum(first) + (steps1 - len(first)) * (t1 or 0.0)
+    terms = dict(stage1=stage1 + beside * (AHEAD_SLOWDOWN - 1),
+                 texture=steps2 * (t2 or 0.0) + beside2 * (AHEAD_SLOWDOWN - 1),
+                 compile=max(0.0, compiles - (beside + beside2) * AHEAD_SLOWDOWN),
                  eval=n_eval * measured["eval_view"] * sc + 2 * measured.get("eval_compile", 0.0))
+    compiled = dict(layouts=texture_layouts(config), growth_events=events, growth_layouts=grown, seconds_each=each,
+                    warmup_ahead_steps=k2) if spec.textures is not None else {}
+    if t1 is not None and first:
+        t1 = stage1 / max(steps1, 1)
     if t1 is not None and k > config.iters_2dgs / 2:  # (most of the stage's steps: its median step is the slower one)
         t1 *= AHEAD_SLOWDOWN
     total = None if t1 is None else float(sum(terms.values()))
@@ -311,7 +378,8 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     return Plan(method=config.method, views=views, steps=dict(stage1=steps1, texture=steps2), gaussians=n,
                 gaussians_from=n_from, texels_eq7=texels, texels_max=texels_max, sigma=sigma, sigma_from=sigma_from,
                 devices=plans, step_seconds=dict(stage1=t1, texture=t2), measured=measured,
-                total_seconds=total, time_terms=terms, advice=advice, ahead_steps=k, figures=figures)
+                total_seconds=total, time_terms=terms, advice=advice, ahead_steps=k, compiles=compiled,
+                figures=figures)
 
 
 def _measure(dataset, config, n: int, fits: bool, here: Device, steps: int, all_steps: int, pr) -> dict:
@@ -353,6 +421,7 @@ def _estimated_rest(got: dict, config) -> dict:
     textured = config.spec.textures is not None
     return dict(got, texture=TEXTURE_STEP_RATIO * got["stage1"] if textured else None,
                 compile_texture=TEXTURE_COMPILE_RATIO * got["compile_stage1"] if textured else 0.0,
+                texture_layouts=1 if textured else 0,
                 eval_view=EVAL_STEP_SHARE * got["stage1"], eval_compile=EVAL_COMPILE_SHARE * got["compile_stage1"],
                 texture_estimated=textured, eval_estimated=True, eq6_views=0)
 

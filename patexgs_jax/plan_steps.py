@@ -31,6 +31,14 @@ MAX_TIMED_STEPS = 40
 #: A timed step longer than this many times the stage's median compiled (a tile capacity's retry,
 #: a layout's first step): its time goes to the compile term.
 COMPILED_STEP = 5.0
+#: Before timing the 2DGS stage the plan trains its scene untimed for this many steps, or for as
+#: many as fit in :data:`SETTLE_SECONDS` (none on a quick plan, which scales its figures anyway):
+#: a run's steps get cheaper as its scene trains from the initial points (beer at 1/8, which does not
+#: densify in its first 150 steps: 182 ms a step over steps 50-100, 110-115 ms from step 150 on, where
+#: the plan timed its untrained scene at 145 ms; docs/memory.md, "Measured error (CPU)"), so the timed
+#: steps are nearer those most of a run takes.
+SETTLE_STEPS = 100
+SETTLE_SECONDS = 15.0
 
 
 class Progress:
@@ -156,8 +164,9 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     changes), the texture stage's at ``gaussians``.
 
     A scene of ``gaussians`` Gaussians is initialised from the dataset's points (repeated with a
-    small jitter when it has fewer), densification is off, and the run's own loop trains at least
-    ``steps`` steps of each stage after the ones that compile, more while they add up to less than
+    small jitter when it has fewer), densification is off, and the run's own loop trains (after
+    :data:`SETTLE_STEPS` untimed 2DGS steps, at most :data:`SETTLE_SECONDS` of them; none when
+    ``quick``) at least ``steps`` steps of each stage after the ones that compile, more while they add up to less than
     :data:`TIMED_SECONDS` (the steps past them are not run) (the texture stage of adaptive methods runs the
     real Eq. 7 allocation on that scene after one warm-up step, its Eq. 6 count on ``eq6_views`` of
     the training views and scaled to all: :func:`sample_eq6_counts`; ``quick``: at the stage's start,
@@ -179,7 +188,10 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
       evaluation; ``steps``; ``seconds``: the time this took (all in seconds); ``padded_size``:
       the (height, width) stepped; ``padded_sizes``: how many padded sizes the training views have
       (each compiles its own steps in a run); ``eq6_views``: the views Eq. 6 counted on (0 without
-      an Eq. 7 allocation).
+      an Eq. 7 allocation); ``settled_steps``: the 2DGS steps trained untimed before the timed ones
+      (:data:`SETTLE_STEPS`) and ``settled_ms`` each one's milliseconds (the run's first steps);
+      ``texture_layouts``: the texture layouts whose step ``compile_texture``
+      holds (the start's and, after a warm-up step, Eq. 7's; 0 without textures).
     """
     import jax
 
@@ -195,7 +207,9 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     allocates = spec.textures == "adaptive"
     warm = 0 if quick else 1
     most = steps if quick else max(steps, MAX_TIMED_STEPS)  # (quick: a few slow steps, scaled anyway)
-    n1 = 1 + most
+    settle = 0 if quick else SETTLE_STEPS
+    n1 = 1 + settle + most
+    first1 = {"step": 1 + settle, "since": None}  # the first timed 2DGS step (earlier when settling runs long)
     first2 = n1 + 1 + (warm if allocates else 0)  # the texture stage's first timed step
     n2 = 0 if not textured else first2 - n1 + most
     cfg = dataclasses.replace(config, iters_2dgs=n1, iters_tex=max(n2, 2), continue_2dgs=0, warmup_tex=warm,
@@ -211,8 +225,11 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     m = int(gaussians) if stage1_gaussians is None else max(1, min(int(stage1_gaussians), int(gaussians)))
     at = f"{size[1]}x{size[0]} px"
     upto = "" if most == steps else f"{steps} to {most} steps (at least {TIMED_SECONDS:g} s) of"
-    phases = {0: f"compiling the 2DGS step ({m:,} active Gaussians of {int(gaussians):,}, {at})",
-              1: f"timing {upto or f'{steps} steps of'} the 2DGS stage"}
+    timing1 = f"timing {upto or f'{steps} steps of'} the 2DGS stage"
+    phases = {0: f"compiling the 2DGS step ({m:,} active Gaussians of {int(gaussians):,}, {at})", 1: timing1}
+    if settle:
+        phases[1] = (f"training the scene untimed for up to {settle} steps or {SETTLE_SECONDS:g} s first (a scene's "
+                     "steps get cheaper as it trains)")
     if textured:
         phases[n1] = "compiling the texture stage's first step"
         phases[first2] = f"timing {upto or f'{steps} steps of'} the texture stage ({int(gaussians):,} Gaussians)"
@@ -221,7 +238,10 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
         return 1 if step < n1 else 2
 
     def timing(step):  # whether the step that starts at ``step`` is one the figures time
-        return 1 <= step < n1 or (textured and step >= first2)
+        return first1["step"] <= step < n1 or (textured and step >= first2)
+
+    def settling(step):  # a 2DGS step trained before the timed ones
+        return 1 <= step < first1["step"]
 
     def enough(k):  # (by the median: a timed step that compiled, a tile capacity's retry, counts as one step)
         t = timed[k]
@@ -231,6 +251,13 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
 
     class Run(Trainer):
         def before_step(self, step):
+            if settle and settling(step):
+                if first1["since"] is None:
+                    first1["since"] = time.perf_counter()
+                elif time.perf_counter() - first1["since"] > SETTLE_SECONDS:
+                    first1["step"] = step  # (settled long enough: the timed steps start here)
+            if settle and step == first1["step"]:
+                say.phase(f"{timing1} (after {step - 1} untimed steps)")
             if step in phases:
                 say.phase(phases[step])
             if m < gaussians and step in (0, n1):  # stage 1 at m active Gaussians, stage 2 at all of them
@@ -289,11 +316,18 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
     # step of more than COMPILED_STEP x the median compiled after all (beer's texture stage at 1/8: its
     # first timed step, 19 s against 287 ms): it counts as compiling, not as a step.
     untimed: dict[int, list[float]] = {1: [], 2: []}
+    settled: list[float] = []
     prev_t = t0
     for step, t in stamps:
-        if not timing(step - 1):
+        if settling(step - 1):
+            settled.append(t - prev_t)
+        elif not timing(step - 1):
             untimed[stage_of(step - 1)].append(t - prev_t)
         prev_t = t
+    if settled:  # (as the timed steps: one that compiled, a capacity's retry, is compiling)
+        mid = statistics.median(settled)
+        untimed[1] += [x for x in settled if x > COMPILED_STEP * mid]
+        settled = [x if x <= COMPILED_STEP * mid else mid for x in settled]
     for k, v in timed.items():
         if v:
             mid = statistics.median(v)
@@ -306,7 +340,9 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
                timed_steps=dict(stage1=len(timed[1]), texture=len(timed[2])),
                step_ms=dict(stage1=[round(x * 1e3, 1) for x in timed[1]],
                             texture=[round(x * 1e3, 1) for x in timed[2]]),
-               padded_size=list(size), padded_sizes=n_sizes, eq6_views=len(sample))
+               settled_ms=[round(x * 1e3, 1) for x in settled],
+               padded_size=list(size), padded_sizes=n_sizes, eq6_views=len(sample),
+               texture_layouts=(1 + (warm if allocates else 0)) if textured else 0, settled_steps=first1["step"] - 1)
     if not evaluate:
         return dict(out, seconds=time.perf_counter() - t_all)
     # Evaluation: a call fits its views' tile capacity and compiles its renderer for it, then renders

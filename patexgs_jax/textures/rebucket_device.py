@@ -65,21 +65,41 @@ def _live(buckets: Sequence) -> list:
     return [b for b in buckets if b.shape[0] > 0]
 
 
+def _placement(b):
+    """The sharding a program compiled ahead for bucket ``b`` is given: the array's where it is
+    committed to its device (or a ``jax.ShapeDtypeStruct``'s own), else None. A program compiled for
+    an explicit sharding returns committed arrays, and the training step's jit keys its programs on
+    which of its inputs are committed: buckets written through such a program beside the uncommitted
+    arrays of a single-device run would make the textured step compile again, in a layout it has
+    (docs/performance.md)."""
+    if isinstance(b, jax.ShapeDtypeStruct):
+        return b.sharding
+    return b.sharding if getattr(b, "committed", True) else None
+
+
+def _spec(shape, b) -> jax.ShapeDtypeStruct:
+    return jax.ShapeDtypeStruct(tuple(shape), b.dtype, sharding=_placement(b))
+
+
 def _abstract(buckets: Sequence):
     live = _live(buckets)
     sizes = tuple(chunk_slots(b.shape[0], b.shape[1]) for b in live)
-    args = (tuple(jax.ShapeDtypeStruct(b.shape, b.dtype, sharding=b.sharding) for b in live),
-            tuple(jax.ShapeDtypeStruct((k,), jnp.int32) for k in sizes))
+    args = (tuple(_spec(b.shape, b) for b in live), tuple(jax.ShapeDtypeStruct((k,), jnp.int32) for k in sizes))
     blocks = tuple(jax.ShapeDtypeStruct((k,) + tuple(b.shape[1:]), b.dtype) for b, k in zip(live, sizes))
     # (the chunk sizes too: CHUNK_TEXELS may change between layouts)
-    key = tuple((tuple(b.shape), str(b.dtype), b.sharding, k) for b, k in zip(live, sizes))
+    key = tuple((tuple(b.shape), str(b.dtype), _placement(b), k) for b, k in zip(live, sizes))
     return key, args, blocks
 
 
 def _single_device(buckets: Sequence) -> bool:
-    """Whether every bucket (an array, or a ``jax.ShapeDtypeStruct`` of a layout to come) lives on one device."""
-    return all(isinstance(b, (jax.Array, jax.ShapeDtypeStruct))
-               and isinstance(getattr(b, "sharding", None), jax.sharding.SingleDeviceSharding) for b in buckets)
+    """Whether every bucket (an array, or a ``jax.ShapeDtypeStruct`` of a layout to come) lives on one
+    device (a layout to come without a sharding: the default device, as its uncommitted arrays)."""
+    def one(b):
+        if isinstance(b, jax.ShapeDtypeStruct) and b.sharding is None:
+            return True
+        return isinstance(getattr(b, "sharding", None), jax.sharding.SingleDeviceSharding)
+
+    return all(isinstance(b, (jax.Array, jax.ShapeDtypeStruct)) and one(b) for b in buckets)
 
 
 def prepare(buckets: Sequence, donate: bool = True, kinds: Sequence[str] = ("write", "read")) -> None:
@@ -199,8 +219,8 @@ def layout_shapes(capacities: Sequence[int], channels: int, like: Sequence) -> l
     live = [b for b in like if isinstance(b, jax.Array)]
     if not live:
         return []
-    return [jax.ShapeDtypeStruct((int(cap), 1 << b, 1 << b, int(channels)), jnp.float32, sharding=live[0].sharding)
-            for b, cap in enumerate(capacities)]
+    return [jax.ShapeDtypeStruct((int(cap), 1 << b, 1 << b, int(channels)), jnp.float32,
+                                 sharding=_placement(live[0])) for b, cap in enumerate(capacities)]
 
 
 def _pow8(k: int, floor: int = 64) -> int:
@@ -230,7 +250,7 @@ _relayout_jit = jax.jit(_relayout, static_argnums=1)
 def _relayout_program(old, cap: int, src, dst):
     """The program that makes one bucket anew (prepared ahead by :func:`prepare_overflow`, else the
     jitted function, compiled at first use)."""
-    key = ("relayout", tuple(old.shape), str(old.dtype), getattr(old, "sharding", None), int(cap),
+    key = ("relayout", tuple(old.shape), str(old.dtype), _placement(old), int(cap),
            None if src is None else (int(src.shape[0]),))
     with _ahead_lock:
         fut = _ahead.get(key)
@@ -318,8 +338,8 @@ def prepare_overflow(buckets: Sequence, capacity_of) -> None:
             cap = int(capacity_of(i))
             if old.shape[0] == 0 or cap <= old.shape[0]:
                 continue
-            spec = jax.ShapeDtypeStruct(tuple(old.shape), old.dtype, sharding=old.sharding)
-            key = ("relayout", tuple(old.shape), str(old.dtype), old.sharding, cap, None)
+            spec = _spec(old.shape, old)
+            key = ("relayout", tuple(old.shape), str(old.dtype), _placement(old), cap, None)
             if key not in _ahead:
                 _ahead[key] = _pool.submit(lambda spec=spec, cap=cap: _relayout_jit.lower(
                     (spec,), (cap,), (None,), (None,)).compile())
@@ -328,5 +348,5 @@ def prepare_overflow(buckets: Sequence, capacity_of) -> None:
     for i, old in enumerate(buckets):
         cap = int(capacity_of(i))
         if old.shape[0] > 0 and cap > old.shape[0]:
-            prepare([jax.ShapeDtypeStruct((cap,) + tuple(old.shape[1:]), old.dtype, sharding=old.sharding)],
+            prepare([_spec((cap,) + tuple(old.shape[1:]), old)],
                     donate=True, kinds=("write",))

@@ -49,7 +49,9 @@ def test_plan_json_keeps_every_figure_with_its_unit(ds):
     t = doc["time_terms_seconds"]
     k = doc["ahead_steps"]  # (the 2DGS steps beside the texture stage's compile ahead: 2 s of it at 2 x 50 ms)
     assert k == plan.ahead_steps(cfg, 0.05, 2.0, "cpu") == 20
-    assert t["stage1"] == pytest.approx((600 + k) * 0.05) and t["texture"] == pytest.approx(200 * 0.08)
+    k2 = doc["compiles"]["warmup_ahead_steps"]  # (the warm-up's steps beside Eq. 7's layout's compile: 2 x 80 ms)
+    assert k2 == plan.warmup_ahead_steps(cfg, 0.08, 2.0, "cpu") == 12
+    assert t["stage1"] == pytest.approx((600 + k) * 0.05) and t["texture"] == pytest.approx((200 + k2) * 0.08)
     assert doc["total_seconds"] == pytest.approx(sum(t.values()))
     assert doc["steps"] == dict(stage1=600, texture=200)
     assert doc["gaussians"] == 500 and "cap" in doc["gaussians_from"]
@@ -129,6 +131,53 @@ def test_the_2dgs_steps_beside_the_compile_ahead_are_slower(monkeypatch):
     assert plan.ahead_steps(short, 0.13, 37.0, "cpu") == 142  # 37 s at 2 x 130 ms
     monkeypatch.setenv("PATEXGS_COMPILE_AHEAD", "0")
     assert plan.ahead_steps(short, 0.13, 37.0, "cpu") == 0
+
+
+def test_growth_events_that_overflow_a_bucket_compile_the_textured_step_again(ds, monkeypatch):
+    """The texture stage compiles its step once for each layout: the start's, Eq. 7's after a warm-up,
+    and the new layouts of the growth events that overflow a bucket (GROWTH_LAYOUT_SHARE of them),
+    each at the plan's measured compile of one layout. More events, more compiling; no growth (fixed
+    sizes), the layouts alone; no textures, none."""
+    from patexgs_jax.schedule import growth_steps
+
+    monkeypatch.setenv("PATEXGS_COMPILE_AHEAD", "0")  # (the compiles alone, nothing beside the steps)
+    m = dict(MEASURED, texture_layouts=2)  # compile_texture 2.0 s timed over two layouts: 1.0 s each
+
+    def compile_s(cfg):
+        return plan.make_plan(ds, cfg, measured=dict(m)).time_terms["compile"]
+
+    base = preset_config("tiny", method="patexgs", max_gaussians=500)
+    events, grown = plan.growth_layouts(base)
+    assert events == len(growth_steps(base)) == 8 and grown == pytest.approx(plan.GROWTH_LAYOUT_SHARE * 8)
+    fewer = dataclasses.replace(base, growth_interval=2 * base.growth_interval)
+    assert 0 < plan.growth_layouts(fewer)[0] < events
+    more = plan.GROWTH_LAYOUT_SHARE * (events - plan.growth_layouts(fewer)[0])
+    assert compile_s(base) - compile_s(fewer) == pytest.approx(1.0 * more) and more > 0
+    first = compile_s(dataclasses.replace(base, method="2dgs"))  # (the 2DGS stage's compiles alone)
+    fixed = dataclasses.replace(base, method="patexgs-fixed-8")
+    assert plan.growth_layouts(fixed) == (0, 0.0) and plan.texture_layouts(fixed) == 2
+    p = plan.make_plan(ds, fixed, measured=dict(m))
+    assert p.time_terms["compile"] == pytest.approx(first + 1.0 * 2) and first > 0
+    assert compile_s(base) == pytest.approx(first + 1.0 * (2 + grown))
+    assert plan.texture_layouts(dataclasses.replace(base, warmup_tex=0)) == 1  # (Eq. 7 at the start: one layout)
+    assert p.compiles["growth_events"] == 0 and plan.make_plan(ds, base, measured=dict(m)).compiles["layouts"] == 2
+
+
+def test_the_run_s_first_steps_are_the_ones_the_plan_trained_untimed(ds, monkeypatch):
+    """A scene's steps get cheaper as it trains: the plan trains its scene untimed before it times
+    the 2DGS stage, and the run's first steps are those steps as they took, the others the timed
+    (trained) step; the stage's step is their mean. Nothing settled: every step the timed one."""
+    monkeypatch.setenv("PATEXGS_COMPILE_AHEAD", "0")
+    cfg = preset_config("tiny", method="2dgs", max_gaussians=500)
+    plain = plan.make_plan(ds, cfg, measured=dict(MEASURED, texture=None))
+    slow = dict(MEASURED, texture=None, settled_steps=100, settled_ms=[80.0] * 100)  # untrained: 80 ms, timed 50
+    p = plan.make_plan(ds, cfg, measured=slow)
+    steps1 = p.steps["stage1"]
+    assert plain.time_terms["stage1"] == pytest.approx(steps1 * 0.05)
+    assert p.time_terms["stage1"] == pytest.approx(100 * 0.08 + (steps1 - 100) * 0.05)
+    assert p.step_seconds["stage1"] == pytest.approx(p.time_terms["stage1"] / steps1)
+    assert p.time_terms["compile"] == pytest.approx(plain.time_terms["compile"])
+    assert "its first 100 as the plan trained its scene untimed" in p.text()
 
 
 def test_the_plan_says_how_many_steps_it_timed(ds):

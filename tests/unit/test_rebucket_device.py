@@ -131,6 +131,15 @@ def test_prepared_programs_are_the_ones_used(monkeypatch):
     new, _, info = rb.resize_textures(scene, state, grown, None, headroom=1.0, min_spare=4, donate=True)
     assert not info.shapes_changed and used and set(used) == {"Compiled"}
     assert all(np.array_equal(np.asarray(g), w) for g, w in zip(new.rgb.buckets, want))
+    _assert_uncommitted(scene.rgb.buckets, new)
+
+
+def _assert_uncommitted(before, *trees):
+    """A single-device run's arrays are uncommitted, and the training step's jit compiles again when
+    some of its inputs are committed: what programs compiled ahead write comes back uncommitted."""
+    assert not any(b.committed for b in before)
+    committed = [x.shape for x in jax.tree_util.tree_leaves(trees) if isinstance(x, jax.Array) and x.committed]
+    assert not committed, committed
 
 
 def test_an_overflowing_event_runs_programs_compiled_ahead(monkeypatch):
@@ -164,6 +173,7 @@ def test_an_overflowing_event_runs_programs_compiled_ahead(monkeypatch):
     changed = [i for i, (x, y) in enumerate(zip(caps, new.rgb.capacities)) if x != y]
     assert changed == [b] and new.rgb.capacities[b] > caps[b]
     assert used and set(used) == {"Compiled"}, used
+    _assert_uncommitted(host_scene.rgb.buckets, new, new_state)
     _assert_trees_equal((new, new_state), (host_scene, host_state))
 
 
