@@ -49,6 +49,7 @@ from .plan_counts import UNCAPPED_GAUSSIANS, densify_events, eq7_texels, mean_st
 from .plan_devices import DEVICES, GB, Device, parse_device, this_device
 from .plan_memory import (
     CPU_BASE_BYTES,
+    CPU_SIZE_BYTES,
     GPU_BYTES_PER_GAUSSIAN,
     GPU_BYTES_PER_TEXEL,
     fixes,
@@ -63,6 +64,7 @@ from .plan_steps import Progress, hms, measure_steps, short_seconds
 
 __all__ = [
     "CPU_BASE_BYTES",
+    "CPU_SIZE_BYTES",
     "DEVICES",
     "GPU_BYTES_PER_GAUSSIAN",
     "GPU_BYTES_PER_TEXEL",
@@ -229,6 +231,17 @@ EVAL_COMPILE_SHARE = 0.5
 #: of stage 1, against the same steps of its ``2dgs`` run, docs/memory.md), and the compile they share
 #: the cores with is not waited for at the texture stage's start.
 AHEAD_SLOWDOWN = 2.0
+#: Each padded size of the training views past the first adds this share of one layout's compile
+#: (the plan's measured compile of a texture layout) to what a textured run's 2DGS stage compiles
+#: ahead: Eq. 7's pair counter and renderer are compiled for every padded size
+#: (:meth:`patexgs_jax.padding.ViewRenderer.compile`), the start's textured step for one. 0.6: beer
+#: at 1/4 (three padded sizes; benchmarks/plan_check_cpu_idle_cold_2f15410.json, the calibration
+#: row, docs/memory.md): Eq. 7's programs took 40 s ahead there, 13 s a size, against the plan's
+#: 21.7 s a layout; and its 98 steps beside the compile ahead at 2 x 249 ms make 49 s, 2.25 layouts'
+#: compile, (2.25 - 1) / 2 = 0.63 a size. (The main thread's compiles of the other sizes' 2DGS
+#: steps fall in that window too, 17 + 15 s: they lengthen the compile ahead by about their own time
+#: and take no steps, so they add no steps beside it.)
+AHEAD_SIZE_SHARE = 0.6
 
 
 #: The share of a run's Eqs. 8-10 growth events that overflow a texture bucket: the layout is made
@@ -272,12 +285,20 @@ def warmup_ahead_steps(config, t2: float | None, compile_seconds: float, kind: s
     return int(min(config.warmup_tex, compile_seconds / (AHEAD_SLOWDOWN * t2)))
 
 
-def ahead_steps(config, t1: float | None, compile_seconds: float, kind: str) -> int:
+def ahead_seconds(compile_seconds: float, sizes: int = 1) -> float:
+    """The seconds a textured run's 2DGS stage compiles ahead beside its steps: one layout's
+    ``compile_seconds`` at one padded size, and :data:`AHEAD_SIZE_SHARE` of it for each of the
+    training views' other ``sizes`` (Eq. 7's pair counter and renderer, compiled for each)."""
+    return compile_seconds * (1.0 + AHEAD_SIZE_SHARE * max(int(sizes) - 1, 0))
+
+
+def ahead_steps(config, t1: float | None, compile_seconds: float, kind: str, sizes: int = 1) -> int:
     """How many 2DGS steps share this device's cores with compiling the texture stage's first
     programs ahead: from the stage's last densification event (from its start without one) until
-    ``compile_seconds`` of compiling are done, at :data:`AHEAD_SLOWDOWN` x ``t1`` seconds a step.
-    0 on a GPU (the host compiles beside the device's steps), without textures, with a batch, or
-    with compiling ahead off (``PATEXGS_COMPILE_AHEAD=0``)."""
+    :func:`ahead_seconds` of compiling (``compile_seconds`` a layout, the views in ``sizes`` padded
+    sizes) are done, at :data:`AHEAD_SLOWDOWN` x ``t1`` seconds a step. 0 on a GPU (the host
+    compiles beside the device's steps), without textures, with a batch, or with compiling ahead
+    off (``PATEXGS_COMPILE_AHEAD=0``)."""
     from . import background
 
     if (kind != "cpu" or config.spec.textures is None or config.batch_size != 1 or not background.enabled()
@@ -285,7 +306,7 @@ def ahead_steps(config, t1: float | None, compile_seconds: float, kind: str) -> 
         return 0
     events = densify_events(config)
     window = config.iters_2dgs - (events[-1] if events else 0)
-    return int(min(window, compile_seconds / (AHEAD_SLOWDOWN * t1)))
+    return int(min(window, ahead_seconds(compile_seconds, sizes) / (AHEAD_SLOWDOWN * t1)))
 
 
 def stage1_method(config) -> str | None:
@@ -349,7 +370,7 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     layouts = texture_layouts(config) + grown
     # The 2DGS steps beside the start's compile ahead and the warm-up's beside the Eq. 7 layout's: slower,
     # and those compiles are done by the stages' ends.
-    k = ahead_steps(config, t1, each, here.kind)
+    k = ahead_steps(config, t1, each, here.kind, sizes)
     k2 = warmup_ahead_steps(config, t2, each, here.kind)
     beside, beside2 = k * (t1 or 0.0), k2 * (t2 or 0.0)
     compiles = sizes * (measured["compile_stage1"] * (1 + doublings) + each * layouts)
@@ -363,10 +384,8 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
                  eval=n_eval * measured["eval_view"] * sc + 2 * measured.get("eval_compile", 0.0))
     compiled = dict(layouts=texture_layouts(config), growth_events=events, growth_layouts=grown, seconds_each=each,
                     warmup_ahead_steps=k2) if spec.textures is not None else {}
-    if t1 is not None and first:
-        t1 = stage1 / max(steps1, 1)
-    if t1 is not None and k > config.iters_2dgs / 2:  # (most of the stage's steps: its median step is the slower one)
-        t1 *= AHEAD_SLOWDOWN
+    if t1 is not None and (first or k):  # (the stage's step: the mean of its steps, those beside the compile
+        t1 = terms["stage1"] / max(steps1, 1)  # ahead slower: a median flips between the two at half the stage)
     total = None if t1 is None else float(sum(terms.values()))
     advice = []
     if total is not None and here.kind == "cpu" and total > plan_advice.ABSURD_SECONDS:

@@ -16,9 +16,9 @@ from .padding import padded_shape
 from .plan_devices import GB, Device
 from .rendering import tiling
 
-__all__ = ["CPU_BASE_BYTES", "EVAL_PIXEL_SHARE", "GPU_BASE_BYTES", "GPU_BYTES_PER_GAUSSIAN", "GPU_BYTES_PER_PIXEL",
-           "GPU_BYTES_PER_TEXEL", "TEXTURE_HEADROOM", "fixes", "gaussian_bytes", "memory_plan", "padded_pixels",
-           "pixel_bytes", "stage_peaks", "texture_bytes"]
+__all__ = ["CPU_BASE_BYTES", "CPU_SIZE_BYTES", "EVAL_PIXEL_SHARE", "GPU_BASE_BYTES", "GPU_BYTES_PER_GAUSSIAN",
+           "GPU_BYTES_PER_PIXEL", "GPU_BYTES_PER_TEXEL", "TEXTURE_HEADROOM", "fixes", "gaussian_bytes", "memory_plan",
+           "padded_pixels", "padded_sizes", "pixel_bytes", "stage_peaks", "texture_bytes"]
 
 #: GPU bytes besides the per-pixel, per-Gaussian and texture arrays: the images of a step on the
 #: device, the compiled programs' constants and small buffers (counted, not calibrated).
@@ -38,6 +38,15 @@ EVAL_PIXEL_SHARE = 0.5
 #: stage's is mostly the compiled code it keeps (its start, Eq. 7's counter and renderer, the step
 #: of each layout growth makes). Evaluation's peak is the training peak.
 CPU_BASE_BYTES = dict(stage1=960 * 2**20, stage1_textured=1360 * 2**20, texture=2000 * 2**20)
+#: CPU bytes each padded size of the training views past the first adds to a textured run's stages
+#: (the bases above are one size's): the programs compiled for each size stay resident, Eq. 7's pair
+#: counter and renderer compiled ahead in the 2DGS stage (``stage1_textured``), the textured step
+#: and Eq. 7's programs of each size in the texture stage (``texture``). Calibrated on beer at 1/4
+#: (three padded sizes; benchmarks/plan_check_cpu_idle_cold_2f15410.json, the calibration row,
+#: docs/memory.md): its peaks above the one-size bases' 2,111 - 1,422 MiB (2DGS stage) and 2,717 -
+#: 2,066 MiB (texture stage), over its two more sizes. An untextured run keeps its bases (beer at 1/4
+#: in ``2dgs``, the same three sizes: its 2DGS peak 7% above the base's, within the noise).
+CPU_SIZE_BYTES = dict(stage1=0, stage1_textured=340 * 2**20, texture=320 * 2**20)
 
 
 def pixel_bytes(pixels: int, kind: str, device_bytes: int | None = None, *, training: bool = True,
@@ -105,7 +114,7 @@ def texture_bytes(rgba_texels: int, *, mip: bool = True, training: bool = True) 
 
 def stage_peaks(kind: str, *, train_pixels: int, eval_pixels: int, gaussians: int, rgba_texels: int,
                 textured: bool, mip: bool = True, device_bytes: int | None = None,
-                image_bytes: int = 0) -> dict[str, int]:
+                image_bytes: int = 0, sizes: int = 1) -> dict[str, int]:
     """Peak memory (bytes) of the 2DGS stage, the texture stage and evaluation.
 
     Args:
@@ -117,6 +126,7 @@ def stage_peaks(kind: str, *, train_pixels: int, eval_pixels: int, gaussians: in
       mip: textures with mipmaps.
       device_bytes: a GPU's memory for JAX (its compositor's tile batch).
       image_bytes: CPU only: the images the dataset caches.
+      sizes: CPU only: the training views' padded sizes (:data:`CPU_SIZE_BYTES` for each past the first).
     Returns:
       ``{"stage1", "texture", "eval"}`` in bytes (``texture`` 0 without a texture stage).
     """
@@ -124,8 +134,11 @@ def stage_peaks(kind: str, *, train_pixels: int, eval_pixels: int, gaussians: in
     tex = texture_bytes(rgba_texels, mip=mip)
     if kind == "cpu":
         px = pixel_bytes(train_pixels, "cpu")
-        s1 = CPU_BASE_BYTES["stage1_textured" if textured else "stage1"] + px + g + image_bytes
-        s2 = CPU_BASE_BYTES["texture"] + px + g + tex + image_bytes if textured else 0.0
+        more = max(int(sizes) - 1, 0)
+        key = "stage1_textured" if textured else "stage1"
+        s1 = CPU_BASE_BYTES[key] + more * CPU_SIZE_BYTES[key] + px + g + image_bytes
+        s2 = (CPU_BASE_BYTES["texture"] + more * CPU_SIZE_BYTES["texture"] + px + g + tex + image_bytes
+              if textured else 0.0)
         ev = max(s1, s2, CPU_BASE_BYTES["stage1"] + pixel_bytes(eval_pixels, "cpu", training=False) + image_bytes)
     else:
         px = pixel_bytes(train_pixels, "gpu", device_bytes)
@@ -154,7 +167,8 @@ def fixes(device: Device, peaks: dict[str, int], *, sizes, factor: float, gaussi
     def peaks_at(sizes_, n, texels, eval_px, images):
         px = max(padded_pixels(w, h) for w, h in sizes_)
         return stage_peaks(device.kind, train_pixels=px, eval_pixels=eval_px, gaussians=n, rgba_texels=texels,
-                           textured=textured, mip=mip, device_bytes=device.memory_bytes, image_bytes=images)
+                           textured=textured, mip=mip, device_bytes=device.memory_bytes, image_bytes=images,
+                           sizes=padded_sizes(sizes_))
 
     out = []
     for f in range(int(math.floor(factor)) + 1, 65):
@@ -197,6 +211,12 @@ def padded_pixels(width: int, height: int, tile_size: int = 16) -> int:
     return h * w
 
 
+def padded_sizes(sizes) -> int:
+    """How many padded sizes views of these (width, height) ``sizes`` have (each compiles its
+    programs: :mod:`patexgs_jax.padding`)."""
+    return len({padded_shape(h, w) for w, h in sizes})
+
+
 def memory_plan(dataset, config, gaussians: int, rgba_texels: int, device: Device, image_bytes: int) -> dict:
     """This run's peaks on ``device`` and whether they fit: ``{"device", "kind", "memory_bytes",
     "peak_bytes", "fits", "fixes"}`` (bytes). ``image_bytes``: the decoded images the dataset may
@@ -212,7 +232,7 @@ def memory_plan(dataset, config, gaussians: int, rgba_texels: int, device: Devic
     mip = spec.mip != "none"
     peaks = stage_peaks(device.kind, train_pixels=train_px, eval_pixels=eval_px, gaussians=gaussians,
                         rgba_texels=rgba_texels, textured=textured, mip=mip, device_bytes=device.memory_bytes,
-                        image_bytes=images)
+                        image_bytes=images, sizes=padded_sizes(sizes))
     fits = max(peaks.values()) <= device.memory_bytes
     advice = fixes(device, peaks, sizes=sizes, factor=float(getattr(dataset, "factor", 1) or 1), gaussians=gaussians,
                    rgba_texels=rgba_texels, textured=textured, mip=mip, image_bytes=images, eval_pixels=eval_px)

@@ -290,11 +290,11 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
         # Past a stage's timing nothing runs: the state stays, the last metrics stand in.
         if timing(step) and enough(stage_of(step)) and "m" in last:
             skipped.add(step)
-            return state, last["m"]
-        state, m = step_run(state, step, views, images, render_cfg)
+            return state, last["m"], 0.0
+        state, m, seconds = step_run(state, step, views, images, render_cfg)
         if m is not None:
             last["m"] = m
-        return state, m
+        return state, m, seconds
 
     run.steps.run = run_step
     if allocates:

@@ -44,7 +44,9 @@ def test_plan_json_keeps_every_figure_with_its_unit(ds):
     assert set(doc["peak_bytes"]) == {"stage1", "texture", "eval"}
     assert all(isinstance(v, int) and v > 0 for v in doc["peak_bytes"].values())
     assert doc["peak_bytes"]["texture"] > doc["peak_bytes"]["stage1"]  # textures on top
-    assert doc["step_seconds"] == dict(stage1=0.05, texture=0.08)
+    # (the 2DGS stage's step: the mean of its steps, those beside the compile ahead slower)
+    assert doc["step_seconds"]["texture"] == 0.08 and doc["step_seconds"]["stage1"] == pytest.approx(
+        doc["time_terms_seconds"]["stage1"] / 600) and doc["step_seconds"]["stage1"] > 0.05
     assert isinstance(doc["fits"], bool) and doc["fits"] and doc["fixes"] == []
     t = doc["time_terms_seconds"]
     k = doc["ahead_steps"]  # (the 2DGS steps beside the texture stage's compile ahead: 2 s of it at 2 x 50 ms)
@@ -121,7 +123,7 @@ def test_the_2dgs_steps_beside_the_compile_ahead_are_slower(monkeypatch):
     """A textured run on a CPU compiles its texture stage's first programs ahead from its last
     densification: its 2DGS steps beside that compile take 2x as long (the plan's stage term), the
     compile is done by the stage's end (its term less), and where most of the stage shares the cores
-    (beer's 150-step check never densifies: ahead from step 0) the stage's median step is the slower one."""
+    (beer's 150-step check never densifies: ahead from step 0) the stage's step, their mean, is slower."""
     tiny = preset_config("tiny", method="patexgs", iters_2dgs=300)  # last densification at 250: 50 steps at most
     assert plan.ahead_steps(tiny, 0.08, 30.0, "cpu") == 50
     assert plan.ahead_steps(tiny, 0.08, 4.0, "cpu") == 25  # 4 s at 2 x 80 ms a step
@@ -131,6 +133,45 @@ def test_the_2dgs_steps_beside_the_compile_ahead_are_slower(monkeypatch):
     assert plan.ahead_steps(short, 0.13, 37.0, "cpu") == 142  # 37 s at 2 x 130 ms
     monkeypatch.setenv("PATEXGS_COMPILE_AHEAD", "0")
     assert plan.ahead_steps(short, 0.13, 37.0, "cpu") == 0
+
+
+def test_more_padded_sizes_more_seconds_compiled_ahead_beside_the_2dgs_steps(ds):
+    """A textured run's 2DGS stage compiles ahead Eq. 7's pair counter and renderer for each padded
+    size of its training views: each size past the first adds AHEAD_SIZE_SHARE of a layout's compile
+    to the compile ahead, so more of the stage's steps share the cores with it (slower: the stage's
+    term and its step). One size: one layout's compile, as before."""
+    assert plan.ahead_seconds(10.0) == plan.ahead_seconds(10.0, 1) == 10.0
+    assert plan.ahead_seconds(10.0, 3) == pytest.approx(10.0 * (1 + 2 * plan.AHEAD_SIZE_SHARE))
+    short = preset_config("cpu", method="patexgs", iters_2dgs=150, iters_tex=100)  # (ahead from step 0: 150 steps)
+    assert plan.ahead_steps(short, 0.25, 21.7, "cpu", 1) == plan.ahead_steps(short, 0.25, 21.7, "cpu") == 43
+    assert plan.ahead_steps(short, 0.25, 21.7, "cpu", 3) == int(21.7 * (1 + 2 * plan.AHEAD_SIZE_SHARE) / 0.5) > 43
+    assert plan.ahead_steps(short, 0.25, 21.7, "cpu", 9) == 150  # (at most the window)
+    assert plan.ahead_steps(dataclasses.replace(short, method="2dgs"), 0.25, 21.7, "cpu", 3) == 0
+    cfg = preset_config("tiny", method="patexgs", max_gaussians=500)
+    one, three = (plan.make_plan(ds, cfg, measured=dict(MEASURED, padded_sizes=n)) for n in (1, 3))
+    assert one.ahead_steps == plan.ahead_steps(cfg, 0.05, 2.0, "cpu") and three.ahead_steps > one.ahead_steps
+    assert three.time_terms["stage1"] > one.time_terms["stage1"]
+    assert three.step_seconds["stage1"] > one.step_seconds["stage1"]
+
+
+def test_more_padded_sizes_a_higher_cpu_peak_for_a_textured_run():
+    """Each padded size of the training views past the first keeps its compiled programs resident
+    on a CPU: CPU_SIZE_BYTES more in a textured run's stages (and so its evaluation's peak). One
+    size: the bases alone, as before; an untextured run and a GPU's peaks do not change."""
+    from patexgs_jax.plan_memory import padded_sizes
+
+    kw = dict(train_pixels=320 * 176, eval_pixels=320 * 176, gaussians=4414, rgba_texels=40_000)
+    one = plan.stage_peaks("cpu", textured=True, **kw)
+    assert plan.stage_peaks("cpu", textured=True, sizes=1, **kw) == one
+    three = plan.stage_peaks("cpu", textured=True, sizes=3, **kw)
+    assert three["stage1"] - one["stage1"] == 2 * plan.CPU_SIZE_BYTES["stage1_textured"] > 0
+    assert three["texture"] - one["texture"] == 2 * plan.CPU_SIZE_BYTES["texture"] > 0
+    assert three["eval"] > one["eval"]
+    assert plan.stage_peaks("cpu", textured=False, sizes=3, **kw) == plan.stage_peaks("cpu", textured=False, **kw)
+    gpu = dict(kw, device_bytes=int(18e9))
+    assert plan.stage_peaks("gpu", textured=True, sizes=3, **gpu) == plan.stage_peaks("gpu", textured=True, **gpu)
+    # 64x48 and 64x33 pad to 64x48; 70x48 to 80x48.
+    assert padded_sizes([(64, 48), (64, 33)]) == 1 and padded_sizes([(64, 48), (64, 33), (70, 48)]) == 2
 
 
 def test_growth_events_that_overflow_a_bucket_compile_the_textured_step_again(ds, monkeypatch):
