@@ -156,6 +156,12 @@ def sample_eq6_counts(schedule, views, sample) -> None:
     schedule.allocation_sides = allocation_sides
 
 
+def _compiled_apart(seconds: list[float]) -> tuple[list[float], list[float], float]:
+    """(the steps within :data:`COMPILED_STEP` x the median, those beyond it: they compiled, the median)."""
+    mid = statistics.median(seconds)
+    return ([x for x in seconds if x <= COMPILED_STEP * mid], [x for x in seconds if x > COMPILED_STEP * mid], mid)
+
+
 def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gaussians: int | None = None,
                   eq6_views: int = EQ6_SAMPLE_VIEWS, quick: bool = False, progress: Progress | None = None,
                   evaluate: bool = True) -> dict:
@@ -324,15 +330,14 @@ def measure_steps(dataset, config, gaussians: int, *, steps: int = 5, stage1_gau
         elif not timing(step - 1):
             untimed[stage_of(step - 1)].append(t - prev_t)
         prev_t = t
-    if settled:  # (as the timed steps: one that compiled, a capacity's retry, is compiling)
-        mid = statistics.median(settled)
-        untimed[1] += [x for x in settled if x > COMPILED_STEP * mid]
+    if settled:  # (as the timed steps; a compiling one counts as the median step, so the count stays the run's)
+        _, compiled, mid = _compiled_apart(settled)
+        untimed[1] += compiled
         settled = [x if x <= COMPILED_STEP * mid else mid for x in settled]
     for k, v in timed.items():
         if v:
-            mid = statistics.median(v)
-            untimed[k] += [x for x in v if x > COMPILED_STEP * mid]
-            timed[k] = [x for x in v if x <= COMPILED_STEP * mid]
+            timed[k], compiled, _ = _compiled_apart(v)
+            untimed[k] += compiled
     med = {k: (statistics.median(v) if v else None) for k, v in timed.items()}
     comp = {k: max(0.0, sum(untimed[k]) - len(untimed[k]) * (med[k] or 0.0)) if med[k] else 0.0 for k in timed}
     out = dict(stage1=med[1], texture=med[2] if textured else None, stage1_gaussians=m, compile_stage1=comp[1],
