@@ -31,7 +31,7 @@ import numpy as np
 
 from . import interrupt, memory_maps, progress
 from .camera import ZOOM_SCALES
-from .padding import ViewRenderer
+from .padding import EVAL_STEPS_PER_OCTAVE, ViewRenderer, padded_shape
 from .render import RenderConfig
 
 __all__ = [
@@ -39,12 +39,14 @@ __all__ = [
     "MAX_METRIC_PROGRAMS",
     "SCALES",
     "camera_problem",
+    "eval_programs",
     "evaluate",
     "evaluate_scales",
     "image_problem",
     "render_image",
     "render_ms",
     "render_view",
+    "shared_renderer",
     "side_by_side",
     "usable",
     "view_problem",
@@ -213,11 +215,42 @@ def evaluate_scales(scene, views: Sequence, config: RenderConfig, *, scales: Seq
     return result
 
 
-def evaluate(scene, views, render_config: RenderConfig) -> dict:
+def evaluate(scene, views, render_config: RenderConfig, *, renderer: ViewRenderer | None = None) -> dict:
     """``{"psnr", "ssim"}``: the means over the usable ``views`` at full size (what a training run
-    reports; None without usable views), as :func:`evaluate_scales` at scale 1."""
-    full = evaluate_scales(scene, views, render_config, scales=(1,))["1"]
+    reports; None without usable views), as :func:`evaluate_scales` at scale 1 (``renderer`` as
+    there)."""
+    full = evaluate_scales(scene, views, render_config, scales=(1,), renderer=renderer)["1"]
     return dict(psnr=full["psnr"], ssim=full["ssim"])
+
+
+def shared_renderer(scene, config: RenderConfig, view_sets: Sequence[Sequence]) -> ViewRenderer:
+    """A :class:`ViewRenderer` of ``scene`` with every padded size's capacity fitted to the usable
+    views of all ``view_sets`` (pass it to :func:`evaluate` for each set, then release it: use it as
+    a context manager). With a renderer of its own each set fits its own capacities, and a padded
+    size the sets share compiles again wherever those differ (beer at 1/4, the 32 training views
+    and the 9 test views a run evaluates: 5 programs against 3, :func:`eval_programs`)."""
+    renderer = ViewRenderer(scene, config)
+    renderer.prepare([v.camera for vs in view_sets for v in vs if usable(v)])
+    return renderer
+
+
+def eval_programs(view_sets: Sequence[Sequence], config: RenderConfig) -> tuple[int, int]:
+    """(renderer programs, SSIM compiles) of evaluating the views of ``view_sets`` in turn at full
+    size with one :func:`shared_renderer`: one renderer (and pair counter) a padded size; SSIM runs on
+    the cropped image, so one program a view size, compiled again for a size met after its program
+    was trimmed (:data:`MAX_METRIC_PROGRAMS` held at a time, as :func:`evaluate_scales` trims them
+    after each view). Every view is counted from its camera alone (no image is loaded): an unusable
+    one, which an evaluation leaves out, is rare."""
+    padded, held, ssim_compiles = set(), set(), 0
+    for v in (v for vs in view_sets for v in vs):
+        c = v.camera
+        padded.add(padded_shape(c.height, c.width, config.tile_size, EVAL_STEPS_PER_OCTAVE))
+        if (c.height, c.width) not in held:
+            held.add((c.height, c.width))
+            ssim_compiles += 1
+        if len(held) > MAX_METRIC_PROGRAMS:
+            held.clear()
+    return len(padded), ssim_compiles
 
 
 def _evaluate_view(renderer: ViewRenderer, i: int, v, scales, acc: dict, lpips, keep_images: int) -> None:

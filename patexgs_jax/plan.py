@@ -381,7 +381,7 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
     terms = dict(stage1=stage1 + beside * (AHEAD_SLOWDOWN - 1),
                  texture=steps2 * (t2 or 0.0) + beside2 * (AHEAD_SLOWDOWN - 1),
                  compile=max(0.0, compiles - (beside + beside2) * AHEAD_SLOWDOWN),
-                 eval=n_eval * measured["eval_view"] * sc + 2 * measured.get("eval_compile", 0.0))
+                 eval=n_eval * measured["eval_view"] * sc + _eval_compiles(dataset, config, measured))
     compiled = dict(layouts=texture_layouts(config), growth_events=events, growth_layouts=grown, seconds_each=each,
                     warmup_ahead_steps=k2) if spec.textures is not None else {}
     if t1 is not None and (first or k):  # (the stage's step: the mean of its steps, those beside the compile
@@ -399,6 +399,18 @@ def make_plan(dataset, config, *, devices=(), measure: bool = True, steps: int =
                 devices=plans, step_seconds=dict(stage1=t1, texture=t2), measured=measured,
                 total_seconds=total, time_terms=terms, advice=advice, ahead_steps=k, compiles=compiled,
                 figures=figures)
+
+
+def _eval_compiles(dataset, config, measured: dict) -> float:
+    """Seconds the run's evaluation compiles: its renderer and pair counter once a padded size of
+    the views it evaluates (32 training, every test view: one renderer for both), SSIM once a view
+    size (:func:`patexgs_jax.evaluation.eval_programs`), at the plan's measured compiles
+    (``eval_compile`` holds one of each; ``ssim_compile``, SSIM's alone, 0 where not measured)."""
+    from .evaluation import eval_programs
+
+    renders, ssims = eval_programs((dataset.train_views[:32], dataset.test_views), config.render_config())
+    each, ssim = measured.get("eval_compile", 0.0) or 0.0, measured.get("ssim_compile", 0.0) or 0.0
+    return renders * (each - ssim) + ssims * ssim
 
 
 def _measure(dataset, config, n: int, fits: bool, here: Device, steps: int, all_steps: int, pr) -> dict:
@@ -487,7 +499,9 @@ def _figures(m: dict, *, textured: bool, n: int, n_from: str, sigma_from: str, a
     out["time_terms.eval"] = (f("estimated", f"a render {EVAL_STEP_SHARE:g} x the 2DGS step, its compile "
                                              f"{EVAL_COMPILE_SHARE:g} x the step's; not timed")
                               if m.get("eval_estimated") else f(how if sc > 1 else "measured",
-                                                                "one render timed after its compile"))
+                                                                "one render timed after its compile; the "
+                                                                "compile once a padded size, SSIM's once a "
+                                                                "view size"))
     if advice:
         out["advice"] = f("extrapolated", "the timed steps scaled linearly in Gaussians and pixels; the H100 "
                                           "from its measured steps")

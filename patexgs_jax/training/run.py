@@ -12,7 +12,7 @@ import numpy as np
 
 from .. import checkpoint as ckpt
 from .. import interrupt, memory_maps, parallel, progress
-from ..evaluation import evaluate
+from ..evaluation import evaluate, shared_renderer
 from ..metrics import scene_storage
 from ..scene import Scene
 from ..schedule import side_histogram
@@ -216,10 +216,13 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         jax.distributed.shutdown()  # the processes are done with each other (every one calls this)
     if main or evaluate_everywhere:
         # (the final checkpoint holds the trained scene: a stop from here on loses no training)
-        interrupt.set_phase("evaluating the training views")
-        train_eval = evaluate(scene, run.train_views[:32], run.render_cfg)
-        interrupt.set_phase("evaluating the test views")
-        test_eval = evaluate(scene, list(dataset.test_views), run.render_cfg)
+        # (one renderer for both sets: a padded size compiles once for the two)
+        sets = (run.train_views[:32], list(dataset.test_views))
+        with shared_renderer(scene, run.render_cfg, sets) as renderer:
+            interrupt.set_phase("evaluating the training views")
+            train_eval = evaluate(scene, sets[0], run.render_cfg, renderer=renderer)
+            interrupt.set_phase("evaluating the test views")
+            test_eval = evaluate(scene, sets[1], run.render_cfg, renderer=renderer)
     else:  # evaluation and outputs are process 0's
         train_eval = test_eval = dict(psnr=None, ssim=None)
     summary.update(train_psnr=train_eval["psnr"], test_psnr=test_eval["psnr"], test_ssim=test_eval["ssim"],

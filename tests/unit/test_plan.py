@@ -221,6 +221,38 @@ def test_the_run_s_first_steps_are_the_ones_the_plan_trained_untimed(ds, monkeyp
     assert "its first 100 as the plan trained its scene untimed" in p.text()
 
 
+def test_the_evaluation_compiles_once_a_padded_size_and_ssim_once_a_view_size(ds):
+    """The run's evaluation (32 training views, then the test views, one renderer for both) compiles
+    its renderer once a padded size and SSIM once a view size, again where SSIM's programs were
+    trimmed meanwhile; the plan's evaluation term counts both at its measured compiles."""
+    from types import SimpleNamespace
+
+    from patexgs_jax.camera import Camera
+    from patexgs_jax.evaluation import MAX_METRIC_PROGRAMS, eval_programs
+
+    rc = TrainConfig().render_config()
+    K = [[50.0, 0, 30], [0, 50.0, 20], [0, 0, 1]]
+
+    def view(w, h):
+        return SimpleNamespace(camera=Camera(K=K, world_to_camera=[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                                     [0, 0, 0, 1]], width=w, height=h))
+
+    # 64x48 and 60x40 pad to 64x48, 70x48 to 80x48: two padded sizes, three view sizes.
+    assert eval_programs(([view(64, 48), view(60, 40)], [view(70, 48), view(64, 48)]), rc) == (2, 3)
+    # More view sizes than SSIM keeps: the first ones compile again once the programs were trimmed.
+    # (heights 20 to 28 all pad to two tiles: one padded size)
+    many = [view(64, 20 + i) for i in range(MAX_METRIC_PROGRAMS + 1)]
+    assert eval_programs((many, many[:2]), rc) == (1, MAX_METRIC_PROGRAMS + 1 + 2)
+    # The embedded-size scene: one size, one renderer and one SSIM for both sets.
+    assert eval_programs((ds.train_views[:32], ds.test_views), rc) == (1, 1)
+    cfg = preset_config("tiny", method="patexgs", max_gaussians=500)
+    m = dict(MEASURED, eval_compile=1.0, ssim_compile=0.25)
+    n_eval = len(ds.test_views) + min(len(ds.train_views), 32)
+    assert plan.make_plan(ds, cfg, measured=m).time_terms["eval"] == pytest.approx(n_eval * 0.01 + 0.75 + 0.25)
+    # (a plan without SSIM's own compile: each padded size its measured evaluation compile)
+    assert plan.make_plan(ds, cfg, measured=dict(MEASURED)).time_terms["eval"] == pytest.approx(n_eval * 0.01 + 1.0)
+
+
 def test_the_plan_says_how_many_steps_it_timed(ds):
     """Cheap steps are timed until they add up to a few seconds: the plan names the count of each stage."""
     cfg = preset_config("tiny", method="patexgs", max_gaussians=500)
