@@ -226,9 +226,9 @@ def evaluate(scene, views, render_config: RenderConfig, *, renderer: ViewRendere
 def shared_renderer(scene, config: RenderConfig, view_sets: Sequence[Sequence]) -> ViewRenderer:
     """A :class:`ViewRenderer` of ``scene`` with every padded size's capacity fitted to the usable
     views of all ``view_sets`` (pass it to :func:`evaluate` for each set, then release it: use it as
-    a context manager). With a renderer of its own each set fits its own capacities, and a padded
-    size the sets share compiles again wherever those differ (beer at 1/4, the 32 training views
-    and the 9 test views a run evaluates: 5 programs against 3, :func:`eval_programs`)."""
+    a context manager). So the renderer compiles once a padded size of the sets together
+    (:func:`eval_programs` counts them), where a renderer for each set compiles a size the sets share
+    again whenever their own capacities fall in different powers of two."""
     renderer = ViewRenderer(scene, config)
     renderer.prepare([v.camera for vs in view_sets for v in vs if usable(v)])
     return renderer

@@ -267,16 +267,22 @@ class ViewRenderer:
         self._textures = None  # the scene's scene_textures, once built (reuse_textures)
         self.capacities: dict = {}  # (height, width) of a padded size -> Capacity; one per size
         self.programs = dict(programs or {})
+        # (a padded camera's size, intrinsics and pose -> the pairs it needs: one scene, so each view is
+        # counted once, however many view lists are prepared with it)
+        self._counted: dict = {}
 
     def camera(self, camera: Camera) -> Camera:
         """``camera`` at its padded size."""
         return padded_camera(camera, self.config.tile_size, self.steps)
 
     def _needed(self, cam: Camera) -> float:
-        program = self.programs.get(("count", cam.height, cam.width))
-        needed, _ = (program(self.scene, cam) if program is not None
-                     else count_pairs(self.scene, cam, self.config))
-        return float(needed)
+        key = (cam.height, cam.width, np.asarray(cam.K).tobytes(), np.asarray(cam.world_to_camera).tobytes())
+        if key not in self._counted:
+            program = self.programs.get(("count", cam.height, cam.width))
+            needed, _ = (program(self.scene, cam) if program is not None
+                         else count_pairs(self.scene, cam, self.config))
+            self._counted[key] = float(needed)
+        return self._counted[key]
 
     def _render(self, cam: Camera, cap: Capacity):
         program = (self.programs.get(("render", cam.height, cam.width, cap))
@@ -344,6 +350,7 @@ class ViewRenderer:
         release_scene_programs(retire=True)
         self.capacities.clear()
         self.programs.clear()
+        self._counted.clear()
         self._textures = None
 
     def __enter__(self):

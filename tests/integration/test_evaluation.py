@@ -60,19 +60,25 @@ def test_alias_psnr_tells_the_prefilter_from_the_low_pass(views):
     assert pre > low + 3.0, (pre, low)
 
 
-def test_one_renderer_for_two_sets_gives_each_its_metrics_with_one_capacity_a_padded_size(views):
+def test_one_renderer_for_two_sets_gives_each_its_metrics_with_one_capacity_a_padded_size(views, monkeypatch):
     """A run evaluates its training views, then its test views, with one renderer fitted to both
     (:func:`shared_renderer`): each set scores what a renderer of its own gives it (to float
     rounding: a padded size's capacity may be larger), and the renderer holds one capacity, so one
-    program, a padded size of the two sets together (what :func:`eval_programs` counts)."""
+    program, a padded size of the two sets together (what :func:`eval_programs` counts); it counts
+    each view's pairs once, though each set's evaluation fits the capacities to its views again."""
+    from patexgs_jax import padding
     from patexgs_jax.evaluation import eval_programs, evaluate, shared_renderer
 
     scene, cfg = _small_splats(), RenderConfig(coverage="prefilter")
     sets = ([views[0]], [views[1], views[0].scaled(2)])  # (the scaled view: another padded size)
     apart = [evaluate(scene, s, cfg) for s in sets]
+    counted = []
+    count = padding.count_pairs
+    monkeypatch.setattr(padding, "count_pairs", lambda *a, **k: counted.append(1) or count(*a, **k))
     with shared_renderer(scene, cfg, sets) as renderer:
         shared = [evaluate(scene, s, cfg, renderer=renderer) for s in sets]
         sizes = dict(renderer.capacities)
+    assert len(counted) == 3
     for a, b in zip(apart, shared, strict=True):
         assert b["psnr"] == pytest.approx(a["psnr"], abs=1e-4) and b["ssim"] == pytest.approx(a["ssim"], abs=1e-6)
     assert len(sizes) == eval_programs(sets, cfg)[0] == 2
