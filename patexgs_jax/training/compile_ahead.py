@@ -343,6 +343,7 @@ class CompileAhead:
         if prep is None or prep.step_job is None:
             if predicted:
                 self.record(step, what, False, "compiled ahead for another texture layout")
+                self._one_compile_at_a_time(step)
             return None
         job = prep.step_job
         if job.cancel() or job.cancelled:
@@ -354,6 +355,7 @@ class CompileAhead:
         if prep.capacity != capacity or prep.fn is None:
             self.record(step, what, False, f"compiled ahead for tile capacity {prep.capacity}, the run uses {capacity}"
                         if prep.fn is not None else "its background compile failed")
+            self._one_compile_at_a_time(step)
             return None  # (a capacity the run does not use; Eq. 7's programs may still serve)
         prep.owner = id(self)
         if prep.then is not None:
@@ -361,6 +363,25 @@ class CompileAhead:
         if prep.eq7_job is None:
             prep.drop()
         return StepEntry(prep.fn, set(), {prep.padded: prep.step_job})
+
+    def _one_compile_at_a_time(self, step: int) -> None:
+        """On a CPU, where the main thread is about to compile a textured step this run's compile
+        ahead did not predict: waits for that prediction's compile if it is still running, so that
+        the process compiles one textured step at a time (two at once held 3,164 MiB where one held
+        2,251 MiB, docs/performance.md: the peak the plan and the memory check count is one
+        compile's). A GPU run does not wait (the compiles' memory is the host's, not the device's)."""
+        if jax.default_backend() != "cpu":
+            return
+        identity = step_identity(self.cfg)
+        for p in self.prepared:
+            job = p.step_job
+            if p.identity == identity and job is not None and job.running:
+                interrupt.set_phase(f"waiting for the background compile of {job.what}")
+                interrupt.set_step(step, self.cfg.total_steps)
+                self.say(f"[compile ahead] waiting for {job.what} ({time.monotonic() - (job.started or 0):.0f} s "
+                         "into its compile; not used) before compiling the textured step here: one compile at a "
+                         "time")
+                job.wait(poll=interrupt.check)
 
     def _settle_predictions(self, render_cfg: RenderConfig, step: int) -> None:
         """Waits for the predicted allocations being counted in the background for this run's settings
