@@ -367,9 +367,9 @@ class CompileAhead:
     def _one_compile_at_a_time(self, step: int) -> None:
         """On a CPU, where the main thread is about to compile a textured step this run's compile
         ahead did not predict: waits for that prediction's compile if it is still running, so that
-        the process compiles one textured step at a time (two at once held 3,164 MiB where one held
-        2,251 MiB, docs/performance.md: the peak the plan and the memory check count is one
-        compile's). A GPU run does not wait (the compiles' memory is the host's, not the device's)."""
+        the process compiles one textured step at a time: the peak the plan and the memory check count
+        holds one such compile (two at once, measured in docs/performance.md, hold far more). A GPU
+        run does not wait (the compiles' memory is the host's, not the device's)."""
         if jax.default_backend() != "cpu":
             return
         identity = step_identity(self.cfg)

@@ -218,8 +218,8 @@ def train(dataset, config: TrainConfig = TrainConfig(), out_dir=None, *, resume:
         # (the final checkpoint holds the trained scene: a stop from here on loses no training)
         # (one renderer for both sets: a padded size compiles once for the two)
         sets = (run.train_views[:32], list(dataset.test_views))
+        interrupt.set_phase("evaluating the training views")
         with shared_renderer(scene, run.render_cfg, sets) as renderer:
-            interrupt.set_phase("evaluating the training views")
             train_eval = evaluate(scene, sets[0], run.render_cfg, renderer=renderer)
             interrupt.set_phase("evaluating the test views")
             test_eval = evaluate(scene, sets[1], run.render_cfg, renderer=renderer)
