@@ -45,25 +45,25 @@ def test_a_miss_waits_for_the_wrong_predictions_compile_on_a_cpu():
     assert len(said) == 1
 
 
+def _assert_not_waited_for(ahead, job, said, release):
+    try:
+        CompileAhead._one_compile_at_a_time(ahead, 320)
+        assert job.running and said == []
+    finally:
+        release.set()
+        job.wait(10)
+
+
 def test_a_miss_on_a_gpu_does_not_wait(monkeypatch):
     cfg, release = TrainConfig(method="patexgs"), threading.Event()
     ahead, job, said = _ahead_with_a_running_prediction(cfg, release)
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    try:
-        CompileAhead._one_compile_at_a_time(ahead, 320)
-        assert job.running and said == []
-    finally:
-        release.set()
-        job.wait(10)
-    # Another run's prediction (another step identity) is not waited for either.
-    other = TrainConfig(method="patexgs", lambda_dist=0.0 if cfg.lambda_dist > 0 else 0.1)
-    monkeypatch.undo()
-    release = threading.Event()
+    _assert_not_waited_for(ahead, job, said, release)
+
+
+def test_another_runs_prediction_is_not_waited_for():
+    cfg, release = TrainConfig(method="patexgs"), threading.Event()
+    other = TrainConfig(method="patexgs", lambda_dist=0.0 if cfg.lambda_dist > 0 else 0.1)  # (another step)
     ahead, job, said = _ahead_with_a_running_prediction(other, release)
     ahead.cfg = cfg
-    try:
-        CompileAhead._one_compile_at_a_time(ahead, 320)
-        assert job.running and said == []
-    finally:
-        release.set()
-        job.wait(10)
+    _assert_not_waited_for(ahead, job, said, release)
